@@ -1,0 +1,3 @@
+from dmlo.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,50 @@
+"""The ``dmlo`` command: one subcommand per job, each registered from its own module."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+import dmlo
+
+
+class UserError(Exception):
+    """A mistake in what the user asked for: printed as one line, no traceback."""
+
+
+# One module per subcommand under `dmlo.commands`, each with `register(subparsers)` that adds its parser
+# and sets `run`. Command modules import heavy libraries (torch, onnxruntime) inside `run` only, so
+# `dmlo --help` stays fast and the odometry never imports torch.
+_COMMANDS: list[str] = []
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="dmlo",
+        description="DMLO: Deep Matching LiDAR Odometry.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"dmlo {dmlo.__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in _COMMANDS:
+        module = importlib.import_module(f"dmlo.commands.{name}")
+        module.register(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not hasattr(args, "run"):
+        parser.print_help()
+        return 0
+    try:
+        return int(args.run(args) or 0)
+    except UserError as err:
+        print(f"dmlo {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"dmlo {args.command}: interrupted", file=sys.stderr)
+        return 130

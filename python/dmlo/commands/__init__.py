@@ -1,0 +1,1 @@
+"""Subcommands of ``dmlo``: one module each, with ``register(subparsers)``."""

@@ -1,0 +1,26 @@
+#![forbid(unsafe_code)]
+//! The crate's error type: every failure names the argument or condition at fault.
+
+/// Errors returned by `dmlo_rs`. Bad input is reported, never papered over with a default result.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum Error {
+    /// An argument has the wrong shape, size or value; `argument` names it as the API does.
+    #[error("{argument}: {reason}")]
+    InvalidArgument { argument: &'static str, reason: String },
+    /// A solve needs more points than it was given.
+    #[error("need at least {needed} point pairs, got {got}")]
+    TooFewPoints { needed: usize, got: usize },
+    /// The points do not determine a unique solution (e.g. all collinear).
+    #[error("degenerate input: {0}")]
+    Degenerate(String),
+}
+
+/// `Result` with the crate's [`Error`].
+pub type Result<T> = std::result::Result<T, Error>;
+
+impl Error {
+    /// Shorthand for [`Error::InvalidArgument`].
+    pub fn invalid(argument: &'static str, reason: impl Into<String>) -> Self {
+        Error::InvalidArgument { argument, reason: reason.into() }
+    }
+}

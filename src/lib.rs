@@ -1,0 +1,36 @@
+//! # dmlo_rs — the geometry core of DMLO (Deep Matching LiDAR Odometry)
+//!
+//! Everything geometric and hot in the DMLO pipeline (Li & Wang), usable from Rust without Python:
+//!
+//! | module | paper | what |
+//! |---|---|---|
+//! | [`projection`] | Eq. 1, 4 | cylinder image of a scan and its inverse Φ⁻¹ |
+//! | [`ground_truth`] | Eq. 5–8 | per-cell training flow and validity for a pair with known motion |
+//! | [`matches`] | §III-D | network output (flow + confidence) → 3D point pairs |
+//! | [`nms`] | §III-D-a | greedy non-maximum suppression on the cylinder grid |
+//! | [`rigid`] | Eq. 12–14 | closed-form weighted rigid solve (faer SVD, reflection fixed) |
+//! | [`ransac`] | §III-D-b | seeded RANSAC with rayon-parallel hypothesis scoring |
+//! | [`ndt`] | §III-D-c | scan-to-map NDT refinement |
+//! | [`raycast`] | — | the LiDAR simulator's ray casting |
+//!
+//! Conventions: LiDAR frame x forward, y left, z up; a scan is `N×4` `f32` (x, y, z, reflectance);
+//! transforms are named by frames, `T_tgt_ref` maps reference points into the target frame
+//! (`p_t = T p_r`, Eq. 7). Angles in public configs are degrees.
+//!
+//! The Python bindings (`import dmlo_rs`) live in the `python` module behind the `python` cargo
+//! feature, which maturin enables.
+
+pub mod error;
+pub mod ground_truth;
+pub mod matches;
+pub mod ndt;
+pub mod nms;
+pub mod projection;
+pub mod ransac;
+pub mod raycast;
+pub mod rigid;
+
+pub use error::{Error, Result};
+
+#[cfg(feature = "python")]
+mod python;

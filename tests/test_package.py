@@ -1,0 +1,30 @@
+"""The installed package: version, command line, and the type stubs against the compiled module."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import dmlo
+import dmlo_rs
+
+
+def test_versions_agree() -> None:
+    assert dmlo_rs.__version__ == dmlo.__version__
+
+
+def test_command_line_reports_version() -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "dmlo", "--version"], capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip() == f"dmlo {dmlo.__version__}"
+
+
+def test_stubs_match_the_extension_module() -> None:
+    # stubtest imports the real module and checks every name, signature and class in the .pyi files.
+    out = subprocess.run(
+        [sys.executable, "-m", "mypy.stubtest", "dmlo_rs"],
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
