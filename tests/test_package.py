@@ -23,8 +23,15 @@ def test_command_line_reports_version() -> None:
 def test_stubs_match_the_extension_module() -> None:
     # stubtest imports the real module and checks every name, signature and class in the .pyi files.
     out = subprocess.run(
-        [sys.executable, "-m", "mypy.stubtest", "dmlo_rs"],
+        [sys.executable, "-m", "mypy.stubtest", "dmlo_rs._dmlo_rs"],
         capture_output=True,
         text=True,
     )
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_package_reexports_the_whole_extension() -> None:
+    from dmlo_rs import _dmlo_rs
+
+    assert dmlo_rs.__all__ == _dmlo_rs.__all__
+    assert all(getattr(dmlo_rs, name) is getattr(_dmlo_rs, name) for name in dmlo_rs.__all__)
