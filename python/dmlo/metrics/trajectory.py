@@ -5,8 +5,9 @@
   ``i`` is ``‖p_gt[i] − p_aligned[i]‖``. This is evo's ``evo_ape --align`` (``--correct_scale`` for Sim(3))
   with the translation part.
 - **RPE** over a frame ``delta``: ``E_i = inv(inv(G_i) G_{i+δ}) · inv(E_i) E_{i+δ}`` for ground truth ``G``
-  and estimate ``E``; translation error ``‖t(E_i)‖`` (m) and rotation error ``angle(R(E_i))`` (degrees), as
-  evo's ``evo_rpe --delta δ --delta_unit f``.
+  and estimate ``E``, for every ``i`` (overlapping pairs); translation error ``‖t(E_i)‖`` (m) and rotation
+  error ``angle(R(E_i))`` (degrees), as evo's ``evo_rpe --delta δ --delta_unit f --all_pairs`` (the same as
+  without ``--all_pairs`` for the default ``δ = 1``).
 """
 
 from __future__ import annotations
