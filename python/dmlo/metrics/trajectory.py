@@ -52,21 +52,22 @@ def umeyama_alignment(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
     """Least-squares ``(R, t, s)`` with ``target ≈ s R source + t`` (Umeyama 1991) for ``(N, 3)`` points.
 
-    Raises ``ValueError`` for fewer than 3 points, different shapes, or degenerate (collinear) sources
-    whose rotation is not determined.
+    For collinear positions (a straight drive) the rotation about the line is not determined; any of the
+    optimal solutions is returned, all of which give the same residuals. Raises ``ValueError`` for no
+    points, different shapes, or a scale asked for points that are all identical.
     """
     src = np.asarray(source, dtype=np.float64)
     dst = np.asarray(target, dtype=np.float64)
     if src.ndim != 2 or src.shape[1] != 3 or src.shape != dst.shape:
         raise ValueError(f"source and target must both be (N, 3), got {src.shape} and {dst.shape}")
-    if len(src) < 3:
-        raise ValueError(f"alignment needs at least 3 positions, got {len(src)}")
+    if len(src) == 0:
+        raise ValueError("alignment needs at least one position")
+    if not (np.all(np.isfinite(src)) and np.all(np.isfinite(dst))):
+        raise ValueError("alignment positions contain NaN or infinite values")
     mean_src, mean_dst = src.mean(axis=0), dst.mean(axis=0)
     centred_src, centred_dst = src - mean_src, dst - mean_dst
     covariance = centred_dst.T @ centred_src / len(src)
     u, singular, vt = np.linalg.svd(covariance)
-    if np.sum(singular > 1e-12 * max(singular[0], 1e-300)) < 2:
-        raise ValueError("alignment is degenerate: the positions are (nearly) collinear or identical")
     reflection = np.eye(3)
     if np.linalg.det(u) * np.linalg.det(vt) < 0:
         reflection[2, 2] = -1.0
@@ -74,6 +75,8 @@ def umeyama_alignment(
     scale = 1.0
     if with_scale:
         variance = np.mean(np.sum(centred_src**2, axis=1))
+        if variance <= 0.0:
+            raise ValueError("Sim(3) alignment is undefined: the estimated positions are all identical")
         scale = float(np.trace(np.diag(singular) @ reflection) / variance)
     translation = mean_dst - scale * rotation @ mean_src
     return rotation, translation, scale
