@@ -515,7 +515,7 @@ def test_pcd_ascii(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("text", "message"),
     [
-        (pcd_header(1, "binary_compressed"), "binary_compressed"),
+        (pcd_header(1, "binary_compressed"), "without its size words"),
         (pcd_header(1, "zip"), "unknown PCD DATA encoding 'zip'"),
         (pcd_header(1, "ascii", fields="x y z"), "different lengths"),
         (pcd_header(1, "ascii", types="F F F Q"), "unsupported TYPE Q"),
@@ -528,6 +528,83 @@ def test_malformed_pcd(tmp_path: Path, text: str, message: str) -> None:
     path.write_text(text)
     with pytest.raises(D.DatasetError, match=message):
         D.read_pcd(path)
+
+
+def lzf_literals(raw: bytes) -> bytes:
+    """A valid LZF stream using literal runs only (at most 32 bytes each)."""
+    out = bytearray()
+    for start in range(0, len(raw), 32):
+        chunk = raw[start : start + 32]
+        out.append(len(chunk) - 1)
+        out += chunk
+    return bytes(out)
+
+
+def test_lzf_back_references() -> None:
+    # "abc" as literals, then a 3-byte copy from 3 back, then an overlapping 9-byte copy from 1 back
+    # (control 7 << 5 with an extra length byte 0 → 7 + 2 = 9).
+    stream = bytes([2]) + b"abc" + bytes([1 << 5, 2]) + bytes([7 << 5, 0, 0])
+    assert D.lzf_decompress(stream, 15) == b"abcabc" + b"c" * 9
+    with pytest.raises(ValueError, match="before the start"):
+        D.lzf_decompress(bytes([1 << 5, 5]), 3)
+    with pytest.raises(ValueError, match="literal run past the end"):
+        D.lzf_decompress(bytes([5]) + b"ab", 6)
+    with pytest.raises(ValueError, match="header says 7"):
+        D.lzf_decompress(bytes([2]) + b"abc", 7)
+
+
+def test_pcd_binary_compressed(tmp_path: Path) -> None:
+    points = random_points(77)
+    fields = [points[:, 0], points[:, 1], points[:, 2], (points[:, 3] * 255).round().astype(np.uint8)]
+    raw = b"".join(np.ascontiguousarray(f).tobytes() for f in fields)  # one field after the other
+    compressed = lzf_literals(raw)
+    header = pcd_header(77, "binary_compressed", sizes="4 4 4 1", types="F F F U")
+    path = tmp_path / "scan.pcd"
+    path.write_bytes(header.encode() + np.array([len(compressed), len(raw)], "<u4").tobytes() + compressed)
+    np.testing.assert_allclose(D.read_pcd(path), expected_from_uchar(points), atol=1e-7)
+    path.write_bytes(header.encode() + np.array([len(compressed), len(raw)], "<u4").tobytes() + compressed[:-9])
+    with pytest.raises(D.DatasetError, match="truncated: \\d+ compressed bytes declared"):
+        D.read_pcd(path)
+    path.write_bytes(header.encode() + np.array([len(compressed), len(raw) + 4], "<u4").tobytes() + compressed)
+    with pytest.raises(D.DatasetError, match="corrupt LZF data"):
+        D.read_pcd(path)
+
+
+@pytest.mark.parametrize("text", [False, True])
+@pytest.mark.parametrize("byte_order", ["<", ">"])
+def test_ply_written_by_plyfile(tmp_path: Path, text: bool, byte_order: str) -> None:
+    plyfile = pytest.importorskip("plyfile")
+    points = random_points(300, seed=12)
+    vertex = np.zeros(
+        300, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("intensity", "u1"), ("ring", "u2")]
+    )
+    vertex["x"], vertex["y"], vertex["z"] = points[:, 0], points[:, 1], points[:, 2]
+    vertex["intensity"] = np.round(points[:, 3] * 255)
+    faces = np.zeros(2, dtype=[("vertex_indices", "i4", (3,))])
+    ply = plyfile.PlyData(
+        [plyfile.PlyElement.describe(vertex, "vertex"), plyfile.PlyElement.describe(faces, "face")],
+        text=text,
+        byte_order=byte_order,
+    )
+    ply.write(str(tmp_path / "scan.ply"))
+    np.testing.assert_allclose(D.read_ply(tmp_path / "scan.ply"), expected_from_uchar(points), atol=1e-5)
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "binary", "binary_compressed"])
+def test_pcd_written_by_pypcd4(tmp_path: Path, encoding: str) -> None:
+    pypcd4 = pytest.importorskip("pypcd4")
+    points = random_points(5000, seed=13)
+    ring = (np.arange(5000) // 100).astype(np.uint16)  # long constant runs: LZF back references
+    cloud = pypcd4.PointCloud.from_points(
+        [points[:, 0], points[:, 1], points[:, 2], points[:, 3], ring],
+        ("x", "y", "z", "intensity", "ring"),
+        (np.float32, np.float32, np.float32, np.float32, np.uint16),
+    )
+    path = tmp_path / "scan.pcd"
+    cloud.save(path, encoding=pypcd4.Encoding(encoding))
+    assert f"DATA {encoding}".encode() in path.read_bytes()[:500]
+    tolerance = 1e-5 if encoding == "ascii" else 0.0
+    np.testing.assert_allclose(D.read_pcd(path), points, atol=tolerance)
 
 
 def test_folder_of_mixed_scans_sorted_by_name(tmp_path: Path) -> None:

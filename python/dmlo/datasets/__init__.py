@@ -28,6 +28,7 @@ from dmlo.datasets.folder import FolderSequence, scan_files_in
 from dmlo.datasets.kitti import KittiSequence, read_timestamps
 from dmlo.datasets.scan_files import (
     SCAN_SUFFIXES,
+    lzf_decompress,
     read_bin,
     read_labels,
     read_pcd,
@@ -49,6 +50,7 @@ __all__ = [
     "KittiSequence",
     "ScanSequence",
     "detect_format",
+    "lzf_decompress",
     "moving_mask",
     "open_sequence",
     "read_bin",

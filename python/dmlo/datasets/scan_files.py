@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,6 +24,7 @@ from dmlo.datasets.base import DatasetError
 
 __all__ = [
     "SCAN_SUFFIXES",
+    "lzf_decompress",
     "read_bin",
     "read_labels",
     "read_pcd",
@@ -253,7 +255,7 @@ _PCD_KINDS = {"F": "f", "U": "u", "I": "i"}
 
 
 def read_pcd(path: PathLike) -> NDArray[np.float32]:
-    """A PCL ``.pcd`` file with ``DATA ascii`` or ``DATA binary`` (``binary_compressed`` is refused)."""
+    """A PCL ``.pcd`` file with ``DATA ascii``, ``binary`` or ``binary_compressed`` (LZF)."""
     path = Path(path)
     data = _read_bytes(path)
     lines, body_offset = _split_header(path, data, b"DATA", "PCD")
@@ -282,7 +284,7 @@ def read_pcd(path: PathLike) -> NDArray[np.float32]:
     if points_count < 0:
         raise DatasetError(f"{path}: negative point count in the PCD header")
 
-    dtype_fields = []
+    dtype_fields: list[tuple[Any, ...]] = []
     seen: dict[str, int] = {}
     for name, size, kind, count in zip(fields, size_values, kinds, count_values, strict=True):
         if kind.upper() not in _PCD_KINDS or size not in (1, 2, 4, 8):
@@ -324,13 +326,89 @@ def read_pcd(path: PathLike) -> NDArray[np.float32]:
             columns[unique] = table[:, start].astype(base)
             start += count
     elif encoding == "binary_compressed":
-        raise DatasetError(
-            f"{path}: PCD 'DATA binary_compressed' is not supported; convert it to binary or ascii "
-            "(e.g. pcl_convert_pcd_ascii_binary)"
-        )
+        columns = _read_pcd_compressed(path, data, body_offset, dtype_fields, count_values, points_count)
     else:
         raise DatasetError(f"{path}: unknown PCD DATA encoding {encoding!r}")
     return _points_from_fields(path, columns)
+
+
+def lzf_decompress(data: bytes, expected_size: int) -> bytes:
+    """Decompress LZF (liblzf's format, used by PCL's ``binary_compressed``); raises ``ValueError``.
+
+    Control byte ``c < 32``: a literal run of ``c + 1`` bytes follows. Otherwise a back reference of
+    length ``(c >> 5) + 2`` (an extra length byte follows when ``c >> 5 == 7``) to the offset
+    ``((c & 31) << 8) + next byte + 1`` before the end of the output.
+    """
+    out = bytearray()
+    position = 0
+    size = len(data)
+    while position < size:
+        control = data[position]
+        position += 1
+        if control < 32:
+            run = control + 1
+            if position + run > size:
+                raise ValueError("literal run past the end of the compressed data")
+            out += data[position : position + run]
+            position += run
+            continue
+        length = control >> 5
+        if length == 7:
+            if position >= size:
+                raise ValueError("back reference cut short")
+            length += data[position]
+            position += 1
+        if position >= size:
+            raise ValueError("back reference cut short")
+        start = len(out) - ((control & 0x1F) << 8) - data[position] - 1
+        position += 1
+        length += 2
+        if start < 0:
+            raise ValueError("back reference before the start of the output")
+        if start + length <= len(out):
+            out += out[start : start + length]
+        else:  # overlapping copy repeats the pattern byte by byte
+            for offset in range(length):
+                out.append(out[start + offset])
+        if len(out) > expected_size:
+            break
+    if len(out) != expected_size:
+        raise ValueError(f"decompressed to {len(out)} bytes, the header says {expected_size}")
+    return bytes(out)
+
+
+def _read_pcd_compressed(
+    path: Path,
+    data: bytes,
+    offset: int,
+    dtype_fields: list[tuple[Any, ...]],
+    counts: list[int],
+    points_count: int,
+) -> dict[str, NDArray[np.generic]]:
+    """PCL ``binary_compressed``: two uint32 sizes, then LZF data holding each field for all points."""
+    if len(data) < offset + 8:
+        raise DatasetError(f"{path}: truncated: binary_compressed PCD without its size words")
+    compressed_size, raw_size = np.frombuffer(data, dtype="<u4", count=2, offset=offset)
+    body = data[offset + 8 : offset + 8 + int(compressed_size)]
+    if len(body) < compressed_size:
+        raise DatasetError(
+            f"{path}: truncated: {compressed_size} compressed bytes declared, {len(body)} present"
+        )
+    try:
+        raw = lzf_decompress(body, int(raw_size))
+    except ValueError as err:
+        raise DatasetError(f"{path}: corrupt LZF data ({err})") from None
+    columns = {}
+    start = 0
+    for (unique, base, *_), count in zip(dtype_fields, counts, strict=True):
+        item = np.dtype(base)
+        nbytes = item.itemsize * count * points_count
+        if start + nbytes > len(raw):
+            raise DatasetError(f"{path}: decompressed data too short for field {unique!r}")
+        values = np.frombuffer(raw, dtype=item, count=count * points_count, offset=start)
+        columns[unique] = values.reshape(points_count, count)[:, 0]
+        start += nbytes
+    return columns
 
 
 # ----------------------------------------------------------------------------------------------------
