@@ -342,3 +342,27 @@ def test_flow_errors_bad_input() -> None:
     mask[1, 1] = False
     assert M.flow_errors(bad, flow, mask).epe == 0.0  # NaN outside the mask is ignored
     assert copy.copy(M.flow_errors(flow, flow)).fl_all == 0.0
+
+
+# ---------------------------------------------------------------------------------------------------
+# The summary dict used by `dmlo eval`, `dmlo run` and the benchmark
+
+
+def test_evaluate_trajectory_summary(kitti00) -> None:
+    summary = M.evaluate_trajectory(kitti00["gt"], kitti00["ORB"])
+    kitti = M.kitti_odometry_errors(kitti00["gt"], kitti00["ORB"])
+    rpe = M.relative_pose_error(kitti00["gt"], kitti00["ORB"])
+    assert summary["t_rel"] == kitti.t_rel and summary["r_rel"] == kitti.r_rel
+    assert summary["ate_rmse"] == pytest.approx(1.3034497, abs=5e-7)
+    assert summary["rpe_t_mean"] == rpe.t_mean and summary["rpe_r_max"] == rpe.r_max
+    assert summary["note"] is None and summary["ate_alignment"] == "se3"
+
+
+def test_evaluate_trajectory_degenerate_inputs() -> None:
+    single = M.evaluate_trajectory(np.eye(4)[None], np.eye(4)[None])
+    assert single["t_rel"] is None and single["rpe_t_mean"] is None and single["ate_rmse"] == 0.0
+    assert "shorter than the 100 m" in single["note"] and "RPE over 1 frame(s)" in single["note"]
+    with pytest.raises(ValueError, match="poses_gt has 2 poses but poses_est has 1"):
+        M.evaluate_trajectory(straight_line(2), straight_line(1))
+    with pytest.raises(ValueError, match="delta must be"):
+        M.evaluate_trajectory(straight_line(2), straight_line(2), delta=0)

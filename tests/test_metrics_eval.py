@@ -152,16 +152,16 @@ def test_plot_trajectories_writes_a_png(tmp_path: Path) -> None:
     gt = drive(200)
     est = gt.copy()
     est[:, 1, 3] += np.linspace(0, 5, 200)
-    path = plot_trajectories(tmp_path / "a" / "plot.png", est, gt, title="test drive", dpi=50)
+    path = plot_trajectories(gt, est, tmp_path / "a" / "plot.png", title="test drive", dpi=50)
     image = matplotlib_image.imread(path)
     assert image.shape[:2] == (350, 350)
     # Something was drawn: the black ground-truth line and the red estimate are both present.
     rgb = image[..., :3]
     assert np.any(np.all(rgb < 0.2, axis=-1))
     assert np.any((rgb[..., 0] > 0.7) & (rgb[..., 1] < 0.3) & (rgb[..., 2] < 0.3))
-    only_estimate = plot_trajectories(tmp_path / "b.png", est, axes=(0, 2))
+    only_estimate = plot_trajectories(None, est, tmp_path / "b.png", axes=(0, 2))
     assert only_estimate.is_file()
     with pytest.raises(ValueError, match="two different axis indices"):
-        plot_trajectories(tmp_path / "c.png", est, axes=(1, 1))
+        plot_trajectories(None, est, tmp_path / "c.png", axes=(1, 1))
     with pytest.raises(ValueError, match=r"estimate must have shape \(N, 4, 4\)"):
-        plot_trajectories(tmp_path / "c.png", np.zeros((3, 3)))
+        plot_trajectories(None, np.zeros((3, 3)), tmp_path / "c.png")

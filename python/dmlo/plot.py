@@ -31,9 +31,9 @@ def view_axes(*trajectories: NDArray[np.float64]) -> tuple[int, int]:
 
 
 def plot_trajectories(
-    path: str | os.PathLike[str],
+    ground_truth: ArrayLike | None,
     estimate: ArrayLike,
-    ground_truth: ArrayLike | None = None,
+    path: str | os.PathLike[str],
     *,
     title: str | None = None,
     estimate_label: str = "estimate",
@@ -43,7 +43,8 @@ def plot_trajectories(
 ) -> Path:
     """Draw the estimated (and ground-truth) trajectory from above into a PNG file; returns its path.
 
-    ``estimate`` and ``ground_truth`` are ``(N, 4, 4)`` poses in the same world frame; ``axes`` forces the
+    ``ground_truth`` (or None) and ``estimate`` are ``(N, 4, 4)`` poses in the same world frame (they may
+    differ in length, e.g. a run stopped early); ``axes`` forces the
     view plane (e.g. ``(0, 2)`` for x–z), otherwise it is chosen by :func:`view_axes`.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg

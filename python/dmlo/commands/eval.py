@@ -65,43 +65,6 @@ def _read(path: Path, fmt: str | None, role: str) -> Any:
         raise UserError(str(err)) from None
 
 
-def evaluate(
-    poses_gt: Any, poses_est: Any, alignment: str | None = "se3", delta: int = 1
-) -> dict[str, Any]:
-    """All metrics of ``dmlo eval`` as a JSON-ready dict (``None`` where undefined)."""
-    from dmlo import metrics
-
-    kitti = metrics.kitti_odometry_errors(poses_gt, poses_est)
-    ate = metrics.absolute_trajectory_error(poses_gt, poses_est, alignment=alignment)  # type: ignore[arg-type]
-    rpe = metrics.relative_pose_error(poses_gt, poses_est, delta=delta) if len(poses_gt) > delta else None
-    notes = []
-    if kitti.segments == 0:
-        notes.append(
-            f"ground-truth path is {kitti.path_length:.1f} m, shorter than the 100 m KITTI segments: "
-            "t_rel and r_rel are undefined"
-        )
-    if rpe is None:
-        notes.append(f"RPE needs more than {delta} poses")
-    return {
-        "poses": len(poses_gt),
-        "path_length": kitti.path_length,
-        "t_rel": kitti.t_rel,
-        "r_rel": kitti.r_rel,
-        "segments": kitti.segments,
-        "ate_rmse": ate.rmse,
-        "ate_mean": ate.mean,
-        "ate_max": ate.max,
-        "ate_alignment": alignment or "none",
-        "ate_scale": ate.scale,
-        "rpe_delta": delta,
-        "rpe_t_mean": None if rpe is None else rpe.t_mean,
-        "rpe_t_max": None if rpe is None else rpe.t_max,
-        "rpe_r_mean": None if rpe is None else rpe.r_mean,
-        "rpe_r_max": None if rpe is None else rpe.r_max,
-        "note": "; ".join(notes) or None,
-    }
-
-
 def _fmt(value: float | None, digits: int = 4) -> str:
     return "n/a" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
@@ -143,9 +106,11 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(str(err)) from None
         poses_est = poses.lidar_to_camera(poses_est, tr)
 
+    from dmlo.metrics import evaluate_trajectory
+
     alignment = None if args.align == "none" else args.align
     try:
-        result = evaluate(poses_gt, poses_est, alignment, args.delta)
+        result = evaluate_trajectory(poses_gt, poses_est, alignment, args.delta)
     except ValueError as err:
         raise UserError(str(err)) from None
 
@@ -154,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             plot_trajectories(
-                args.plot, poses_est, poses_gt, title=f"{args.estimate.name} vs {args.ground_truth.name}"
+                poses_gt, poses_est, args.plot, title=f"{args.estimate.name} vs {args.ground_truth.name}"
             )
         except OSError as err:
             raise UserError(f"cannot write the plot {args.plot}: {err}") from None

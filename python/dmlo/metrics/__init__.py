@@ -15,6 +15,7 @@ from dmlo.metrics.registration import (
     rotation_error_deg,
     translation_error,
 )
+from dmlo.metrics.summary import evaluate_trajectory
 from dmlo.metrics.trajectory import (
     AteResult,
     RpeResult,
@@ -33,6 +34,7 @@ __all__ = [
     "RpeResult",
     "absolute_trajectory_error",
     "end_point_error",
+    "evaluate_trajectory",
     "fl_all",
     "flow_errors",
     "kitti_odometry_errors",
