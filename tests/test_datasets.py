@@ -177,6 +177,9 @@ def test_kitti_gt_poses_through_a_kitti_tree(shared_data: Path, tmp_path: Path) 
     assert sequence[2].labels is None and sequence[2].timestamp == pytest.approx(0.2)
     # Only one sequence: it is found without sequence=.
     assert len(D.open_sequence(tmp_path)) == 5
+    # Opening the sequence folder itself still finds ROOT/poses/01.txt.
+    direct = D.open_sequence(sequence_dir)
+    np.testing.assert_array_equal(direct.poses, sequence.poses)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -165,3 +165,11 @@ def test_plot_trajectories_writes_a_png(tmp_path: Path) -> None:
         plot_trajectories(None, est, tmp_path / "c.png", axes=(1, 1))
     with pytest.raises(ValueError, match=r"estimate must have shape \(N, 4, 4\)"):
         plot_trajectories(None, np.zeros((3, 3)), tmp_path / "c.png")
+
+
+def test_eval_help_describes_the_metrics(capsys) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["eval", "--help"])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    assert "t_rel" in out and "--plot FILE" in out and "--format {kitti,tum}" in out

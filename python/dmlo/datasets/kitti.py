@@ -3,7 +3,8 @@
 Layouts read:
 
 - the odometry tree ``ROOT/sequences/XX/velodyne/*.bin`` with ``ROOT/sequences/XX/calib.txt``,
-  ``times.txt``, optional SemanticKITTI ``labels/*.label``, and ground truth in ``ROOT/poses/XX.txt``;
+  ``times.txt``, optional SemanticKITTI ``labels/*.label``, and ground truth in ``ROOT/poses/XX.txt``
+  (found whether ``ROOT`` or ``ROOT/sequences/XX`` is opened);
 - a bare sequence folder ``velodyne/`` with optional ``poses.txt``, ``calib.txt``, ``times.txt`` and
   ``labels/`` (the layout the simulator writes).
 
@@ -140,6 +141,11 @@ class KittiSequence(SequenceBase):
                     f"{label_dir}: {len(missing)} scans have no label file, first {missing[0].name}"
                 )
 
+        if poses_path is None and not (self.directory / "poses.txt").is_file():
+            # Opened as ROOT/sequences/XX directly: the ground truth is ROOT/poses/XX.txt.
+            tree_poses = self.directory.parent.parent / "poses" / f"{self.directory.name}.txt"
+            if self.directory.parent.name == "sequences" and tree_poses.is_file():
+                poses_path = tree_poses
         self._poses, self._timestamps = load_side_files(
             self.directory,
             len(self._paths),
