@@ -191,6 +191,40 @@ def decode_matches(
 
 # ---- simulator ray casting (issue 3) ------------------------------------------------------------------
 
+from typing import final as _final
+
+__all__ += ["RayScene", "lidar_scan_directions"]
+
+@_final
+class RayScene:
+    """Analytic primitives behind a BVH; primitives numbered triangles, boxes, cylinders, ellipsoids."""
+
+    def __new__(
+        cls,
+        triangles: npt.NDArray[np.float64] | None = None,
+        boxes: npt.NDArray[np.float64] | None = None,
+        cylinders: npt.NDArray[np.float64] | None = None,
+        ellipsoids: npt.NDArray[np.float64] | None = None,
+    ) -> RayScene: ...
+    def __len__(self) -> int: ...
+    def cast(
+        self,
+        origins: npt.NDArray[np.float64],
+        directions: npt.NDArray[np.float64],
+        max_range: float,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64], npt.NDArray[np.float32]]: ...
+    def cast_scan(
+        self,
+        pose: npt.NDArray[np.float64],
+        elevations_deg: npt.NDArray[np.float64],
+        azimuth_count: int,
+        max_range: float,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64], npt.NDArray[np.float32]]: ...
+
+def lidar_scan_directions(
+    elevations_deg: npt.NDArray[np.float64], azimuth_count: int
+) -> npt.NDArray[np.float64]: ...
+
 
 
 # ---- NDT scan-to-map refinement (issue 5) -------------------------------------------------------------
