@@ -226,11 +226,11 @@ def test_training_learns_synthetic_shifts() -> None:
         return float(error[valid].mean())
 
     before = epe(1000)
-    for step in range(40):
+    for step in range(60):
         ref, tgt, flow, valid = batch(step)
         loss, _ = matching_loss(model(ref, tgt), flow, valid, config)
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
     after = epe(1000)
-    assert after < 0.4 * before, (before, after)
+    assert after < 0.3 * before, (before, after)
