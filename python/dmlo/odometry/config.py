@@ -13,7 +13,7 @@ class MatchingConfig:
     """Which network predictions become 3D matches (§III-D-a)."""
 
     min_confidence: float = 0.0  # Q* below this is dropped before NMS
-    nms_radius: float = 1.0  # cells; the paper's r = 1
+    nms_radius: int = 1  # cells; the paper's r = 1
     max_matches: int = 1000  # top N kept after NMS
 
 
@@ -52,6 +52,7 @@ class OdometryConfig:
     motion_model: MotionModelConfig = field(default_factory=MotionModelConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     threads: int = 0  # onnxruntime intra-op threads; 0 lets it choose
+    min_points: int = 1000  # scans with fewer finite points are bridged by the motion model
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 import dmlo_rs
 from dmlo.odometry.config import OdometryConfig
-from dmlo.odometry.matcher import Features, Matcher, OnnxMatcher, default_model_path
+from dmlo.odometry.matcher import Features, FrameOutput, Matcher, OnnxMatcher, default_model_path
 
 Matrix4 = npt.NDArray[np.float64]
 
@@ -70,6 +70,7 @@ class PairResult:
 class _Scan:
     range: npt.NDArray[np.float32]
     features: Features
+    pose: Matrix4
 
 
 class _Stopwatch:
@@ -97,8 +98,9 @@ class Odometry:
         self.cylinder = self.matcher.cylinder
         self.poses: list[Matrix4] = []
         self.diagnostics: list[FrameDiagnostics] = []
-        self._previous: _Scan | None = None
-        self._motion = np.eye(4)  # T_tgt_ref of the last pair, for the constant-velocity model
+        self._reference: _Scan | None = None  # the last usable scan, matched against the next one
+        self._reference_index = -1
+        self._velocity = np.eye(4)  # T_tgt_ref per frame, for the constant-velocity model
         self._map = self._make_map() if self.config.mapping.enabled else None
 
     @classmethod
@@ -112,78 +114,93 @@ class Odometry:
         """Adds the next scan and returns its pose `T_world_lidar` (the first scan is the world).
 
         `moving` is an optional per-point boolean mask of points on moving objects (§III-D-c); they
-        are left out of matching.
+        are left out of matching. A scan with fewer than `min_points` finite points is not matched:
+        its pose comes from the motion model and the diagnostics say so.
         """
         cloud = _as_scan(points, "points")
         diagnostics = FrameDiagnostics(index=len(self.poses), num_points=len(cloud))
         watch = _Stopwatch(diagnostics.timings_ms)
         if moving is not None:
             cloud = cloud[~_as_mask(moving, len(cloud))]
+        cloud = cloud[np.isfinite(cloud).all(axis=1)]
+        if len(cloud) < self.config.min_points:
+            return self._skip(diagnostics, "too_few_points")
 
-        scan = self._encode(cloud)  # Eq. 1 + the Siamese feature net, once per scan
-        watch.lap("encode")
+        image, ranges = self._project(cloud)  # Eq. 1
+        previous = self._reference
+        output = self.matcher.frame(image, previous.features if previous else None)  # §III-C
+        watch.lap("network")
 
-        if self._previous is None:
-            pose = np.eye(4)
+        if previous is None:
+            pose = np.eye(4) if not self.poses else self._predict()
         else:
-            motion = self._estimate_motion(self._previous, scan, diagnostics, watch)
-            pose = self.poses[-1] @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
+            motion = self._motion_from_flow(previous.range, ranges, output, diagnostics, watch)
+            pose = previous.pose @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
             if self._map is not None:
                 pose = self._refine_with_map(cloud, pose, diagnostics)
                 watch.lap("ndt")
-            self._motion = np.linalg.inv(pose) @ self.poses[-1]
+            self._update_velocity(previous.pose, pose, diagnostics.index - self._reference_index)
         if self._map is not None:
             self._map.insert(_transform(cloud[:, :3], pose))
             watch.lap("map_update")
 
-        self._previous = scan
-        self.poses.append(pose)
-        self.diagnostics.append(diagnostics)
-        return pose.copy()
+        self._reference = _Scan(range=ranges, features=output.features, pose=pose)
+        self._reference_index = diagnostics.index
+        return self._record(pose, diagnostics)
 
-    def register_pair(
-        self, reference: npt.ArrayLike, target: npt.ArrayLike, coarse_window: int | None = None
-    ) -> PairResult:
-        """The motion between two scans, without any motion model or map (`T_tgt_ref`)."""
-        ref = self._encode(_as_scan(reference, "reference"))
-        tgt = self._encode(_as_scan(target, "target"))
-        return self._match_pair(ref, tgt)
+    def predict_skipped(self, reason: str = "unreadable_scan") -> Matrix4:
+        """Records a scan that could not be read: its pose comes from the motion model."""
+        return self._skip(FrameDiagnostics(index=len(self.poses), num_points=0), reason)
+
+    def register_pair(self, reference: npt.ArrayLike, target: npt.ArrayLike) -> PairResult:
+        """The motion `T_tgt_ref` between two scans, with no motion model, map or initial guess."""
+        ref_image, ref_range = self._project(_as_scan(reference, "reference"))
+        tgt_image, tgt_range = self._project(_as_scan(target, "target"))
+        ref_features = self.matcher.frame(ref_image, None).features
+        output = self.matcher.frame(tgt_image, ref_features)
+        assert output.flow is not None and output.confidence is not None
+        return self._match(ref_range, tgt_range, output.flow, output.confidence)
 
     # -- the paper's steps ----------------------------------------------------------------------
 
-    def _encode(self, cloud: npt.NDArray[np.float32]) -> _Scan:
+    def _project(self, cloud: npt.NDArray[np.float32]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         projection = dmlo_rs.project(cloud, self.cylinder)
-        image = np.stack([projection.range, projection.reflectance])
-        return _Scan(range=projection.range, features=self.matcher.encode(image))
+        return np.stack([projection.range, projection.reflectance]), projection.range
 
-    def _match_pair(self, ref: _Scan, tgt: _Scan, watch: _Stopwatch | None = None) -> PairResult:
-        flow, confidence = self.matcher.match(ref.features, tgt.features)  # §III-C
-        if watch:
-            watch.lap("match")
-        m = self.config.matching
-        decoded = dmlo_rs.decode_matches(
-            ref.range, tgt.range, flow, confidence, self.cylinder, min_confidence=m.min_confidence
+    def _match(
+        self,
+        ref_range: npt.NDArray[np.float32],
+        tgt_range: npt.NDArray[np.float32],
+        flow: npt.NDArray[np.float32],
+        confidence: npt.NDArray[np.float32],
+        watch: _Stopwatch | None = None,
+    ) -> PairResult:
+        m, r = self.config.matching, self.config.ransac
+        # Network output → 3D pairs (p'_r, p̂_t), sampling D_t at the sub-pixel match (§III-D).
+        matches = dmlo_rs.decode_matches(
+            ref_range, tgt_range, flow, confidence, self.cylinder, min_confidence=m.min_confidence
         )
-        keep = dmlo_rs.nms(  # §III-D-a
-            decoded.cells[:, 0], decoded.cells[:, 1], decoded.confidences, m.nms_radius, m.max_matches
-        )
-        src, dst = decoded.source_points[keep], decoded.target_points[keep]
+        # NMS: the most confident match in every radius-r neighbourhood, top N (§III-D-a).
+        keep = dmlo_rs.nms(matches.cells[:, 0], matches.cells[:, 1], matches.confidence, m.nms_radius, m.max_matches)
+        src, dst = matches.source[keep], matches.target[keep]
         if watch:
             watch.lap("decode_nms")
-        r = self.config.ransac
+        transform, inliers, num_inliers = np.eye(4), np.zeros(len(src), dtype=bool), 0
         if len(src) >= 3:
-            ransac = dmlo_rs.ransac_rigid(  # §III-D-b: RANSAC around Eq. 12–14
-                src, dst, threshold=r.threshold, confidence=r.confidence,
-                max_iterations=r.max_iterations, seed=r.seed,
-            )
-            transform, inliers, num_inliers = ransac.transform, ransac.inliers, ransac.num_inliers
-        else:
-            transform, inliers, num_inliers = np.eye(4), np.zeros(len(src), bool), 0
+            try:
+                # RANSAC around the closed-form SVD solve, Eq. 12–14 (§III-D-b).
+                ransac = dmlo_rs.ransac_rigid(
+                    src, dst, threshold=r.threshold, confidence=r.confidence,
+                    max_iterations=r.max_iterations, seed=r.seed,
+                )
+                transform, inliers, num_inliers = ransac.transform, ransac.inliers, ransac.num_inliers
+            except ValueError:  # degenerate or all-outlier matches: no motion from this pair
+                pass
         if watch:
             watch.lap("ransac")
         return PairResult(
             T_tgt_ref=np.asarray(transform, dtype=np.float64),
-            num_candidates=len(decoded.confidences),
+            num_candidates=len(matches),
             num_matches=len(src),
             num_inliers=int(num_inliers),
             source_points=src,
@@ -191,22 +208,46 @@ class Odometry:
             inliers=np.asarray(inliers, dtype=bool),
         )
 
-    def _estimate_motion(
-        self, ref: _Scan, tgt: _Scan, diagnostics: FrameDiagnostics, watch: _Stopwatch
+    def _motion_from_flow(
+        self,
+        ref_range: npt.NDArray[np.float32],
+        tgt_range: npt.NDArray[np.float32],
+        output: FrameOutput,
+        diagnostics: FrameDiagnostics,
+        watch: _Stopwatch,
     ) -> Matrix4:
-        try:
-            pair: PairResult | None = self._match_pair(ref, tgt, watch)
-        except ValueError:  # degenerate or all-outlier matches: the motion model takes over
-            pair = None
-        if pair is not None:
-            diagnostics.num_candidates = pair.num_candidates
-            diagnostics.num_matches = pair.num_matches
-            diagnostics.num_inliers = pair.num_inliers
-            diagnostics.inlier_ratio = pair.inlier_ratio
-        if pair is None or pair.num_inliers < self.config.motion_model.min_inliers:
-            diagnostics.fallback = "constant_velocity"  # §III-D-c motion model
-            return self._motion.copy()
+        assert output.flow is not None and output.confidence is not None
+        pair = self._match(ref_range, tgt_range, output.flow, output.confidence, watch)
+        diagnostics.num_candidates = pair.num_candidates
+        diagnostics.num_matches = pair.num_matches
+        diagnostics.num_inliers = pair.num_inliers
+        diagnostics.inlier_ratio = pair.inlier_ratio
+        if pair.num_inliers < self.config.motion_model.min_inliers:
+            diagnostics.fallback = "constant_velocity"  # the motion model of §III-D-c
+            gap = diagnostics.index - self._reference_index
+            return np.linalg.matrix_power(self._velocity, gap)
         return pair.T_tgt_ref
+
+    # -- motion model ---------------------------------------------------------------------------
+
+    def _predict(self) -> Matrix4:
+        return self.poses[-1] @ np.linalg.inv(self._velocity)
+
+    def _update_velocity(self, reference_pose: Matrix4, pose: Matrix4, frames: int) -> None:
+        # Across a gap left by skipped scans the motion spans several frames; the velocity measured
+        # before the gap stays the better per-frame estimate.
+        if frames == 1:
+            self._velocity = np.linalg.inv(pose) @ reference_pose
+
+    def _skip(self, diagnostics: FrameDiagnostics, reason: str) -> Matrix4:
+        diagnostics.fallback = reason
+        pose = self._predict() if self.poses else np.eye(4)
+        return self._record(pose, diagnostics)
+
+    def _record(self, pose: Matrix4, diagnostics: FrameDiagnostics) -> Matrix4:
+        self.poses.append(pose)
+        self.diagnostics.append(diagnostics)
+        return pose.copy()
 
     # -- mapping --------------------------------------------------------------------------------
 
@@ -219,9 +260,7 @@ class Odometry:
     ) -> Matrix4:
         assert self._map is not None
         try:
-            result = self._map.align(
-                cloud[:, :3], pose, max_iterations=self.config.mapping.max_iterations
-            )
+            result = self._map.align(cloud[:, :3], pose, max_iterations=self.config.mapping.max_iterations)
         except ValueError:
             diagnostics.ndt_converged = False
             return pose
