@@ -52,8 +52,6 @@ def build_odometry(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     if args.mapping:
         config.mapping.enabled = True
     model = args.model or default_model_path()
-    if not Path(model).is_file():
-        raise UserError(f"model file not found: {model}")
     try:
         return Odometry(model, config)
     except ModelError as err:
