@@ -178,29 +178,41 @@ pub fn decode_matches(
     Ok(all)
 }
 
-/// Unit directions of Φ⁻¹ without trigonometric calls per point: sines and cosines at integer rows and
-/// columns, corrected to the sub-pixel location by the angle-addition formulas with a short series for
-/// the small remainder (|δ| ≤ half a cell; series error < 1e-16).
+/// Unit directions of Φ⁻¹ without trigonometric calls per point: sines and cosines tabulated at the
+/// integer rows and columns of the image (one cell of margin), corrected to the sub-pixel location by
+/// the angle-addition formulas with a short series for the remainder (|δ| ≤ half a cell; series error
+/// < 1e-16). Locations off the table fall back to `sin_cos`.
 struct DirectionTable {
     row0: f64,
     col0: f64,
     d_phi: f64,
     d_theta: f64,
+    /// `(sin, cos)` of the elevation of rows −1 ..= height.
+    rows: Vec<(f64, f64)>,
+    /// `(sin, cos)` of the azimuth of columns −1 ..= width.
+    cols: Vec<(f64, f64)>,
 }
 
 impl DirectionTable {
     fn new(config: &CylinderConfig) -> Self {
+        let row0 = config.row_of_zero_elevation();
+        let col0 = config.col_of_zero_azimuth();
+        let d_phi = config.vertical_resolution_deg.to_radians();
+        let d_theta = config.horizontal_resolution_deg.to_radians();
         DirectionTable {
-            row0: config.row_of_zero_elevation(),
-            col0: config.col_of_zero_azimuth(),
-            d_phi: config.vertical_resolution_deg.to_radians(),
-            d_theta: config.horizontal_resolution_deg.to_radians(),
+            row0,
+            col0,
+            d_phi,
+            d_theta,
+            rows: (-1..=config.height as i64).map(|r| ((row0 - r as f64) * d_phi).sin_cos()).collect(),
+            cols: (-1..=config.width as i64).map(|c| ((col0 - c as f64) * d_theta).sin_cos()).collect(),
         }
     }
 
-    /// sin and cos of `base·step + fraction·step`, from exact values at integer `base`.
-    fn sin_cos(base: f64, fraction: f64, step: f64) -> (f64, f64) {
-        let (sin_base, cos_base) = (base * step).sin_cos();
+    /// sin and cos of `base + fraction·step` from the exact `(sin, cos)` of `base`.
+    #[inline(always)]
+    fn rotate(base: (f64, f64), fraction: f64, step: f64) -> (f64, f64) {
+        let (sin_base, cos_base) = base;
         let delta = fraction * step;
         let d2 = delta * delta;
         let sin_delta = delta * (1.0 - d2 / 6.0 * (1.0 - d2 / 20.0 * (1.0 - d2 / 42.0)));
@@ -208,12 +220,23 @@ impl DirectionTable {
         (sin_base * cos_delta + cos_base * sin_delta, cos_base * cos_delta - sin_base * sin_delta)
     }
 
+    /// `(sin, cos)` of the angle at continuous index `x` (angle = (origin − x)·step).
+    #[inline(always)]
+    fn lookup(table: &[(f64, f64)], origin: f64, x: f64, step: f64) -> (f64, f64) {
+        let nearest = x.round();
+        let slot = nearest + 1.0;
+        let base = if slot >= 0.0 && (slot as usize) < table.len() {
+            table[slot as usize]
+        } else {
+            ((origin - nearest) * step).sin_cos()
+        };
+        // The angle falls as the index grows: angle = base_angle − (x − nearest)·step.
+        Self::rotate(base, nearest - x, step)
+    }
+
     fn at(&self, row: f64, col: f64) -> Vector3<f64> {
-        let elevation_cells = self.row0 - row;
-        let azimuth_cells = self.col0 - col;
-        let (er, ar) = (elevation_cells.round(), azimuth_cells.round());
-        let (sin_el, cos_el) = Self::sin_cos(er, elevation_cells - er, self.d_phi);
-        let (sin_az, cos_az) = Self::sin_cos(ar, azimuth_cells - ar, self.d_theta);
+        let (sin_el, cos_el) = Self::lookup(&self.rows, self.row0, row, self.d_phi);
+        let (sin_az, cos_az) = Self::lookup(&self.cols, self.col0, col, self.d_theta);
         Vector3::new(cos_el * cos_az, cos_el * sin_az, sin_el)
     }
 }
@@ -226,7 +249,7 @@ mod tests {
     fn direction_table_equals_the_inverse_projection() {
         let config = CylinderConfig::kitti();
         let table = DirectionTable::new(&config);
-        for (row, col) in [(0.0, 0.0), (3.0, 896.0), (10.3, 5.7), (63.49, 1791.49), (-0.4, 100.25)] {
+        for (row, col) in [(0.0, 0.0), (3.0, 896.0), (10.3, 5.7), (63.49, 1791.49), (-0.4, 100.25), (70.2, -30.7)] {
             let exact = config.unproject(row, col, 1.0).coords;
             assert!((table.at(row, col) - exact).norm() < 1e-14, "({row}, {col})");
         }

@@ -243,6 +243,66 @@ const NO_CELL: u32 = u32::MAX;
 /// Sentinel for "this point is NaN/Inf".
 const NON_FINITE: u32 = u32::MAX - 1;
 
+/// Bound on the error of [`atan2_fast`], radians: the series is cut after the u¹³ term for |u| ≤
+/// tan(π/8), so the first omitted term is below 0.4143¹⁵/15 = 1.3e-7; 1e-6 leaves room for rounding.
+const ATAN_ERROR_BOUND: f64 = 1e-6;
+
+/// `atan(t)` for `0 ≤ t ≤ 1`: reduced to |u| ≤ tan(π/8) by `atan t = π/4 + atan((t−1)/(t+1))`, then
+/// the odd Taylor series.
+#[inline(always)]
+fn atan_unit(t: f64) -> f64 {
+    let (u, offset) = if t > std::f64::consts::SQRT_2 - 1.0 {
+        ((t - 1.0) / (t + 1.0), std::f64::consts::FRAC_PI_4)
+    } else {
+        (t, 0.0)
+    };
+    let u2 = u * u;
+    let series = 1.0
+        - u2 * (1.0 / 3.0
+            - u2 * (1.0 / 5.0 - u2 * (1.0 / 7.0 - u2 * (1.0 / 9.0 - u2 * (1.0 / 11.0 - u2 * (1.0 / 13.0))))));
+    offset + u * series
+}
+
+/// `atan2(y, x)` within [`ATAN_ERROR_BOUND`], with libm's signs (also of zeros) and quadrants.
+#[inline(always)]
+fn atan2_fast(y: f64, x: f64) -> f64 {
+    let (ax, ay) = (x.abs(), y.abs());
+    if ax == 0.0 && ay == 0.0 {
+        return y.atan2(x);
+    }
+    let mut angle = if ay > ax {
+        std::f64::consts::FRAC_PI_2 - atan_unit(ax / ay)
+    } else {
+        atan_unit(ay / ax)
+    };
+    if x.is_sign_negative() {
+        angle = std::f64::consts::PI - angle;
+    }
+    if y.is_sign_negative() { -angle } else { angle }
+}
+
+/// `⌊origin − atan2(y, x)·cells_per_radian + ½⌋`, exactly as with libm's `atan2`: the fast arctangent
+/// decides the cell unless it lies too close to a cell boundary to be sure, when libm decides.
+/// Negative results (outside the image anyway) all come back as −1.
+#[inline(always)]
+fn cell_index(origin: f64, y: f64, x: f64, cells_per_radian: f64) -> f64 {
+    let shifted = origin - atan2_fast(y, x) * cells_per_radian + 0.5;
+    if shifted < 0.0 {
+        return -1.0;
+    }
+    // Truncation is floor for non-negative values and, unlike `floor`, needs no libm call on
+    // baseline x86-64.
+    let cell = (shifted as i64) as f64;
+    let margin = ATAN_ERROR_BOUND * cells_per_radian + 1e-9;
+    let fraction = shifted - cell;
+    if fraction > margin && fraction < 1.0 - margin {
+        cell
+    } else {
+        let exact = origin - y.atan2(x) * cells_per_radian + 0.5;
+        if exact < 0.0 { -1.0 } else { exact.floor() }
+    }
+}
+
 /// Φ (Eq. 1) for a whole scan: every cell keeps its closest point (ties: the lower input index).
 ///
 /// `points` is a flat row-major array of `N × channels` values, `channels` = 3 (x, y, z) or 4 (x, y, z,
@@ -282,8 +342,9 @@ pub fn project_flat(points: &[f32], channels: usize, config: &CylinderConfig) ->
             if range == 0.0 {
                 return (NO_CELL, 0.0);
             }
-            let row = (row0 - z.atan2(horizontal_sq.sqrt()) * rows_per_radian + 0.5).floor();
-            let col = (col0 - y.atan2(x) * cols_per_radian + 0.5).floor();
+            let horizontal = horizontal_sq.sqrt();
+            let row = cell_index(row0, z, horizontal, rows_per_radian);
+            let col = cell_index(col0, y, x, cols_per_radian);
             if row < 0.0 || col < 0.0 || row >= height as f64 || col >= width as f64 {
                 return (NO_CELL, 0.0);
             }
@@ -364,6 +425,19 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn fast_arctangent_stays_within_its_bound_and_keeps_libm_signs() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for _ in 0..200_000 {
+            let (y, x) = (rng.random_range(-100.0..100.0), rng.random_range(-100.0..100.0));
+            assert!((atan2_fast(y, x) - f64::atan2(y, x)).abs() < ATAN_ERROR_BOUND / 4.0);
+        }
+        for (y, x) in [(0.0, -1.0), (-0.0, -1.0), (0.0, 1.0), (-0.0, 1.0), (1.0, 0.0), (-1.0, -0.0), (0.0, 0.0)] {
+            assert!((atan2_fast(y, x) - f64::atan2(y, x)).abs() < 1e-12, "({y}, {x})");
+            assert_eq!(atan2_fast(y, x).is_sign_negative(), f64::atan2(y, x).is_sign_negative());
+        }
+    }
 
     #[test]
     fn kitti_preset_matches_the_paper() {

@@ -17,7 +17,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::rigid::{isometry_from_parts, rigid_transform, rotation_from_cross_covariance};
+use crate::rigid::{isometry_from_parts, rigid_transform, Svd3};
 
 /// RANSAC settings; `Default` is the paper's (0.1 m threshold) with 0.999 confidence.
 #[derive(Debug, Clone, PartialEq)]
@@ -64,62 +64,113 @@ pub struct RansacResult {
     pub rmse: f64,
 }
 
-/// Matches in structure-of-arrays form, so residuals of a hypothesis vectorise.
+/// Matches in structure-of-arrays form. Hypotheses are scored in `f32` (residuals of 0.1 m on points
+/// within a few hundred metres are far above its rounding) in independent lanes, so the loop
+/// vectorises; the final refit and RMSE use the `f64` points.
 struct Matches {
-    src: [Vec<f64>; 3],
-    dst: [Vec<f64>; 3],
+    src: [Vec<f32>; 3],
+    dst: [Vec<f32>; 3],
+    src64: Vec<Vector3<f64>>,
+    dst64: Vec<Vector3<f64>>,
+}
+
+/// Lanes of the scoring loop.
+const LANES: usize = 8;
+
+/// A hypothesis as the scoring loop uses it: row-major rotation, then translation.
+struct Hypothesis32 {
+    r: [f32; 9],
+    t: [f32; 3],
+}
+
+impl Hypothesis32 {
+    fn new(transform: &Isometry3<f64>) -> Self {
+        let r = transform.rotation.to_rotation_matrix().into_inner();
+        let t = transform.translation.vector;
+        Hypothesis32 {
+            r: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| r[(k / 3, k % 3)] as f32),
+            t: [t.x as f32, t.y as f32, t.z as f32],
+        }
+    }
+
+    #[inline(always)]
+    fn distance_sq(&self, s: [f32; 3], d: [f32; 3]) -> f32 {
+        let r = &self.r;
+        let ex = r[0] * s[0] + r[1] * s[1] + r[2] * s[2] + self.t[0] - d[0];
+        let ey = r[3] * s[0] + r[4] * s[1] + r[5] * s[2] + self.t[1] - d[1];
+        let ez = r[6] * s[0] + r[7] * s[1] + r[8] * s[2] + self.t[2] - d[2];
+        ex * ex + ey * ey + ez * ez
+    }
 }
 
 impl Matches {
     fn new(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Self {
-        let column = |points: &[Point3<f64>], k: usize| points.iter().map(|p| p[k]).collect::<Vec<f64>>();
+        let column = |points: &[Point3<f64>], k: usize| points.iter().map(|p| p[k] as f32).collect::<Vec<f32>>();
         Matches {
             src: [column(src, 0), column(src, 1), column(src, 2)],
             dst: [column(dst, 0), column(dst, 1), column(dst, 2)],
+            src64: src.iter().map(|p| p.coords).collect(),
+            dst64: dst.iter().map(|p| p.coords).collect(),
         }
+    }
+
+    fn at(&self, i: usize) -> ([f32; 3], [f32; 3]) {
+        (
+            [self.src[0][i], self.src[1][i], self.src[2][i]],
+            [self.dst[0][i], self.dst[1][i], self.dst[2][i]],
+        )
     }
 
     /// (inlier count, summed squared distance of the inliers).
     fn score(&self, transform: &Isometry3<f64>, threshold_sq: f64) -> (usize, f64) {
-        let r = transform.rotation.to_rotation_matrix().into_inner();
-        let t = transform.translation.vector;
+        let h = Hypothesis32::new(transform);
+        let threshold_sq = threshold_sq as f32;
+        let n = self.src[0].len();
+        let full = n - n % LANES;
+        let mut counts = [0u32; LANES];
+        let mut errors = [0.0f32; LANES];
         let [sx, sy, sz] = &self.src;
         let [dx, dy, dz] = &self.dst;
-        let mut count = 0usize;
-        let mut error = 0.0f64;
-        for i in 0..sx.len() {
-            let ex = r[(0, 0)] * sx[i] + r[(0, 1)] * sy[i] + r[(0, 2)] * sz[i] + t.x - dx[i];
-            let ey = r[(1, 0)] * sx[i] + r[(1, 1)] * sy[i] + r[(1, 2)] * sz[i] + t.y - dy[i];
-            let ez = r[(2, 0)] * sx[i] + r[(2, 1)] * sy[i] + r[(2, 2)] * sz[i] + t.z - dz[i];
-            let d = ex * ex + ey * ey + ez * ez;
-            let inlier = d < threshold_sq;
-            count += inlier as usize;
-            error += if inlier { d } else { 0.0 };
+        for base in (0..full).step_by(LANES) {
+            let (sx, sy, sz) = (&sx[base..base + LANES], &sy[base..base + LANES], &sz[base..base + LANES]);
+            let (dx, dy, dz) = (&dx[base..base + LANES], &dy[base..base + LANES], &dz[base..base + LANES]);
+            for l in 0..LANES {
+                let d = h.distance_sq([sx[l], sy[l], sz[l]], [dx[l], dy[l], dz[l]]);
+                let inlier = d < threshold_sq;
+                counts[l] += inlier as u32;
+                errors[l] += if inlier { d } else { 0.0 };
+            }
+        }
+        let mut count = counts.iter().map(|&c| c as usize).sum::<usize>();
+        let mut error = errors.iter().map(|&e| e as f64).sum::<f64>();
+        for i in full..n {
+            let (s, d) = self.at(i);
+            let d = h.distance_sq(s, d);
+            if d < threshold_sq {
+                count += 1;
+                error += d as f64;
+            }
         }
         (count, error)
     }
 
+    /// The inlier mask, decided exactly as [`Matches::score`] counts.
     fn inlier_mask(&self, transform: &Isometry3<f64>, threshold_sq: f64) -> Vec<bool> {
-        let r = transform.rotation.to_rotation_matrix().into_inner();
-        let t = transform.translation.vector;
+        let h = Hypothesis32::new(transform);
         (0..self.src[0].len())
             .map(|i| {
-                let p = Vector3::new(self.src[0][i], self.src[1][i], self.src[2][i]);
-                let q = Vector3::new(self.dst[0][i], self.dst[1][i], self.dst[2][i]);
-                (r * p + t - q).norm_squared() < threshold_sq
+                let (s, d) = self.at(i);
+                h.distance_sq(s, d) < threshold_sq as f32
             })
             .collect()
     }
 
     fn point(&self, i: usize) -> (Vector3<f64>, Vector3<f64>) {
-        (
-            Vector3::new(self.src[0][i], self.src[1][i], self.src[2][i]),
-            Vector3::new(self.dst[0][i], self.dst[1][i], self.dst[2][i]),
-        )
+        (self.src64[i], self.dst64[i])
     }
 
     /// The rigid solve on three matches; `None` when they are (nearly) collinear.
-    fn minimal_solve(&self, sample: [usize; 3]) -> Option<Isometry3<f64>> {
+    fn minimal_solve(&self, sample: [usize; 3], svd: &mut Svd3) -> Option<Isometry3<f64>> {
         let pairs = sample.map(|i| self.point(i));
         let p_mean = (pairs[0].0 + pairs[1].0 + pairs[2].0) / 3.0;
         let q_mean = (pairs[0].1 + pairs[1].1 + pairs[2].1) / 3.0;
@@ -127,7 +178,7 @@ impl Matches {
         for (p, q) in &pairs {
             h += (p - p_mean) * (q - q_mean).transpose();
         }
-        let rotation = rotation_from_cross_covariance(&h)?;
+        let rotation = svd.rotation_from_cross_covariance(&h)?;
         Some(isometry_from_parts(&rotation, &(q_mean - rotation * p_mean)))
     }
 }
@@ -218,8 +269,8 @@ pub fn ransac_rigid(src: &[Point3<f64>], dst: &[Point3<f64>], config: &RansacCon
         let samples: Vec<[usize; 3]> = (0..batch).map(|_| draw()).collect();
         let scored: Vec<Option<(usize, f64, Isometry3<f64>)>> = samples
             .par_iter()
-            .map(|&sample| {
-                let hypothesis = matches.minimal_solve(sample)?;
+            .map_init(Svd3::new, |svd, &sample| {
+                let hypothesis = matches.minimal_solve(sample, svd)?;
                 let (count, error) = matches.score(&hypothesis, threshold_sq);
                 Some((count, error, hypothesis))
             })
@@ -261,7 +312,14 @@ pub fn ransac_rigid(src: &[Point3<f64>], dst: &[Point3<f64>], config: &RansacCon
             break;
         }
     }
-    let rmse = if count > 0 { (error / count as f64).sqrt() } else { 0.0 };
+    let squared: f64 = inliers
+        .iter()
+        .enumerate()
+        .filter(|(_, &inlier)| inlier)
+        .map(|(i, _)| (transform * Point3::from(matches.src64[i]) - Point3::from(matches.dst64[i])).norm_squared())
+        .sum();
+    let _ = error;
+    let rmse = if count > 0 { (squared / count as f64).sqrt() } else { 0.0 };
     Ok(RansacResult { transform, num_inliers: count, inliers, iterations, rmse })
 }
 

@@ -13,28 +13,72 @@ use crate::error::{Error, Result};
 /// collinear (or coincident): the rotation about their line is then undetermined.
 pub const DEGENERACY_RATIO: f64 = 1e-9;
 
-/// Rotation from a cross-covariance `H = Σ w (p − p̄)(q − q̄)ᵀ`, or `None` when `H` has rank < 2.
-pub(crate) fn rotation_from_cross_covariance(h: &Matrix3<f64>) -> Option<Matrix3<f64>> {
-    if !h.iter().all(|v| v.is_finite()) {
-        return None;
+/// Reusable buffers for the 3×3 SVD, so hot loops (RANSAC's minimal solves) do not allocate: faer's
+/// allocation-free SVD core with its scratch sized once, run sequentially (`Par::Seq`).
+pub(crate) struct Svd3 {
+    scratch: faer::dyn_stack::MemBuffer,
+    a: faer::Mat<f64>,
+    u: faer::Mat<f64>,
+    v: faer::Mat<f64>,
+    s: faer::diag::Diag<f64>,
+}
+
+impl Svd3 {
+    pub(crate) fn new() -> Self {
+        use faer::linalg::svd::{svd_scratch, ComputeSvdVectors};
+        let request = svd_scratch::<f64>(
+            3,
+            3,
+            ComputeSvdVectors::Full,
+            ComputeSvdVectors::Full,
+            faer::Par::Seq,
+            Default::default(),
+        );
+        Svd3 {
+            scratch: faer::dyn_stack::MemBuffer::new(request),
+            a: faer::Mat::zeros(3, 3),
+            u: faer::Mat::zeros(3, 3),
+            v: faer::Mat::zeros(3, 3),
+            s: faer::diag::Diag::zeros(3),
+        }
     }
-    let m = faer::Mat::<f64>::from_fn(3, 3, |i, j| h[(i, j)]);
-    let svd = m.svd().ok()?;
-    let s = svd.S().column_vector();
-    let (u, v) = (svd.U(), svd.V());
-    let mut sorted = [s[0].abs(), s[1].abs(), s[2].abs()];
-    sorted.sort_by(|a, b| b.total_cmp(a));
-    if sorted[0] == 0.0 || sorted[1] <= DEGENERACY_RATIO * sorted[0] {
-        return None;
+
+    /// Rotation from a cross-covariance `H = Σ w (p − p̄)(q − q̄)ᵀ`, or `None` when `H` has rank < 2.
+    pub(crate) fn rotation_from_cross_covariance(&mut self, h: &Matrix3<f64>) -> Option<Matrix3<f64>> {
+        if !h.iter().all(|v| v.is_finite()) {
+            return None;
+        }
+        for i in 0..3 {
+            for j in 0..3 {
+                self.a[(i, j)] = h[(i, j)];
+            }
+        }
+        faer::linalg::svd::svd(
+            self.a.as_ref(),
+            self.s.as_mut(),
+            Some(self.u.as_mut()),
+            Some(self.v.as_mut()),
+            faer::Par::Seq,
+            faer::dyn_stack::MemStack::new(&mut self.scratch),
+            Default::default(),
+        )
+        .ok()?;
+        let s = self.s.as_ref().column_vector();
+        let singular = [s[0].abs(), s[1].abs(), s[2].abs()];
+        let mut sorted = singular;
+        sorted.sort_by(|a, b| b.total_cmp(a));
+        if sorted[0] == 0.0 || sorted[1] <= DEGENERACY_RATIO * sorted[0] {
+            return None;
+        }
+        // The column of V with the smallest singular value takes the reflection fix.
+        let smallest = (0..3).min_by(|&a, &b| singular[a].total_cmp(&singular[b])).unwrap_or(2);
+        let u = Matrix3::from_fn(|i, j| self.u[(i, j)]);
+        let mut v = Matrix3::from_fn(|i, j| self.v[(i, j)]);
+        if (v * u.transpose()).determinant() < 0.0 {
+            v.column_mut(smallest).neg_mut();
+        }
+        Some(v * u.transpose())
     }
-    // The column of V (and U) with the smallest singular value takes the reflection fix.
-    let smallest = (0..3).min_by(|&a, &b| s[a].abs().total_cmp(&s[b].abs())).unwrap_or(2);
-    let u = Matrix3::from_fn(|i, j| u[(i, j)]);
-    let mut v = Matrix3::from_fn(|i, j| v[(i, j)]);
-    if (v * u.transpose()).determinant() < 0.0 {
-        v.column_mut(smallest).neg_mut();
-    }
-    Some(v * u.transpose())
 }
 
 /// An isometry from a rotation matrix (already orthonormal, det +1) and a translation.
@@ -84,7 +128,8 @@ pub fn rigid_transform(src: &[Point3<f64>], dst: &[Point3<f64>], weights: Option
     for i in 0..src.len() {
         h += (src[i].coords - p_mean) * (dst[i].coords - q_mean).transpose() * weight(i);
     }
-    let rotation = rotation_from_cross_covariance(&h)
+    let rotation = Svd3::new()
+        .rotation_from_cross_covariance(&h)
         .ok_or_else(|| Error::Degenerate("the points are collinear or coincident".into()))?;
     Ok(isometry_from_parts(&rotation, &(q_mean - rotation * p_mean)))
 }

@@ -184,6 +184,7 @@ def decode_matches(
     mask: npt.NDArray[np.bool_] | None = None,
     *,
     max_relative_range_spread: float = 0.1,
+    num_threads: int | None = None,
 ) -> Matches:
     """Network output (flow[2, H, W], confidence[H, W]) → 3D matches; mask True = exclude the cell."""
 

@@ -196,14 +196,14 @@ fn vector_i64(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Vec<i64>> {
     }
 }
 
-/// A `height × width` float image (float32, or float64 converted).
-fn image_f32<'py>(name: &str, obj: &Bound<'py, PyAny>, config: &CylinderConfig) -> PyResult<Vec<f32>> {
+/// A `height × width` float image (float32, or float64 to be converted by `f32_data`).
+fn image<'py>(name: &str, obj: &Bound<'py, PyAny>, config: &CylinderConfig) -> PyResult<Floats<'py>> {
     let array = floats(name, obj)?;
     let shape = array.shape();
     if shape != [config.height, config.width] {
         return Err(shape_error(name, &format!("({}, {}) (the config's image)", config.height, config.width), shape));
     }
-    Ok(array.f32_data().into_owned())
+    Ok(array)
 }
 
 /// A 4×4 rigid transform (float64 or float32), checked to be one.
@@ -442,11 +442,12 @@ fn ground_truth_flow<'py>(
     num_threads: Option<usize>,
 ) -> PyResult<(Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<bool>>)> {
     let config = config.inner;
-    let reference = image_f32("ref_range", ref_range, &config)?;
-    let target = image_f32("tgt_range", tgt_range, &config)?;
+    let (reference, target) = (image("ref_range", ref_range, &config)?, image("tgt_range", tgt_range, &config)?);
+    let (reference, target) = (reference.f32_data(), target.f32_data());
+    let (reference, target): (&[f32], &[f32]) = (&reference, &target);
     let motion = transform("T_tgt_ref", T_tgt_ref)?;
     let gt = run(py, num_threads, || {
-        ground_truth::ground_truth_flow(&reference, &target, &motion, &config, max_range_error)
+        ground_truth::ground_truth_flow(reference, target, &motion, &config, max_range_error)
     })?;
     let (h, w) = (gt.height, gt.width);
     let flow = Array3::from_shape_vec((2, h, w), gt.flow).map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
@@ -584,7 +585,7 @@ impl PyMatches {
 /// moving objects) is set are dropped.
 #[pyfunction]
 #[pyo3(signature = (ref_range, tgt_range, flow, confidence, config, min_confidence = 0.0, mask = None, *,
-                    max_relative_range_spread = 0.1))]
+                    max_relative_range_spread = 0.1, num_threads = None))]
 #[allow(clippy::too_many_arguments)]
 fn decode_matches(
     py: Python<'_>,
@@ -596,17 +597,20 @@ fn decode_matches(
     min_confidence: f32,
     mask: Option<&Bound<'_, PyAny>>,
     max_relative_range_spread: f32,
+    num_threads: Option<usize>,
 ) -> PyResult<PyMatches> {
     let cylinder = config.inner;
     let (h, w) = (cylinder.height, cylinder.width);
-    let reference = image_f32("ref_range", ref_range, &cylinder)?;
-    let target = image_f32("tgt_range", tgt_range, &cylinder)?;
-    let confidence = image_f32("confidence", confidence, &cylinder)?;
-    let flow_array = floats("flow", flow)?;
-    if flow_array.shape() != [2, h, w] {
-        return Err(shape_error("flow", &format!("(2, {h}, {w})"), flow_array.shape()));
+    let reference = image("ref_range", ref_range, &cylinder)?;
+    let target = image("tgt_range", tgt_range, &cylinder)?;
+    let confidence = image("confidence", confidence, &cylinder)?;
+    let flow = floats("flow", flow)?;
+    if flow.shape() != [2, h, w] {
+        return Err(shape_error("flow", &format!("(2, {h}, {w})"), flow.shape()));
     }
-    let flow = flow_array.f32_data().into_owned();
+    let (reference, target, confidence, flow) =
+        (reference.f32_data(), target.f32_data(), confidence.f32_data(), flow.f32_data());
+    let (reference, target, confidence, flow): (&[f32], &[f32], &[f32], &[f32]) = (&reference, &target, &confidence, &flow);
     let mask = match mask {
         None => None,
         Some(obj) => {
@@ -622,8 +626,8 @@ fn decode_matches(
         }
     };
     let decode = DecodeConfig { min_confidence, max_relative_range_spread };
-    let decoded = run(py, Some(1), || {
-        matches::decode_matches(&reference, &target, &flow, &confidence, mask.as_deref(), &cylinder, &decode)
+    let decoded = run(py, num_threads, || {
+        matches::decode_matches(reference, target, flow, confidence, mask.as_deref(), &cylinder, &decode)
     })?;
     let cells = Array2::from_shape_fn((decoded.cells.len(), 2), |(i, j)| decoded.cells[i][j] as i64);
     Ok(PyMatches {
