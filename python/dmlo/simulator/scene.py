@@ -333,11 +333,14 @@ def _add_roadside(
     s = float(rng.uniform(0, 10))
     building_albedo = float(rng.uniform(0.25, 0.5))
     while s < path.length:
-        kind = rng.choice(["building", "fence", "open"], p=[0.62, 0.16, 0.22])
+        kind = rng.choice(["building", "fence", "open"], p=[0.72, 0.14, 0.14])
         length = float(rng.uniform(10.0, 35.0) if kind == "building" else rng.uniform(10.0, 40.0))
         front = layout.outer(side) + float(rng.uniform(0.3, 3.0))
         if kind == "building":
-            _add_building(prims, path, side, s, length, front, clearance, building_albedo, rng)
+            depth = _add_building(prims, path, side, s, length, front, clearance, building_albedo, rng)
+            if rng.random() < 0.5:  # a second row behind: structure at long range
+                back = front + depth + float(rng.uniform(4.0, 30.0))
+                _add_building(prims, path, side, s + float(rng.uniform(-5, 5)), length, back, clearance, building_albedo, rng)
             gap = float(rng.uniform(0.0, 1.5) if rng.random() < 0.6 else rng.uniform(3.0, 14.0))
         elif kind == "fence":
             _add_fence(prims, path, side, s, length, front, clearance, rng)
@@ -362,7 +365,8 @@ def _add_building(
     clearance: float,
     albedo: float,
     rng: np.random.Generator,
-) -> None:
+) -> float:
+    """Adds one building of 1–4 facade parts starting at arc length `s`; returns its depth."""
     base_height = float(rng.uniform(6.0, 24.0))
     depth = float(rng.uniform(8.0, 18.0))
     parts = int(rng.integers(1, 5))
@@ -390,6 +394,7 @@ def _add_building(
                 prims.add_box(
                     [bxy[0], bxy[1], z + 3.0 * floor], [min(2.5, (b - a) / 3), 0.6, 0.08], rot, BUILDING, 0, facade_albedo
                 )
+    return depth
 
 
 def _add_fence(
