@@ -141,7 +141,7 @@ def generate_drive(frames: int, seed: int, rate_hz: float = FRAME_RATE_HZ) -> np
                 manoeuvre_left = float(rng.uniform(2.0, 6.0))
         accel = float(np.clip((target_speed - speed) / 1.5, -2.5, 2.0))
         speed = max(0.0, speed + accel * dt)
-        if target_speed == 0.0 and speed < 0.3:
+        if target_speed == 0.0 and speed < 0.15:
             speed = 0.0  # standing still, not creeping
         step = speed * dt
         yaw += yaw_rate * dt
