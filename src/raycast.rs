@@ -76,9 +76,21 @@ impl Scene {
     /// Closest hit of one ray within `(0, max_range]`; `direction` must be a unit vector (not checked
     /// here: the batch methods normalise and validate).
     pub fn cast_ray(&self, origin: &Point3<f64>, direction: &Vector3<f64>, max_range: f64) -> Option<Hit> {
+        self.cast_ray_with(&mut Vec::new(), origin, direction, max_range)
+    }
+
+    /// [`Scene::cast_ray`] reusing a traversal stack (saves an allocation per ray in batches).
+    fn cast_ray_with(
+        &self,
+        stack: &mut Vec<(u32, f64)>,
+        origin: &Point3<f64>,
+        direction: &Vector3<f64>,
+        max_range: f64,
+    ) -> Option<Hit> {
         let primitives = &self.primitives;
-        let (range, primitive) =
-            self.bvh.closest(origin, direction, max_range, |index, t_max| primitives[index].intersect(origin, direction, t_max))?;
+        let (range, primitive) = self.bvh.closest(stack, origin, direction, max_range, |index, t_max| {
+            primitives[index].intersect(origin, direction, t_max)
+        })?;
         let point = origin + direction * range;
         let normal = self.primitives[primitive].normal_at(&point);
         Some(Hit { range, primitive: primitive as u32, cos_incidence: normal.dot(direction).abs().min(1.0) })
@@ -114,7 +126,7 @@ impl Scene {
             .par_iter()
             .zip(units.par_iter())
             .with_min_len(256)
-            .map(|(o, d)| self.cast_ray(o, d, max_range))
+            .map_init(Vec::new, |stack, (o, d)| self.cast_ray_with(stack, o, d, max_range))
             .collect())
     }
 
@@ -137,9 +149,9 @@ impl Scene {
         Ok(local
             .par_iter()
             .with_min_len(256)
-            .map(|d| {
+            .map_init(Vec::new, |stack, d| {
                 let world = (rotation * d).normalize();
-                self.cast_ray(&origin, &world, max_range)
+                self.cast_ray_with(stack, &origin, &world, max_range)
             })
             .collect())
     }

@@ -120,6 +120,7 @@ impl Bvh {
     /// if it is at most `t_max`. Returns `(distance, primitive)`.
     pub fn closest(
         &self,
+        stack: &mut Vec<(u32, f64)>,
         origin: &Point3<f64>,
         direction: &Vector3<f64>,
         max_range: f64,
@@ -133,7 +134,7 @@ impl Bvh {
             return None;
         }
         let root_entry = root.bounds.entry(origin, &inverse, best_t)?;
-        let mut stack: Vec<(u32, f64)> = Vec::with_capacity(64);
+        stack.clear();
         stack.push((0, root_entry));
         while let Some((index, entry)) = stack.pop() {
             if entry > best_t {

@@ -306,6 +306,9 @@ def _add_terrain(prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, rn
     vertices = np.concatenate([grid, z[..., None]], axis=-1)
     a, b, c, d = vertices[:-1, :-1], vertices[1:, :-1], vertices[:-1, 1:], vertices[1:, 1:]
     cell_keep = keep[:-1, :-1] & keep[1:, :-1] & keep[:-1, 1:] & keep[1:, 1:]
+    # Cells entirely under the corridor mesh are never seen: leave them out.
+    hidden = distance < outer - 1.0
+    cell_keep &= ~(hidden[:-1, :-1] & hidden[1:, :-1] & hidden[:-1, 1:] & hidden[1:, 1:])
     tris = np.concatenate([np.stack([a, b, d], -2)[cell_keep], np.stack([a, d, c], -2)[cell_keep]])
     prims.add_triangles(tris, TERRAIN, 0, np.clip(rng.uniform(0.3, 0.45) + rng.normal(0, 0.04, len(tris)), 0.05, 1))
 
