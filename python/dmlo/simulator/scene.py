@@ -10,7 +10,7 @@ any part of the trajectory (loops and crossings included):
 - both sides, block by block: buildings made of several boxes with recessed and protruding facade parts,
   balconies, gaps between buildings; or walls, fences and hedges; or open ground with trees;
 - street furniture: lamp poles with arms, sign poles, street trees (trunk + a cluster of ellipsoids as a
-  noisy canopy), clutter (bins, benches, bollards, boxes);
+  noisy canopy), bushes, standing pedestrians, clutter (bins, benches, bollards, boxes);
 - parked cars along the kerbs and moving cars in the lanes beside the ego lane with their own speeds.
 """
 
@@ -29,6 +29,7 @@ from dmlo.simulator.primitives import (
     MOVING_CAR,
     OTHER_OBJECT,
     OTHER_STRUCTURE,
+    PERSON,
     POLE,
     ROAD,
     SIDEWALK,
@@ -220,7 +221,7 @@ def generate_street(lidar_poses: npt.NDArray[np.float64], seed: int, mount_heigh
     instances = iter(range(1, 65535))
     for side in (1, -1):
         _add_roadside(prims, path, layout, side, rng)
-        _add_furniture(prims, path, layout, side, rng)
+        _add_furniture(prims, path, layout, side, rng, instances)
         _add_parked_cars(prims, path, layout, side, rng, instances)
     moving = _moving_cars(path, layout, rng, instances)
     return StreetScene(path=path, layout=layout, static=prims, moving_cars=moving)
@@ -447,9 +448,14 @@ def _add_tree(prims: PrimitiveSet, xy: npt.NDArray[np.float64], ground: float, r
 
 
 def _add_furniture(
-    prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, side: int, rng: np.random.Generator
+    prims: PrimitiveSet,
+    path: StreetPath,
+    layout: StreetLayout,
+    side: int,
+    rng: np.random.Generator,
+    instances: object,
 ) -> None:
-    """Lamp poles, sign poles, street trees and clutter on the sidewalk."""
+    """Lamp poles, sign poles, street trees, bushes, standing pedestrians and clutter on the sidewalk."""
     road = layout.road(side)
     walk = layout.outer(side) - road
     clearance = min(layout.road_left, layout.road_right) - 0.5
@@ -485,6 +491,33 @@ def _add_furniture(
                     _add_tree(prims, xy, z + ground_offset, rng)
                 t += float(rng.uniform(7.0, 15.0))
         s += stretch
+    # Bushes between the sidewalk and the buildings.
+    s = float(rng.uniform(0, 15))
+    while s < path.length:
+        xy, z, _ = path.place(s, side * (road + walk + float(rng.uniform(0.5, 2.5))))
+        if _clear(path, xy, clearance + 1.0):
+            radius = float(rng.uniform(0.4, 1.2))
+            for _ in range(int(rng.integers(1, 4))):
+                offset = rng.normal(0, 0.4 * radius, 2)
+                prims.add_ellipsoid(
+                    [xy[0] + offset[0], xy[1] + offset[1], z + ground_offset + 0.6 * radius],
+                    [radius, radius, 0.8 * radius],
+                    VEGETATION,
+                    0,
+                    float(rng.uniform(0.35, 0.6)),
+                )
+        s += float(rng.uniform(5.0, 40.0))
+    # Pedestrians standing on the sidewalk: legs and torso as a cylinder, head as a sphere.
+    s = float(rng.uniform(0, 30))
+    while s < path.length:
+        xy, z, _ = path.place(s, side * (road + float(rng.uniform(0.5, max(0.6, walk - 0.3)))))
+        if _clear(path, xy, clearance):
+            height = float(rng.uniform(1.55, 1.9))
+            person = next(instances)  # type: ignore[call-overload]
+            body_radius = float(rng.uniform(0.17, 0.24))
+            prims.add_cylinder([xy[0], xy[1], z + ground_offset], height - 0.22, body_radius, PERSON, person, 0.3)
+            prims.add_ellipsoid([xy[0], xy[1], z + ground_offset + height - 0.11], [0.1, 0.1, 0.12], PERSON, person, 0.25)
+        s += float(rng.uniform(15.0, 80.0))
     # Clutter: bins, bollards, benches, boxes.
     s = float(rng.uniform(0, 10))
     while s < path.length:
@@ -540,7 +573,7 @@ def _moving_cars(path: StreetPath, layout: StreetLayout, rng: np.random.Generato
     cars = []
     lanes = [(3.4, -1, 6.0, 15.0), (-3.4, 1, 3.0, 17.0)]  # (offset, direction, speed range)
     for lateral, direction, v_min, v_max in lanes:
-        count = int(rng.poisson(1.6 * path.length / 100.0))
+        count = int(rng.poisson(2.0 * path.length / 100.0))
         for _ in range(count):
             length, width, height = _car_size(rng)
             cars.append(
