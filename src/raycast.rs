@@ -38,6 +38,8 @@ pub struct Hit {
 #[derive(Debug, Clone)]
 pub struct Scene {
     primitives: Vec<Primitive>,
+    /// The primitives in BVH leaf order, so a leaf's primitives are contiguous in memory.
+    slots: Vec<Primitive>,
     bvh: bvh::Bvh,
 }
 
@@ -55,7 +57,8 @@ impl Scene {
         }
         let bounds: Vec<_> = primitives.iter().map(Primitive::bounds).collect();
         let bvh = bvh::Bvh::build(&bounds);
-        Ok(Self { primitives, bvh })
+        let slots = bvh.order().iter().map(|&i| primitives[i as usize]).collect();
+        Ok(Self { primitives, slots, bvh })
     }
 
     /// Number of primitives.
@@ -87,13 +90,14 @@ impl Scene {
         direction: &Vector3<f64>,
         max_range: f64,
     ) -> Option<Hit> {
-        let primitives = &self.primitives;
-        let (range, primitive) = self.bvh.closest(stack, origin, direction, max_range, |index, t_max| {
-            primitives[index].intersect(origin, direction, t_max)
-        })?;
+        let slots = &self.slots;
+        let (range, slot) = self
+            .bvh
+            .closest(stack, origin, direction, max_range, |slot, t_max| slots[slot].intersect(origin, direction, t_max))?;
         let point = origin + direction * range;
-        let normal = self.primitives[primitive].normal_at(&point);
-        Some(Hit { range, primitive: primitive as u32, cos_incidence: normal.dot(direction).abs().min(1.0) })
+        let normal = slots[slot].normal_at(&point);
+        let primitive = self.bvh.order()[slot];
+        Some(Hit { range, primitive, cos_incidence: normal.dot(direction).abs().min(1.0) })
     }
 
     /// Casts one ray per `(origin, direction)` pair in parallel. Directions are normalised; a zero or

@@ -78,6 +78,11 @@ pub(crate) struct Bvh {
 }
 
 impl Bvh {
+    /// Primitive index of each leaf slot: callers store primitives in this order so leaves are contiguous.
+    pub fn order(&self) -> &[u32] {
+        &self.order
+    }
+
     /// Builds over the bounds of each primitive (index = primitive index).
     pub fn build(bounds: &[Aabb]) -> Self {
         let mut order: Vec<u32> = (0..bounds.len() as u32).collect();
@@ -116,8 +121,8 @@ impl Bvh {
         Self { nodes, order }
     }
 
-    /// Closest hit within `(0, max_range]`: `intersect(primitive, t_max)` gives a primitive's hit distance
-    /// if it is at most `t_max`. Returns `(distance, primitive)`.
+    /// Closest hit within `(0, max_range]`: `intersect(slot, t_max)` gives the hit distance of the primitive
+    /// in leaf slot `slot` (see [`Bvh::order`]) if it is at most `t_max`. Returns `(distance, slot)`.
     pub fn closest(
         &self,
         stack: &mut Vec<(u32, f64)>,
@@ -143,12 +148,10 @@ impl Bvh {
             let node = &self.nodes[index as usize];
             if node.count > 0 {
                 let first = node.first as usize;
-                for &primitive in &self.order[first..first + node.count as usize] {
-                    if let Some(t) = intersect(primitive as usize, best_t) {
-                        if t < best_t || best.is_none() {
-                            best_t = t;
-                            best = Some(primitive as usize);
-                        }
+                for slot in first..first + node.count as usize {
+                    if let Some(t) = intersect(slot, best_t) {
+                        best_t = t;
+                        best = Some(slot);
                     }
                 }
                 continue;

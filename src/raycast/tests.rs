@@ -71,7 +71,7 @@ fn triangle_both_sides() {
 
 fn random_scene(rng: &mut ChaCha8Rng, n: usize) -> Vec<Primitive> {
     let mut prims = Vec::new();
-    let mut p = |rng: &mut ChaCha8Rng| Point3::new(rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(-5.0..5.0));
+    let p = |rng: &mut ChaCha8Rng| Point3::new(rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(-5.0..5.0));
     for k in 0..n {
         let c = p(rng);
         prims.push(match k % 4 {
