@@ -49,7 +49,10 @@ impl Scene {
     pub fn new(primitives: Vec<Primitive>) -> Result<Self> {
         for (index, primitive) in primitives.iter().enumerate() {
             primitive.validate().map_err(|reason| {
-                Error::invalid("primitives", format!("primitive {index} ({}): {reason}", primitive.kind()))
+                Error::invalid(
+                    "primitives",
+                    format!("primitive {index} ({}): {reason}", primitive.kind()),
+                )
             })?;
         }
         if primitives.len() > u32::MAX as usize {
@@ -58,7 +61,11 @@ impl Scene {
         let bounds: Vec<_> = primitives.iter().map(Primitive::bounds).collect();
         let bvh = bvh::Bvh::build(&bounds);
         let slots = bvh.order().iter().map(|&i| primitives[i as usize]).collect();
-        Ok(Self { primitives, slots, bvh })
+        Ok(Self {
+            primitives,
+            slots,
+            bvh,
+        })
     }
 
     /// Number of primitives.
@@ -93,11 +100,17 @@ impl Scene {
         let slots = &self.slots;
         let (range, slot) = self
             .bvh
-            .closest(stack, origin, direction, max_range, |slot, t_max| slots[slot].intersect(origin, direction, t_max))?;
+            .closest(stack, origin, direction, max_range, |slot, t_max| {
+                slots[slot].intersect(origin, direction, t_max)
+            })?;
         let point = origin + direction * range;
         let normal = slots[slot].normal_at(&point);
         let primitive = self.bvh.order()[slot];
-        Some(Hit { range, primitive, cos_incidence: normal.dot(direction).abs().min(1.0) })
+        Some(Hit {
+            range,
+            primitive,
+            cos_incidence: normal.dot(direction).abs().min(1.0),
+        })
     }
 
     /// Casts one ray per `(origin, direction)` pair in parallel. Directions are normalised; a zero or
@@ -115,14 +128,20 @@ impl Scene {
                 format!("{} directions for {} origins", directions.len(), origins.len()),
             ));
         }
-        if let Some(i) = origins.iter().position(|o| !o.coords.iter().all(|v| v.is_finite())) {
+        if let Some(i) = origins
+            .iter()
+            .position(|o| !o.coords.iter().all(|v| v.is_finite()))
+        {
             return Err(Error::invalid("origins", format!("row {i} is not finite")));
         }
         let mut units = Vec::with_capacity(directions.len());
         for (i, d) in directions.iter().enumerate() {
             let norm = d.norm();
             if !norm.is_finite() || norm < 1e-12 {
-                return Err(Error::invalid("directions", format!("row {i} is zero or not finite")));
+                return Err(Error::invalid(
+                    "directions",
+                    format!("row {i} is zero or not finite"),
+                ));
             }
             units.push(d / norm);
         }
@@ -130,7 +149,9 @@ impl Scene {
             .par_iter()
             .zip(units.par_iter())
             .with_min_len(256)
-            .map_init(Vec::new, |stack, (o, d)| self.cast_ray_with(stack, o, d, max_range))
+            .map_init(Vec::new, |stack, (o, d)| {
+                self.cast_ray_with(stack, o, d, max_range)
+            })
             .collect())
     }
 
@@ -169,8 +190,14 @@ pub fn scan_directions(elevations_deg: &[f64], azimuth_count: usize) -> Result<V
     if elevations_deg.is_empty() {
         return Err(Error::invalid("elevations_deg", "is empty"));
     }
-    if let Some(i) = elevations_deg.iter().position(|e| !e.is_finite() || e.abs() >= 90.0) {
-        return Err(Error::invalid("elevations_deg", format!("entry {i} is not finite or not in (-90, 90)")));
+    if let Some(i) = elevations_deg
+        .iter()
+        .position(|e| !e.is_finite() || e.abs() >= 90.0)
+    {
+        return Err(Error::invalid(
+            "elevations_deg",
+            format!("entry {i} is not finite or not in (-90, 90)"),
+        ));
     }
     if azimuth_count == 0 {
         return Err(Error::invalid("azimuth_count", "must be positive"));
@@ -189,7 +216,10 @@ pub fn scan_directions(elevations_deg: &[f64], azimuth_count: usize) -> Result<V
 
 fn check_max_range(max_range: f64) -> Result<()> {
     if !(max_range.is_finite() && max_range > 0.0) {
-        return Err(Error::invalid("max_range", format!("must be positive and finite, got {max_range}")));
+        return Err(Error::invalid(
+            "max_range",
+            format!("must be positive and finite, got {max_range}"),
+        ));
     }
     Ok(())
 }
@@ -199,10 +229,16 @@ fn check_rigid(pose: &Matrix4<f64>) -> Result<()> {
         return Err(Error::invalid("pose", "has non-finite entries"));
     }
     let rotation = pose.fixed_view::<3, 3>(0, 0);
-    let error = (rotation.transpose() * rotation - nalgebra::Matrix3::identity()).abs().max();
-    let bottom_ok = (pose[(3, 0)].abs() + pose[(3, 1)].abs() + pose[(3, 2)].abs() + (pose[(3, 3)] - 1.0).abs()) < 1e-9;
+    let error = (rotation.transpose() * rotation - nalgebra::Matrix3::identity())
+        .abs()
+        .max();
+    let bottom_ok =
+        (pose[(3, 0)].abs() + pose[(3, 1)].abs() + pose[(3, 2)].abs() + (pose[(3, 3)] - 1.0).abs()) < 1e-9;
     if error > 1e-6 || rotation.determinant() < 0.0 || !bottom_ok {
-        return Err(Error::invalid("pose", "is not a rigid transform (orthonormal rotation, last row 0 0 0 1)"));
+        return Err(Error::invalid(
+            "pose",
+            "is not a rigid transform (orthonormal rotation, last row 0 0 0 1)",
+        ));
     }
     Ok(())
 }

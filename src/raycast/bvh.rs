@@ -20,7 +20,10 @@ pub(crate) struct Aabb {
 
 impl Aabb {
     pub fn empty() -> Self {
-        Self { min: Point3::from([f64::INFINITY; 3]), max: Point3::from([f64::NEG_INFINITY; 3]) }
+        Self {
+            min: Point3::from([f64::INFINITY; 3]),
+            max: Point3::from([f64::NEG_INFINITY; 3]),
+        }
     }
 
     pub fn grow_point(&mut self, p: &Point3<f64>) {
@@ -87,7 +90,11 @@ impl Bvh {
     pub fn build(bounds: &[Aabb]) -> Self {
         let mut order: Vec<u32> = (0..bounds.len() as u32).collect();
         let centroids: Vec<Point3<f64>> = bounds.iter().map(Aabb::centroid).collect();
-        let mut nodes = vec![Node { bounds: Aabb::empty(), first: 0, count: bounds.len() as u32 }];
+        let mut nodes = vec![Node {
+            bounds: Aabb::empty(),
+            first: 0,
+            count: bounds.len() as u32,
+        }];
         if bounds.is_empty() {
             return Self { nodes, order };
         }
@@ -106,13 +113,26 @@ impl Bvh {
             if end - start <= MAX_LEAF {
                 continue;
             }
-            let Some(mid) = split(&mut order[start..end], bounds, &centroids, &node_bounds, &centroid_bounds)
-            else {
+            let Some(mid) = split(
+                &mut order[start..end],
+                bounds,
+                &centroids,
+                &node_bounds,
+                &centroid_bounds,
+            ) else {
                 continue;
             };
             let left = nodes.len();
-            nodes.push(Node { bounds: Aabb::empty(), first: 0, count: 0 });
-            nodes.push(Node { bounds: Aabb::empty(), first: 0, count: 0 });
+            nodes.push(Node {
+                bounds: Aabb::empty(),
+                first: 0,
+                count: 0,
+            });
+            nodes.push(Node {
+                bounds: Aabb::empty(),
+                first: 0,
+                count: 0,
+            });
             nodes[node].first = left as u32;
             nodes[node].count = 0;
             work.push((left, start, start + mid));
@@ -235,7 +255,8 @@ fn split(
     match best {
         Some((cost, axis, plane)) if cost < leaf_cost || count > 4 * MAX_LEAF => {
             let threshold = |p: &Point3<f64>| {
-                let b = (((p[axis] - centroid_bounds.min[axis]) / extent[axis] * BINS as f64) as usize).min(BINS - 1);
+                let b = (((p[axis] - centroid_bounds.min[axis]) / extent[axis] * BINS as f64) as usize)
+                    .min(BINS - 1);
                 b < plane
             };
             let mut mid = 0;

@@ -99,7 +99,7 @@ def simulate_sequence(
 
     indices = range(frames)
     if progress:
-        from tqdm import tqdm
+        from tqdm import tqdm  # type: ignore[import-untyped]
 
         indices = tqdm(indices, desc="simulate", unit="scan")
     for k in indices:
