@@ -166,8 +166,12 @@ class StreetScene:
             if not (0.0 <= s <= self.path.length):
                 continue
             xy, z, heading = self.path.place(s, car.lateral)
-            gap = float(np.linalg.norm(xy - ego_xy))
-            if gap > reach or gap < car.length / 2 + 2.0:
+            if float(np.linalg.norm(xy - ego_xy)) > reach:
+                continue
+            # Where the trajectory crosses itself a car of another pass could overlap the ego car: skip it.
+            along = abs(np.cos(heading) * (ego_xy[0] - xy[0]) + np.sin(heading) * (ego_xy[1] - xy[1]))
+            across = abs(-np.sin(heading) * (ego_xy[0] - xy[0]) + np.cos(heading) * (ego_xy[1] - xy[1]))
+            if along < car.length / 2 + 2.5 and across < car.width / 2 + 1.5:
                 continue
             pitch = -np.arctan(self.path.grade(s)) * car.direction
             yaw = heading if car.direction > 0 else heading + np.pi
@@ -209,8 +213,8 @@ def generate_street(lidar_poses: npt.NDArray[np.float64], seed: int, mount_heigh
     rng = np.random.default_rng([seed, 0x5CE7E])
     path = StreetPath(lidar_poses, mount_height)
     layout = StreetLayout(
-        road_left=float(rng.uniform(6.5, 9.0)),
-        road_right=float(rng.uniform(6.5, 8.5)),
+        road_left=float(rng.uniform(7.0, 9.0)),
+        road_right=float(rng.uniform(7.0, 8.5)),
         sidewalk_left=float(rng.uniform(2.0, 4.5)),
         sidewalk_right=float(rng.uniform(2.0, 4.5)),
         kerb=float(rng.uniform(0.1, 0.16)),
@@ -571,7 +575,7 @@ def _add_parked_cars(
 
 def _moving_cars(path: StreetPath, layout: StreetLayout, rng: np.random.Generator, instances: object) -> list[MovingCar]:
     cars = []
-    lanes = [(3.4, -1, 6.0, 15.0), (-3.4, 1, 3.0, 17.0)]  # (offset, direction, speed range)
+    lanes = [(3.3, -1, 6.0, 15.0), (-3.3, 1, 3.0, 17.0)]  # (offset, direction, speed range)
     for lateral, direction, v_min, v_max in lanes:
         count = int(rng.poisson(2.0 * path.length / 100.0))
         for _ in range(count):
