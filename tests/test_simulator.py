@@ -206,7 +206,8 @@ def test_trajectory_poses_are_the_kitti_relative_motion(kitti_drive: tuple[Path,
     written = read_kitti_poses(out / "poses.txt")
     original = read_kitti_poses(trajectory)[300 : 300 + FRAMES]
     # Re-basing to frame 0 in the LiDAR frame and converting back gives inv(P_300) · P_k in the camera frame.
-    np.testing.assert_allclose(written, np.linalg.inv(original[0]) @ original, atol=1e-9)
+    # The rotations are re-orthonormalised (pose files keep ~7 digits), hence the 1e-6 tolerance.
+    np.testing.assert_allclose(written, np.linalg.inv(original[0]) @ original, atol=1e-6)
 
 
 def test_same_seed_gives_identical_bytes_even_with_one_thread(tmp_path: Path) -> None:

@@ -61,6 +61,16 @@ def read_kitti_calib_tr(path: str | Path) -> npt.NDArray[np.float64]:
     raise ValueError(f"calib {path}: no 'Tr:' line")
 
 
+def orthonormalize(poses: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Projects the rotation of each (N,4,4) pose onto SO(3) (pose files keep ~7 digits, so their
+    rotations are orthonormal only to ~1e-7)."""
+    u, _, vt = np.linalg.svd(poses[:, :3, :3])
+    fixed = poses.copy()
+    fixed[:, :3, :3] = u @ vt
+    fixed[:, 3, :] = (0.0, 0.0, 0.0, 1.0)
+    return fixed
+
+
 def camera_to_lidar_poses(
     camera_poses: npt.NDArray[np.float64], tr: npt.NDArray[np.float64] = KITTI_TR
 ) -> npt.NDArray[np.float64]:
