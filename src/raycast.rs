@@ -38,6 +38,8 @@ pub struct Hit {
 #[derive(Debug, Clone)]
 pub struct Scene {
     primitives: Vec<Primitive>,
+    /// The primitives in BVH leaf order, so a leaf's primitives are contiguous in memory.
+    slots: Vec<Primitive>,
     bvh: bvh::Bvh,
 }
 
@@ -47,7 +49,10 @@ impl Scene {
     pub fn new(primitives: Vec<Primitive>) -> Result<Self> {
         for (index, primitive) in primitives.iter().enumerate() {
             primitive.validate().map_err(|reason| {
-                Error::invalid("primitives", format!("primitive {index} ({}): {reason}", primitive.kind()))
+                Error::invalid(
+                    "primitives",
+                    format!("primitive {index} ({}): {reason}", primitive.kind()),
+                )
             })?;
         }
         if primitives.len() > u32::MAX as usize {
@@ -55,7 +60,12 @@ impl Scene {
         }
         let bounds: Vec<_> = primitives.iter().map(Primitive::bounds).collect();
         let bvh = bvh::Bvh::build(&bounds);
-        Ok(Self { primitives, bvh })
+        let slots = bvh.order().iter().map(|&i| primitives[i as usize]).collect();
+        Ok(Self {
+            primitives,
+            slots,
+            bvh,
+        })
     }
 
     /// Number of primitives.
@@ -76,12 +86,31 @@ impl Scene {
     /// Closest hit of one ray within `(0, max_range]`; `direction` must be a unit vector (not checked
     /// here: the batch methods normalise and validate).
     pub fn cast_ray(&self, origin: &Point3<f64>, direction: &Vector3<f64>, max_range: f64) -> Option<Hit> {
-        let primitives = &self.primitives;
-        let (range, primitive) =
-            self.bvh.closest(origin, direction, max_range, |index, t_max| primitives[index].intersect(origin, direction, t_max))?;
+        self.cast_ray_with(&mut Vec::new(), origin, direction, max_range)
+    }
+
+    /// [`Scene::cast_ray`] reusing a traversal stack (saves an allocation per ray in batches).
+    fn cast_ray_with(
+        &self,
+        stack: &mut Vec<(u32, f64)>,
+        origin: &Point3<f64>,
+        direction: &Vector3<f64>,
+        max_range: f64,
+    ) -> Option<Hit> {
+        let slots = &self.slots;
+        let (range, slot) = self
+            .bvh
+            .closest(stack, origin, direction, max_range, |slot, t_max| {
+                slots[slot].intersect(origin, direction, t_max)
+            })?;
         let point = origin + direction * range;
-        let normal = self.primitives[primitive].normal_at(&point);
-        Some(Hit { range, primitive: primitive as u32, cos_incidence: normal.dot(direction).abs().min(1.0) })
+        let normal = slots[slot].normal_at(&point);
+        let primitive = self.bvh.order()[slot];
+        Some(Hit {
+            range,
+            primitive,
+            cos_incidence: normal.dot(direction).abs().min(1.0),
+        })
     }
 
     /// Casts one ray per `(origin, direction)` pair in parallel. Directions are normalised; a zero or
@@ -99,14 +128,20 @@ impl Scene {
                 format!("{} directions for {} origins", directions.len(), origins.len()),
             ));
         }
-        if let Some(i) = origins.iter().position(|o| !o.coords.iter().all(|v| v.is_finite())) {
+        if let Some(i) = origins
+            .iter()
+            .position(|o| !o.coords.iter().all(|v| v.is_finite()))
+        {
             return Err(Error::invalid("origins", format!("row {i} is not finite")));
         }
         let mut units = Vec::with_capacity(directions.len());
         for (i, d) in directions.iter().enumerate() {
             let norm = d.norm();
             if !norm.is_finite() || norm < 1e-12 {
-                return Err(Error::invalid("directions", format!("row {i} is zero or not finite")));
+                return Err(Error::invalid(
+                    "directions",
+                    format!("row {i} is zero or not finite"),
+                ));
             }
             units.push(d / norm);
         }
@@ -114,7 +149,9 @@ impl Scene {
             .par_iter()
             .zip(units.par_iter())
             .with_min_len(256)
-            .map(|(o, d)| self.cast_ray(o, d, max_range))
+            .map_init(Vec::new, |stack, (o, d)| {
+                self.cast_ray_with(stack, o, d, max_range)
+            })
             .collect())
     }
 
@@ -137,9 +174,9 @@ impl Scene {
         Ok(local
             .par_iter()
             .with_min_len(256)
-            .map(|d| {
+            .map_init(Vec::new, |stack, d| {
                 let world = (rotation * d).normalize();
-                self.cast_ray(&origin, &world, max_range)
+                self.cast_ray_with(stack, &origin, &world, max_range)
             })
             .collect())
     }
@@ -153,8 +190,14 @@ pub fn scan_directions(elevations_deg: &[f64], azimuth_count: usize) -> Result<V
     if elevations_deg.is_empty() {
         return Err(Error::invalid("elevations_deg", "is empty"));
     }
-    if let Some(i) = elevations_deg.iter().position(|e| !e.is_finite() || e.abs() >= 90.0) {
-        return Err(Error::invalid("elevations_deg", format!("entry {i} is not finite or not in (-90, 90)")));
+    if let Some(i) = elevations_deg
+        .iter()
+        .position(|e| !e.is_finite() || e.abs() >= 90.0)
+    {
+        return Err(Error::invalid(
+            "elevations_deg",
+            format!("entry {i} is not finite or not in (-90, 90)"),
+        ));
     }
     if azimuth_count == 0 {
         return Err(Error::invalid("azimuth_count", "must be positive"));
@@ -173,7 +216,10 @@ pub fn scan_directions(elevations_deg: &[f64], azimuth_count: usize) -> Result<V
 
 fn check_max_range(max_range: f64) -> Result<()> {
     if !(max_range.is_finite() && max_range > 0.0) {
-        return Err(Error::invalid("max_range", format!("must be positive and finite, got {max_range}")));
+        return Err(Error::invalid(
+            "max_range",
+            format!("must be positive and finite, got {max_range}"),
+        ));
     }
     Ok(())
 }
@@ -183,10 +229,16 @@ fn check_rigid(pose: &Matrix4<f64>) -> Result<()> {
         return Err(Error::invalid("pose", "has non-finite entries"));
     }
     let rotation = pose.fixed_view::<3, 3>(0, 0);
-    let error = (rotation.transpose() * rotation - nalgebra::Matrix3::identity()).abs().max();
-    let bottom_ok = (pose[(3, 0)].abs() + pose[(3, 1)].abs() + pose[(3, 2)].abs() + (pose[(3, 3)] - 1.0).abs()) < 1e-9;
+    let error = (rotation.transpose() * rotation - nalgebra::Matrix3::identity())
+        .abs()
+        .max();
+    let bottom_ok =
+        (pose[(3, 0)].abs() + pose[(3, 1)].abs() + pose[(3, 2)].abs() + (pose[(3, 3)] - 1.0).abs()) < 1e-9;
     if error > 1e-6 || rotation.determinant() < 0.0 || !bottom_ok {
-        return Err(Error::invalid("pose", "is not a rigid transform (orthonormal rotation, last row 0 0 0 1)"));
+        return Err(Error::invalid(
+            "pose",
+            "is not a rigid transform (orthonormal rotation, last row 0 0 0 1)",
+        ));
     }
     Ok(())
 }

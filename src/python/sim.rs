@@ -9,7 +9,11 @@ use pyo3::prelude::*;
 
 use crate::raycast::{Ellipsoid, Hit, OrientedBox, Primitive, Scene, Triangle, VerticalCylinder};
 
-type CastResult<'py, D> = (Bound<'py, numpy::PyArray<f64, D>>, Bound<'py, numpy::PyArray<i64, D>>, Bound<'py, numpy::PyArray<f32, D>>);
+type CastResult<'py, D> = (
+    Bound<'py, numpy::PyArray<f64, D>>,
+    Bound<'py, numpy::PyArray<i64, D>>,
+    Bound<'py, numpy::PyArray<f32, D>>,
+);
 
 fn value_error(argument: &str, reason: impl std::fmt::Display) -> PyErr {
     PyValueError::new_err(format!("{argument}: {reason}"))
@@ -17,7 +21,13 @@ fn value_error(argument: &str, reason: impl std::fmt::Display) -> PyErr {
 
 fn check_columns(argument: &str, array: &ArrayView2<'_, f64>, columns: usize, layout: &str) -> PyResult<()> {
     if array.ncols() != columns {
-        return Err(value_error(argument, format!("expected shape (N, {columns}) [{layout}], got {:?}", array.shape())));
+        return Err(value_error(
+            argument,
+            format!(
+                "expected shape (N, {columns}) [{layout}], got {:?}",
+                array.shape()
+            ),
+        ));
     }
     Ok(())
 }
@@ -50,20 +60,32 @@ impl RayScene {
         if let Some(triangles) = &triangles {
             let t = triangles.as_array();
             if t.shape()[1] != 3 || t.shape()[2] != 3 {
-                return Err(value_error("triangles", format!("expected shape (N, 3, 3), got {:?}", t.shape())));
+                return Err(value_error(
+                    "triangles",
+                    format!("expected shape (N, 3, 3), got {:?}", t.shape()),
+                ));
             }
             for tri in t.outer_iter() {
                 let v = |k: usize| Point3::new(tri[[k, 0]], tri[[k, 1]], tri[[k, 2]]);
-                primitives.push(Primitive::Triangle(Triangle { vertices: [v(0), v(1), v(2)] }));
+                primitives.push(Primitive::Triangle(Triangle {
+                    vertices: [v(0), v(1), v(2)],
+                }));
             }
         }
         if let Some(boxes) = &boxes {
             let b = boxes.as_array();
-            check_columns("boxes", &b, 15, "centre xyz, rotation row-major 9, half extents xyz")?;
+            check_columns(
+                "boxes",
+                &b,
+                15,
+                "centre xyz, rotation row-major 9, half extents xyz",
+            )?;
             for row in b.outer_iter() {
                 primitives.push(Primitive::Box(OrientedBox {
                     center: Point3::new(row[0], row[1], row[2]),
-                    rotation: Matrix3::from_row_slice(&row.iter().copied().skip(3).take(9).collect::<Vec<_>>()),
+                    rotation: Matrix3::from_row_slice(
+                        &row.iter().copied().skip(3).take(9).collect::<Vec<_>>(),
+                    ),
                     half_extents: Vector3::new(row[12], row[13], row[14]),
                 }));
             }
@@ -136,7 +158,10 @@ impl RayScene {
     ) -> PyResult<CastResult<'py, numpy::Ix2>> {
         let p = pose.as_array();
         if p.shape() != [4, 4] {
-            return Err(value_error("pose", format!("expected shape (4, 4), got {:?}", p.shape())));
+            return Err(value_error(
+                "pose",
+                format!("expected shape (4, 4), got {:?}", p.shape()),
+            ));
         }
         let pose = Matrix4::from_fn(|r, c| p[[r, c]]);
         let elevations: Vec<f64> = elevations_deg.as_array().iter().copied().collect();
@@ -146,9 +171,15 @@ impl RayScene {
         let shape = (rows, azimuth_count);
         let reshape = |e: numpy::ndarray::ShapeError| value_error("azimuth_count", e);
         Ok((
-            Array2::from_shape_vec(shape, ranges).map_err(reshape)?.into_pyarray(py),
-            Array2::from_shape_vec(shape, primitives).map_err(reshape)?.into_pyarray(py),
-            Array2::from_shape_vec(shape, cosines).map_err(reshape)?.into_pyarray(py),
+            Array2::from_shape_vec(shape, ranges)
+                .map_err(reshape)?
+                .into_pyarray(py),
+            Array2::from_shape_vec(shape, primitives)
+                .map_err(reshape)?
+                .into_pyarray(py),
+            Array2::from_shape_vec(shape, cosines)
+                .map_err(reshape)?
+                .into_pyarray(py),
         ))
     }
 }

@@ -20,7 +20,10 @@ pub(crate) struct Aabb {
 
 impl Aabb {
     pub fn empty() -> Self {
-        Self { min: Point3::from([f64::INFINITY; 3]), max: Point3::from([f64::NEG_INFINITY; 3]) }
+        Self {
+            min: Point3::from([f64::INFINITY; 3]),
+            max: Point3::from([f64::NEG_INFINITY; 3]),
+        }
     }
 
     pub fn grow_point(&mut self, p: &Point3<f64>) {
@@ -78,11 +81,20 @@ pub(crate) struct Bvh {
 }
 
 impl Bvh {
+    /// Primitive index of each leaf slot: callers store primitives in this order so leaves are contiguous.
+    pub fn order(&self) -> &[u32] {
+        &self.order
+    }
+
     /// Builds over the bounds of each primitive (index = primitive index).
     pub fn build(bounds: &[Aabb]) -> Self {
         let mut order: Vec<u32> = (0..bounds.len() as u32).collect();
         let centroids: Vec<Point3<f64>> = bounds.iter().map(Aabb::centroid).collect();
-        let mut nodes = vec![Node { bounds: Aabb::empty(), first: 0, count: bounds.len() as u32 }];
+        let mut nodes = vec![Node {
+            bounds: Aabb::empty(),
+            first: 0,
+            count: bounds.len() as u32,
+        }];
         if bounds.is_empty() {
             return Self { nodes, order };
         }
@@ -101,13 +113,26 @@ impl Bvh {
             if end - start <= MAX_LEAF {
                 continue;
             }
-            let Some(mid) = split(&mut order[start..end], bounds, &centroids, &node_bounds, &centroid_bounds)
-            else {
+            let Some(mid) = split(
+                &mut order[start..end],
+                bounds,
+                &centroids,
+                &node_bounds,
+                &centroid_bounds,
+            ) else {
                 continue;
             };
             let left = nodes.len();
-            nodes.push(Node { bounds: Aabb::empty(), first: 0, count: 0 });
-            nodes.push(Node { bounds: Aabb::empty(), first: 0, count: 0 });
+            nodes.push(Node {
+                bounds: Aabb::empty(),
+                first: 0,
+                count: 0,
+            });
+            nodes.push(Node {
+                bounds: Aabb::empty(),
+                first: 0,
+                count: 0,
+            });
             nodes[node].first = left as u32;
             nodes[node].count = 0;
             work.push((left, start, start + mid));
@@ -116,10 +141,11 @@ impl Bvh {
         Self { nodes, order }
     }
 
-    /// Closest hit within `(0, max_range]`: `intersect(primitive, t_max)` gives a primitive's hit distance
-    /// if it is at most `t_max`. Returns `(distance, primitive)`.
+    /// Closest hit within `(0, max_range]`: `intersect(slot, t_max)` gives the hit distance of the primitive
+    /// in leaf slot `slot` (see [`Bvh::order`]) if it is at most `t_max`. Returns `(distance, slot)`.
     pub fn closest(
         &self,
+        stack: &mut Vec<(u32, f64)>,
         origin: &Point3<f64>,
         direction: &Vector3<f64>,
         max_range: f64,
@@ -133,7 +159,7 @@ impl Bvh {
             return None;
         }
         let root_entry = root.bounds.entry(origin, &inverse, best_t)?;
-        let mut stack: Vec<(u32, f64)> = Vec::with_capacity(64);
+        stack.clear();
         stack.push((0, root_entry));
         while let Some((index, entry)) = stack.pop() {
             if entry > best_t {
@@ -142,12 +168,10 @@ impl Bvh {
             let node = &self.nodes[index as usize];
             if node.count > 0 {
                 let first = node.first as usize;
-                for &primitive in &self.order[first..first + node.count as usize] {
-                    if let Some(t) = intersect(primitive as usize, best_t) {
-                        if t < best_t || best.is_none() {
-                            best_t = t;
-                            best = Some(primitive as usize);
-                        }
+                for slot in first..first + node.count as usize {
+                    if let Some(t) = intersect(slot, best_t) {
+                        best_t = t;
+                        best = Some(slot);
                     }
                 }
                 continue;
@@ -231,7 +255,8 @@ fn split(
     match best {
         Some((cost, axis, plane)) if cost < leaf_cost || count > 4 * MAX_LEAF => {
             let threshold = |p: &Point3<f64>| {
-                let b = (((p[axis] - centroid_bounds.min[axis]) / extent[axis] * BINS as f64) as usize).min(BINS - 1);
+                let b = (((p[axis] - centroid_bounds.min[axis]) / extent[axis] * BINS as f64) as usize)
+                    .min(BINS - 1);
                 b < plane
             };
             let mut mid = 0;

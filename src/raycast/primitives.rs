@@ -78,13 +78,22 @@ impl Primitive {
                 }
             }
             Primitive::Box(b) => {
-                if !finite(b.center.coords.iter().chain(b.rotation.iter()).chain(b.half_extents.iter()).copied()) {
+                if !finite(
+                    b.center
+                        .coords
+                        .iter()
+                        .chain(b.rotation.iter())
+                        .chain(b.half_extents.iter())
+                        .copied(),
+                ) {
                     return Err("non-finite value".into());
                 }
                 if b.half_extents.iter().any(|&h| h <= 0.0) {
                     return Err("half extents must be positive".into());
                 }
-                let error = (b.rotation.transpose() * b.rotation - Matrix3::identity()).abs().max();
+                let error = (b.rotation.transpose() * b.rotation - Matrix3::identity())
+                    .abs()
+                    .max();
                 if error > 1e-6 || b.rotation.determinant() < 0.0 {
                     return Err("rotation is not orthonormal with determinant +1".into());
                 }
@@ -122,18 +131,29 @@ impl Primitive {
             Primitive::Box(b) => {
                 // Half extent of the rotated box along world axis i: Σ_j |R_ij| h_j.
                 let reach = b.rotation.abs() * b.half_extents;
-                Aabb { min: b.center - reach, max: b.center + reach }
+                Aabb {
+                    min: b.center - reach,
+                    max: b.center + reach,
+                }
             }
             Primitive::Cylinder(c) => Aabb {
                 min: Point3::new(c.base.x - c.radius, c.base.y - c.radius, c.base.z),
                 max: Point3::new(c.base.x + c.radius, c.base.y + c.radius, c.base.z + c.height),
             },
-            Primitive::Ellipsoid(e) => Aabb { min: e.center - e.radii, max: e.center + e.radii },
+            Primitive::Ellipsoid(e) => Aabb {
+                min: e.center - e.radii,
+                max: e.center + e.radii,
+            },
         }
     }
 
     /// Distance along the unit `direction` of the first intersection in `(T_MIN, t_max]`, if any.
-    pub(crate) fn intersect(&self, origin: &Point3<f64>, direction: &Vector3<f64>, t_max: f64) -> Option<f64> {
+    pub(crate) fn intersect(
+        &self,
+        origin: &Point3<f64>,
+        direction: &Vector3<f64>,
+        t_max: f64,
+    ) -> Option<f64> {
         let t = match self {
             Primitive::Triangle(t) => intersect_triangle(t, origin, direction),
             Primitive::Box(b) => intersect_box(b, origin, direction),
@@ -176,8 +196,12 @@ impl Primitive {
             }
             Primitive::Ellipsoid(e) => {
                 let d = point - e.center;
-                Vector3::new(d.x / (e.radii.x * e.radii.x), d.y / (e.radii.y * e.radii.y), d.z / (e.radii.z * e.radii.z))
-                    .normalize()
+                Vector3::new(
+                    d.x / (e.radii.x * e.radii.x),
+                    d.y / (e.radii.y * e.radii.y),
+                    d.z / (e.radii.z * e.radii.z),
+                )
+                .normalize()
             }
         }
     }

@@ -12,6 +12,7 @@ from dmlo_rs import RayScene
 
 # SemanticKITTI class ids used by the simulator.
 CAR = 10
+PERSON = 30
 ROAD = 40
 SIDEWALK = 48
 BUILDING = 50

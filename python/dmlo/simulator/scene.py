@@ -10,7 +10,7 @@ any part of the trajectory (loops and crossings included):
 - both sides, block by block: buildings made of several boxes with recessed and protruding facade parts,
   balconies, gaps between buildings; or walls, fences and hedges; or open ground with trees;
 - street furniture: lamp poles with arms, sign poles, street trees (trunk + a cluster of ellipsoids as a
-  noisy canopy), clutter (bins, benches, bollards, boxes);
+  noisy canopy), bushes, standing pedestrians, clutter (bins, benches, bollards, boxes);
 - parked cars along the kerbs and moving cars in the lanes beside the ego lane with their own speeds.
 """
 
@@ -29,6 +29,7 @@ from dmlo.simulator.primitives import (
     MOVING_CAR,
     OTHER_OBJECT,
     OTHER_STRUCTURE,
+    PERSON,
     POLE,
     ROAD,
     SIDEWALK,
@@ -165,8 +166,12 @@ class StreetScene:
             if not (0.0 <= s <= self.path.length):
                 continue
             xy, z, heading = self.path.place(s, car.lateral)
-            gap = float(np.linalg.norm(xy - ego_xy))
-            if gap > reach or gap < car.length / 2 + 2.0:
+            if float(np.linalg.norm(xy - ego_xy)) > reach:
+                continue
+            # Where the trajectory crosses itself a car of another pass could overlap the ego car: skip it.
+            along = abs(np.cos(heading) * (ego_xy[0] - xy[0]) + np.sin(heading) * (ego_xy[1] - xy[1]))
+            across = abs(-np.sin(heading) * (ego_xy[0] - xy[0]) + np.cos(heading) * (ego_xy[1] - xy[1]))
+            if along < car.length / 2 + 2.5 and across < car.width / 2 + 1.5:
                 continue
             pitch = -np.arctan(self.path.grade(s)) * car.direction
             yaw = heading if car.direction > 0 else heading + np.pi
@@ -208,8 +213,8 @@ def generate_street(lidar_poses: npt.NDArray[np.float64], seed: int, mount_heigh
     rng = np.random.default_rng([seed, 0x5CE7E])
     path = StreetPath(lidar_poses, mount_height)
     layout = StreetLayout(
-        road_left=float(rng.uniform(6.5, 9.0)),
-        road_right=float(rng.uniform(6.5, 8.5)),
+        road_left=float(rng.uniform(7.0, 9.0)),
+        road_right=float(rng.uniform(7.0, 8.5)),
         sidewalk_left=float(rng.uniform(2.0, 4.5)),
         sidewalk_right=float(rng.uniform(2.0, 4.5)),
         kerb=float(rng.uniform(0.1, 0.16)),
@@ -220,7 +225,7 @@ def generate_street(lidar_poses: npt.NDArray[np.float64], seed: int, mount_heigh
     instances = iter(range(1, 65535))
     for side in (1, -1):
         _add_roadside(prims, path, layout, side, rng)
-        _add_furniture(prims, path, layout, side, rng)
+        _add_furniture(prims, path, layout, side, rng, instances)
         _add_parked_cars(prims, path, layout, side, rng, instances)
     moving = _moving_cars(path, layout, rng, instances)
     return StreetScene(path=path, layout=layout, static=prims, moving_cars=moving)
@@ -306,6 +311,9 @@ def _add_terrain(prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, rn
     vertices = np.concatenate([grid, z[..., None]], axis=-1)
     a, b, c, d = vertices[:-1, :-1], vertices[1:, :-1], vertices[:-1, 1:], vertices[1:, 1:]
     cell_keep = keep[:-1, :-1] & keep[1:, :-1] & keep[:-1, 1:] & keep[1:, 1:]
+    # Cells entirely under the corridor mesh are never seen: leave them out.
+    hidden = distance < outer - 1.0
+    cell_keep &= ~(hidden[:-1, :-1] & hidden[1:, :-1] & hidden[:-1, 1:] & hidden[1:, 1:])
     tris = np.concatenate([np.stack([a, b, d], -2)[cell_keep], np.stack([a, d, c], -2)[cell_keep]])
     prims.add_triangles(tris, TERRAIN, 0, np.clip(rng.uniform(0.3, 0.45) + rng.normal(0, 0.04, len(tris)), 0.05, 1))
 
@@ -333,11 +341,14 @@ def _add_roadside(
     s = float(rng.uniform(0, 10))
     building_albedo = float(rng.uniform(0.25, 0.5))
     while s < path.length:
-        kind = rng.choice(["building", "fence", "open"], p=[0.62, 0.16, 0.22])
+        kind = rng.choice(["building", "fence", "open"], p=[0.72, 0.14, 0.14])
         length = float(rng.uniform(10.0, 35.0) if kind == "building" else rng.uniform(10.0, 40.0))
         front = layout.outer(side) + float(rng.uniform(0.3, 3.0))
         if kind == "building":
-            _add_building(prims, path, side, s, length, front, clearance, building_albedo, rng)
+            depth = _add_building(prims, path, side, s, length, front, clearance, building_albedo, rng)
+            if rng.random() < 0.5:  # a second row behind: structure at long range
+                back = front + depth + float(rng.uniform(4.0, 30.0))
+                _add_building(prims, path, side, s + float(rng.uniform(-5, 5)), length, back, clearance, building_albedo, rng)
             gap = float(rng.uniform(0.0, 1.5) if rng.random() < 0.6 else rng.uniform(3.0, 14.0))
         elif kind == "fence":
             _add_fence(prims, path, side, s, length, front, clearance, rng)
@@ -362,7 +373,8 @@ def _add_building(
     clearance: float,
     albedo: float,
     rng: np.random.Generator,
-) -> None:
+) -> float:
+    """Adds one building of 1–4 facade parts starting at arc length `s`; returns its depth."""
     base_height = float(rng.uniform(6.0, 24.0))
     depth = float(rng.uniform(8.0, 18.0))
     parts = int(rng.integers(1, 5))
@@ -390,6 +402,7 @@ def _add_building(
                 prims.add_box(
                     [bxy[0], bxy[1], z + 3.0 * floor], [min(2.5, (b - a) / 3), 0.6, 0.08], rot, BUILDING, 0, facade_albedo
                 )
+    return depth
 
 
 def _add_fence(
@@ -439,9 +452,14 @@ def _add_tree(prims: PrimitiveSet, xy: npt.NDArray[np.float64], ground: float, r
 
 
 def _add_furniture(
-    prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, side: int, rng: np.random.Generator
+    prims: PrimitiveSet,
+    path: StreetPath,
+    layout: StreetLayout,
+    side: int,
+    rng: np.random.Generator,
+    instances: object,
 ) -> None:
-    """Lamp poles, sign poles, street trees and clutter on the sidewalk."""
+    """Lamp poles, sign poles, street trees, bushes, standing pedestrians and clutter on the sidewalk."""
     road = layout.road(side)
     walk = layout.outer(side) - road
     clearance = min(layout.road_left, layout.road_right) - 0.5
@@ -477,6 +495,33 @@ def _add_furniture(
                     _add_tree(prims, xy, z + ground_offset, rng)
                 t += float(rng.uniform(7.0, 15.0))
         s += stretch
+    # Bushes between the sidewalk and the buildings.
+    s = float(rng.uniform(0, 15))
+    while s < path.length:
+        xy, z, _ = path.place(s, side * (road + walk + float(rng.uniform(0.5, 2.5))))
+        if _clear(path, xy, clearance + 1.0):
+            radius = float(rng.uniform(0.4, 1.2))
+            for _ in range(int(rng.integers(1, 4))):
+                offset = rng.normal(0, 0.4 * radius, 2)
+                prims.add_ellipsoid(
+                    [xy[0] + offset[0], xy[1] + offset[1], z + ground_offset + 0.6 * radius],
+                    [radius, radius, 0.8 * radius],
+                    VEGETATION,
+                    0,
+                    float(rng.uniform(0.35, 0.6)),
+                )
+        s += float(rng.uniform(5.0, 40.0))
+    # Pedestrians standing on the sidewalk: legs and torso as a cylinder, head as a sphere.
+    s = float(rng.uniform(0, 30))
+    while s < path.length:
+        xy, z, _ = path.place(s, side * (road + float(rng.uniform(0.5, max(0.6, walk - 0.3)))))
+        if _clear(path, xy, clearance):
+            height = float(rng.uniform(1.55, 1.9))
+            person = next(instances)  # type: ignore[call-overload]
+            body_radius = float(rng.uniform(0.17, 0.24))
+            prims.add_cylinder([xy[0], xy[1], z + ground_offset], height - 0.22, body_radius, PERSON, person, 0.3)
+            prims.add_ellipsoid([xy[0], xy[1], z + ground_offset + height - 0.11], [0.1, 0.1, 0.12], PERSON, person, 0.25)
+        s += float(rng.uniform(15.0, 80.0))
     # Clutter: bins, bollards, benches, boxes.
     s = float(rng.uniform(0, 10))
     while s < path.length:
@@ -530,9 +575,9 @@ def _add_parked_cars(
 
 def _moving_cars(path: StreetPath, layout: StreetLayout, rng: np.random.Generator, instances: object) -> list[MovingCar]:
     cars = []
-    lanes = [(3.4, -1, 6.0, 15.0), (-3.4, 1, 3.0, 17.0)]  # (offset, direction, speed range)
+    lanes = [(3.3, -1, 6.0, 15.0), (-3.3, 1, 3.0, 17.0)]  # (offset, direction, speed range)
     for lateral, direction, v_min, v_max in lanes:
-        count = int(rng.poisson(1.6 * path.length / 100.0))
+        count = int(rng.poisson(2.0 * path.length / 100.0))
         for _ in range(count):
             length, width, height = _car_size(rng)
             cars.append(

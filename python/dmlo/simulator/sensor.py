@@ -104,5 +104,5 @@ def measure(
     points = np.empty((int(keep.sum()), 4), dtype=np.float32)
     points[:, :3] = directions[keep] * measured[keep, None]
     points[:, 3] = reflectance[keep]
-    labels = (semantic[keep].astype(np.uint32) & 0xFFFF) | (attributes.instance[safe][keep].astype(np.uint32) << 16)
-    return points, labels
+    labels = (semantic[keep] & 0xFFFF) | (attributes.instance[safe][keep] << 16)
+    return points, labels.astype(np.uint32)

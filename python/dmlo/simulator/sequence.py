@@ -19,6 +19,7 @@ from dmlo.simulator.trajectory import (
     camera_to_lidar_poses,
     generate_drive,
     lidar_to_camera_poses,
+    orthonormalize,
     read_kitti_calib_tr,
     read_kitti_poses,
 )
@@ -76,7 +77,7 @@ def simulate_sequence(
             raise ValueError(
                 f"trajectory {trajectory} has {len(camera_poses)} poses; start {start} + frames {frames} exceeds it"
             )
-        lidar_poses = camera_to_lidar_poses(camera_poses[start : start + frames], tr)
+        lidar_poses = orthonormalize(camera_to_lidar_poses(camera_poses[start : start + frames], tr))
     else:
         if start != 0:
             raise ValueError("start: only meaningful with a trajectory file")
@@ -99,7 +100,7 @@ def simulate_sequence(
 
     indices = range(frames)
     if progress:
-        from tqdm import tqdm
+        from tqdm import tqdm  # type: ignore[import-untyped]
 
         indices = tqdm(indices, desc="simulate", unit="scan")
     for k in indices:

@@ -61,6 +61,16 @@ def read_kitti_calib_tr(path: str | Path) -> npt.NDArray[np.float64]:
     raise ValueError(f"calib {path}: no 'Tr:' line")
 
 
+def orthonormalize(poses: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Projects the rotation of each (N,4,4) pose onto SO(3) (pose files keep ~7 digits, so their
+    rotations are orthonormal only to ~1e-7)."""
+    u, _, vt = np.linalg.svd(poses[:, :3, :3])
+    fixed = poses.copy()
+    fixed[:, :3, :3] = u @ vt
+    fixed[:, 3, :] = (0.0, 0.0, 0.0, 1.0)
+    return fixed
+
+
 def camera_to_lidar_poses(
     camera_poses: npt.NDArray[np.float64], tr: npt.NDArray[np.float64] = KITTI_TR
 ) -> npt.NDArray[np.float64]:
@@ -141,7 +151,7 @@ def generate_drive(frames: int, seed: int, rate_hz: float = FRAME_RATE_HZ) -> np
                 manoeuvre_left = float(rng.uniform(2.0, 6.0))
         accel = float(np.clip((target_speed - speed) / 1.5, -2.5, 2.0))
         speed = max(0.0, speed + accel * dt)
-        if target_speed == 0.0 and speed < 0.3:
+        if target_speed == 0.0 and speed < 0.15:
             speed = 0.0  # standing still, not creeping
         step = speed * dt
         yaw += yaw_rate * dt
