@@ -1,0 +1,1 @@
+"""Benchmark scripts (speed is measured here, never asserted in tests)."""
