@@ -25,6 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     model = parser.add_argument_group("model (ignored when resuming: the checkpoint's config wins)")
     model.add_argument("--preset", choices=PRESETS, default="paper", help="paper: 2 plain + 3 deformable 16 ch; fast: 5 plain 8 ch; light: 4 plain + 1 deformable 8 ch")
     model.add_argument("--model-config", metavar="JSON", help="a MatcherConfig JSON file (overrides --preset)")
+    model.add_argument("--coarse-window", type=int, help="odd D of the coarse correlation (paper ≈ 10; default 11)")
     model.add_argument("--refine-channels", type=int)
     model.add_argument("--refine-plain", type=int, help="number of plain refine layers")
     model.add_argument("--refine-deformable", type=int, help="number of deformable refine layers")
@@ -63,6 +64,8 @@ def model_config_from_args(args: argparse.Namespace) -> Any:
 
     config = MatcherConfig.load(args.model_config) if args.model_config else MatcherConfig.preset(args.preset)
     changes: dict[str, Any] = {}
+    if args.coarse_window is not None:
+        changes["coarse_window"] = args.coarse_window
     if args.refine_channels is not None:
         changes["refine_channels"] = args.refine_channels
     if args.refine_plain is not None:
