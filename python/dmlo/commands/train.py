@@ -25,6 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     model = parser.add_argument_group("model (ignored when resuming: the checkpoint's config wins)")
     model.add_argument("--preset", choices=PRESETS, default="paper", help="paper: 2 plain + 3 deformable 16 ch; fast: 5 plain 8 ch; light: 4 plain + 1 deformable 8 ch")
     model.add_argument("--model-config", metavar="JSON", help="a MatcherConfig JSON file (overrides --preset)")
+    model.add_argument("--coarse-window", type=int, help="odd D of the coarse correlation (paper ≈ 10; default 11)")
     model.add_argument("--refine-channels", type=int)
     model.add_argument("--refine-plain", type=int, help="number of plain refine layers")
     model.add_argument("--refine-deformable", type=int, help="number of deformable refine layers")
@@ -34,6 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     optim = parser.add_argument_group("optimisation (defaults: the paper's)")
     optim.add_argument("--epochs", type=int, default=60)
     optim.add_argument("--batch-size", type=int, default=4, help="per process")
+    optim.add_argument("--optimizer", choices=("sgd", "adam"), default="sgd", help="sgd: the paper's; adam: faster progress in short runs")
     optim.add_argument("--lr", type=float, default=5e-4)
     optim.add_argument("--momentum", type=float, default=0.9)
     optim.add_argument("--weight-decay", type=float, default=1e-5)
@@ -63,6 +65,8 @@ def model_config_from_args(args: argparse.Namespace) -> Any:
 
     config = MatcherConfig.load(args.model_config) if args.model_config else MatcherConfig.preset(args.preset)
     changes: dict[str, Any] = {}
+    if args.coarse_window is not None:
+        changes["coarse_window"] = args.coarse_window
     if args.refine_channels is not None:
         changes["refine_channels"] = args.refine_channels
     if args.refine_plain is not None:
@@ -89,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
 
         config = TrainConfig(
             data=[str(p) for p in args.data], val=[str(p) for p in args.val], out=str(args.out),
-            epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, momentum=args.momentum,
+            epochs=args.epochs, batch_size=args.batch_size, optimizer=args.optimizer, lr=args.lr, momentum=args.momentum,
             weight_decay=args.weight_decay, lr_step_epochs=args.lr_step, lr_gamma=args.lr_gamma,
             crop_height=args.crop_height or None, crop_width=args.crop_width or None, yaw_roll=not args.no_yaw_roll,
             max_gap=args.max_gap, val_max_pairs=args.val_max_pairs, val_width=args.val_width or None,

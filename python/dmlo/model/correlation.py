@@ -4,7 +4,7 @@ For the reference position p = (i, j) the window is centred on c(p) = clamp(p + 
 the image) and holds the target features at c(p) + (h, w), h, w ∈ [−r, r], r = (D − 1)/2; positions
 outside the image read zero features. This is the exact window of the paper's Eq. 2 at every position
 (ONNX-NOTES item 6), not a warp of the target by the upsampled flow, and the same code runs in training
-and in the exported graph (a Gather of channels-last rows, a Mul and a ReduceSum).
+and in the exported graph (a Gather of channels-last rows and a batched MatMul).
 """
 
 from __future__ import annotations
@@ -47,6 +47,7 @@ def window_correlation(ref: Tensor, tgt: Tensor, origin: Tensor, window: int) ->
     index = centres.view(batch, height * width, 1) + window_steps  # (B, H·W, D·D)
 
     windows = tgt_rows.index_select(0, index.reshape(-1)).view(batch, height * width, window * window, channels)
-    ref_rows = ref.permute(0, 2, 3, 1).reshape(batch, height * width, 1, channels)
-    similarity = (windows * ref_rows).sum(dim=-1)  # (B, H·W, D·D)
+    ref_rows = ref.permute(0, 2, 3, 1).reshape(batch, height * width, channels, 1)
+    # A batched MatMul: in onnxruntime ~40 % faster than a broadcast Mul + ReduceSum over channels.
+    similarity = torch.matmul(windows, ref_rows).view(batch, height * width, window * window)
     return similarity.permute(0, 2, 1).reshape(batch, window * window, height, width)

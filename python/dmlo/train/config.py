@@ -19,6 +19,8 @@ class TrainConfig:
     epochs: int = 60
     batch_size: int = 4
     """Per process."""
+    optimizer: str = "sgd"
+    """``sgd`` (the paper's) or ``adam`` (for short runs on small compute)."""
     lr: float = 5e-4
     momentum: float = 0.9
     weight_decay: float = 1e-5
@@ -45,6 +47,8 @@ class TrainConfig:
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.optimizer not in ("sgd", "adam"):
+            raise ValueError(f"optimizer must be 'sgd' or 'adam', got {self.optimizer!r}")
         if self.lr <= 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
         if self.val_width is not None and (self.val_width <= 0 or self.val_width % 8):

@@ -72,9 +72,13 @@ class Trainer:
         if self.context.enabled:
             # Before the optimiser: the conversion replaces the BatchNorm modules and their parameters.
             self.model = convert_batchnorm(self.model, self.device)
-        self.optimizer = torch.optim.SGD(
-            self.model.parameters(), lr=config.lr, momentum=config.momentum, weight_decay=config.weight_decay
-        )
+        self.optimizer: torch.optim.Optimizer
+        if config.optimizer == "adam":
+            self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+        else:
+            self.optimizer = torch.optim.SGD(
+                self.model.parameters(), lr=config.lr, momentum=config.momentum, weight_decay=config.weight_decay
+            )
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, config.lr_step_epochs, config.lr_gamma)
         self.epoch, self.step_in_epoch, self.global_step = 0, 0, 0
         self.best_epe = math.inf
