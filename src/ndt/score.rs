@@ -91,6 +91,9 @@ pub struct Evaluation {
     pub likelihood: f64,
     pub gradient: Vector6<f64>,
     pub hessian: Matrix6<f64>,
+    /// `Σ −d1·d2·e·JᵀΣ⁻¹J`: the Hessian without its curvature terms, positive semi-definite everywhere
+    /// (the Gauss-Newton-like fallback where the full Hessian is indefinite, far from the optimum).
+    pub hessian_psd: Matrix6<f64>,
     /// Source points with at least one distribution in their neighbourhood.
     pub num_correspondences: usize,
 }
@@ -102,6 +105,7 @@ impl Evaluation {
             likelihood: 0.0,
             gradient: Vector6::zeros(),
             hessian: Matrix6::zeros(),
+            hessian_psd: Matrix6::zeros(),
             num_correspondences: 0,
         }
     }
@@ -111,6 +115,7 @@ impl Evaluation {
         self.likelihood += other.likelihood;
         self.gradient += other.gradient;
         self.hessian += other.hessian;
+        self.hessian_psd += other.hessian_psd;
         self.num_correspondences += other.num_correspondences;
     }
 }
@@ -166,7 +171,9 @@ fn evaluate_chunk(context: &ScoreContext<'_>, chunk: &[Point3<f64>], pose: &Isom
             let weight = -d1 * d2 * e;
             let g = jacobian.transpose() * a;
             sum.gradient += g * weight;
-            let mut hessian = jacobian.transpose() * (gaussian.inverse_covariance * jacobian) - g * g.transpose() * d2;
+            let first_order = jacobian.transpose() * (gaussian.inverse_covariance * jacobian);
+            sum.hessian_psd += first_order * weight;
+            let mut hessian = first_order - g * g.transpose() * d2;
             // qᵀΣ⁻¹ ∂²x/∂ωᵢ∂ωⱼ = ½(aᵢyⱼ + aⱼyᵢ) − (a·y)δᵢⱼ
             let second_order = (a * rotated.transpose() + rotated * a.transpose()) * 0.5
                 - Matrix3::identity() * a.dot(&rotated);
