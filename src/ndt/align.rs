@@ -133,7 +133,12 @@ impl NdtMap {
     /// Fails on an empty map, empty or non-finite points, a bad configuration, or fewer than
     /// `min_correspondences` thinned source points near a map distribution at the initial pose.
     /// Parallel over points (rayon's current pool); the result is bit-identical for any thread count.
-    pub fn align(&self, points: &[Point3<f64>], initial: &Isometry3<f64>, config: &NdtAlignConfig) -> Result<NdtResult> {
+    pub fn align(
+        &self,
+        points: &[Point3<f64>],
+        initial: &Isometry3<f64>,
+        config: &NdtAlignConfig,
+    ) -> Result<NdtResult> {
         config.validate()?;
         if self.is_empty() {
             return Err(Error::invalid("map", "is empty: insert a scan before aligning"));
@@ -197,7 +202,12 @@ impl NdtMap {
     }
 
     /// [`align`](Self::align) with the initial `T_map_source` as a 4×4 matrix (checked to be rigid).
-    pub fn align_matrix(&self, points: &[Point3<f64>], initial: &Matrix4<f64>, config: &NdtAlignConfig) -> Result<NdtResult> {
+    pub fn align_matrix(
+        &self,
+        points: &[Point3<f64>],
+        initial: &Matrix4<f64>,
+        config: &NdtAlignConfig,
+    ) -> Result<NdtResult> {
         let initial = isometry_from_matrix4(initial, "initial_transform")?;
         self.align(points, &initial, config)
     }
@@ -323,9 +333,12 @@ mod tests {
                     })
                     .unwrap_or(&patches[0]);
                 let (origin, a, b) = patch;
-                Vector3::from(*origin) + Vector3::from(*a) * rng.random::<f64>() + Vector3::from(*b) * rng.random::<f64>()
+                Vector3::from(*origin)
+                    + Vector3::from(*a) * rng.random::<f64>()
+                    + Vector3::from(*b) * rng.random::<f64>()
             };
-            let noise = Vector3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()) - Vector3::repeat(0.5);
+            let noise =
+                Vector3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()) - Vector3::repeat(0.5);
             points.push(Point3::from(point + noise * 0.02));
         }
         points
@@ -350,7 +363,8 @@ mod tests {
     /// Map from one sample of the scene; the source an independent sample seen from `T_map_source`.
     fn align_scene(truth: &Isometry3<f64>, initial: &Isometry3<f64>) -> NdtResult {
         let map = map_of(&sample_scene(40_000, 1));
-        let source: Vec<Point3<f64>> = sample_scene(8_000, 2).iter().map(|p| truth.inverse_transform_point(p)).collect();
+        let source: Vec<Point3<f64>> =
+            sample_scene(8_000, 2).iter().map(|p| truth.inverse_transform_point(p)).collect();
         map.align(&source, initial, &NdtAlignConfig::default()).unwrap()
     }
 

@@ -26,7 +26,10 @@ pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
 /// This module's rayon pools by thread count, with the pid that built them: a forked child (PyTorch
 /// DataLoader workers) has none of the parent's worker threads and builds its own (the parent's are
 /// leaked, never joined).
-static POOLS: Mutex<Option<(u32, Vec<(usize, Arc<rayon::ThreadPool>)>)>> = Mutex::new(None);
+static POOLS: Mutex<Option<(u32, Vec<PoolEntry>)>> = Mutex::new(None);
+
+/// A pool and its thread count.
+type PoolEntry = (usize, Arc<rayon::ThreadPool>);
 
 fn thread_pool(num_threads: Option<usize>) -> PyResult<Arc<rayon::ThreadPool>> {
     let threads = match num_threads {
@@ -56,7 +59,11 @@ fn thread_pool(num_threads: Option<usize>) -> PyResult<Arc<rayon::ThreadPool>> {
 }
 
 /// Runs `work` without the GIL inside a pool of `num_threads`, mapping crate errors and panics.
-fn run<T: Send>(py: Python<'_>, num_threads: Option<usize>, work: impl FnOnce() -> crate::Result<T> + Send) -> PyResult<T> {
+fn run<T: Send>(
+    py: Python<'_>,
+    num_threads: Option<usize>,
+    work: impl FnOnce() -> crate::Result<T> + Send,
+) -> PyResult<T> {
     let pool = thread_pool(num_threads)?;
     match py.detach(|| catch_unwind(AssertUnwindSafe(|| pool.install(work)))) {
         Ok(result) => result.map_err(PyErr::from),
@@ -75,7 +82,7 @@ fn run<T: Send>(py: Python<'_>, num_threads: Option<usize>, work: impl FnOnce() 
 fn describe(value: &Bound<'_, PyAny>) -> String {
     match value.cast::<PyUntypedArray>() {
         Ok(array) => format!("a {} array of shape {:?}", array.dtype(), array.shape()),
-        Err(_) => format!("{}", value.get_type().name().map_or_else(|_| "?".into(), |n| n.to_string())),
+        Err(_) => value.get_type().name().map_or_else(|_| "?".into(), |n| n.to_string()),
     }
 }
 
@@ -98,7 +105,9 @@ fn read_points(value: &Bound<'_, PyAny>, argument: &str) -> PyResult<Vec<Point3<
     let rows = read_rows(value, argument)?;
     let (count, columns) = rows.dim();
     if columns != 3 && columns != 4 {
-        return Err(PyValueError::new_err(format!("{argument}: expected shape (N, 3) or (N, 4), got ({count}, {columns})")));
+        return Err(PyValueError::new_err(format!(
+            "{argument}: expected shape (N, 3) or (N, 4), got ({count}, {columns})"
+        )));
     }
     Ok(rows.outer_iter().map(|row| Point3::new(row[0], row[1], row[2])).collect())
 }
@@ -176,7 +185,12 @@ pub struct PyNdtMap {
 impl PyNdtMap {
     #[new]
     #[pyo3(signature = (voxel_size = 1.0, max_scans = 10, min_points_per_voxel = 5, min_eigenvalue_ratio = 0.01))]
-    fn new(voxel_size: f64, max_scans: usize, min_points_per_voxel: usize, min_eigenvalue_ratio: f64) -> PyResult<Self> {
+    fn new(
+        voxel_size: f64,
+        max_scans: usize,
+        min_points_per_voxel: usize,
+        min_eigenvalue_ratio: f64,
+    ) -> PyResult<Self> {
         let config = NdtMapConfig { voxel_size, min_points_per_voxel, max_scans, min_eigenvalue_ratio };
         Ok(PyNdtMap { inner: NdtMap::new(config)? })
     }
