@@ -3,6 +3,8 @@ KITTI scans of a standing car (the motion must be ~0), and bad input."""
 
 from __future__ import annotations
 
+import multiprocessing
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -134,6 +136,25 @@ def test_non_contiguous_input_is_read_correctly(scene_map: dmlo_rs.NdtMap) -> No
     np.testing.assert_array_equal(
         scene_map.align(strided, np.eye(4)).transform, scene_map.align(np.ascontiguousarray(source), np.eye(4)).transform
     )
+
+
+_FORKED_MAP: dict[str, dmlo_rs.NdtMap] = {}
+
+
+def _align_in_child(source: FloatArray) -> FloatArray:
+    return _FORKED_MAP["map"].align(source, np.eye(4), num_threads=2).transform
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork start method")
+def test_align_works_in_a_forked_child(scene_map: dmlo_rs.NdtMap) -> None:
+    # The parent's rayon pool has no threads in a fork()ed child (PyTorch DataLoader workers): the
+    # binding must build a new pool there instead of hanging.
+    source = transform_points(np.linalg.inv(MOTION), street_scene(4_000, seed=11))
+    in_parent = scene_map.align(source, np.eye(4), num_threads=2).transform
+    _FORKED_MAP["map"] = scene_map
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        in_child = pool.apply_async(_align_in_child, (source,)).get(timeout=60)
+    np.testing.assert_array_equal(in_child, in_parent)
 
 
 def test_sliding_window_keeps_recent_scans() -> None:
