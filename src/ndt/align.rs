@@ -445,6 +445,32 @@ mod tests {
     }
 
     #[test]
+    fn planar_map_fixes_the_constrained_directions_and_stays_put_in_the_others() {
+        // Only the ground: height, roll and pitch are observable, the in-plane motion is not. The solve
+        // must recover the former and neither blow up nor wander off in the latter.
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut plane = |count: usize| -> Vec<Point3<f64>> {
+            (0..count)
+                .map(|_| {
+                    let (x, y, z) = (rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>());
+                    Point3::new(40.0 * x - 20.0, 30.0 * y - 15.0, 0.02 * z - 0.01)
+                })
+                .collect()
+        };
+        let map = map_of(&plane(40_000));
+        let truth = motion([0.0, 0.0, 0.1], [1.0, -0.5, 0.0]);
+        let source: Vec<Point3<f64>> = plane(8_000).iter().map(|p| truth.inverse_transform_point(p)).collect();
+        let result = map.align(&source, &Isometry3::identity(), &NdtAlignConfig::default()).unwrap();
+        let estimate = result.transform;
+        assert!(result.converged, "{result:?}");
+        assert!((estimate.translation.z - 0.1).abs() < 0.002, "{result:?}");
+        let up = estimate.rotation * Vector3::z();
+        let true_up = truth.rotation * Vector3::z();
+        assert!(up.angle(&true_up).to_degrees() < 0.02, "{result:?}");
+        assert!(estimate.translation.vector.xy().norm() < 0.02, "{result:?}");
+    }
+
+    #[test]
     fn rigid_matrix_round_trips() {
         let pose = motion([1.0, -2.0, 3.0], [10.0, 20.0, -30.0]);
         let back = isometry_from_matrix4(&pose.to_homogeneous(), "m").unwrap();
