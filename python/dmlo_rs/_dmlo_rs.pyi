@@ -36,7 +36,7 @@ class NdtResult:
     def num_correspondences(self) -> int: ...
     @property
     def score(self) -> float:
-        """Mean NDT likelihood per thinned source point (≈1 on a distribution's mean, 0 far away)."""
+        """Mean NDT likelihood per thinned source point (each nearby distribution adds up to 1, far away 0)."""
 
 @_final
 class NdtMap:

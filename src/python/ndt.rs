@@ -135,7 +135,7 @@ pub struct PyNdtResult {
     /// Thinned source points with a map distribution nearby at the final pose.
     #[pyo3(get)]
     num_correspondences: usize,
-    /// Mean NDT likelihood per thinned source point (≈1 on a distribution's mean, 0 far away).
+    /// Mean NDT likelihood per thinned source point (each nearby distribution adds up to 1, far away 0).
     #[pyo3(get)]
     score: f64,
 }
