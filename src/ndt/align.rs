@@ -1,6 +1,9 @@
 #![forbid(unsafe_code)]
-//! Scan-to-map registration: Newton's method on the NDT score (Magnusson 2009, Alg. 2) with a
-//! saddle-free Hessian, a step-length limit and a backtracking (Armijo) line search.
+//! Scan-to-map registration: Newton's method on the NDT score (Magnusson 2009, Alg. 2) with a step-length
+//! limit and a backtracking (Armijo) line search. Where the full Hessian is indefinite (far from the
+//! optimum) the step uses its positive semi-definite first-order part instead, a Gauss-Newton-like step.
+//! Against a saddle-free (|λ|) Newton step on real KITTI scans (8 starts 0.3 m / 2° off) it took about as
+//! many iterations (11–16 vs 9–15) in about half the time: its steps are rarely cut back by the line search.
 
 use nalgebra::{Isometry3, Matrix4, Point3, Rotation3, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector6};
 
@@ -98,7 +101,8 @@ pub struct NdtResult {
     /// Source points (after thinning) with a map distribution in their neighbourhood at `transform`.
     pub num_correspondences: usize,
     /// Mean over the thinned source points of `Σ exp(−d2/2·qᵀΣ⁻¹q)` over their neighbouring distributions:
-    /// about 1 for a point on a distribution's mean, 0 far from every distribution. Higher is better.
+    /// each distribution adds up to 1 (a point on its mean), 0 far from every distribution; with neighbour
+    /// search the sum can exceed 1. Higher is better; comparable only between runs with the same settings.
     pub score: f64,
 }
 
@@ -130,7 +134,12 @@ impl NdtMap {
     /// Fails on an empty map, empty or non-finite points, a bad configuration, or fewer than
     /// `min_correspondences` thinned source points near a map distribution at the initial pose.
     /// Parallel over points (rayon's current pool); the result is bit-identical for any thread count.
-    pub fn align(&self, points: &[Point3<f64>], initial: &Isometry3<f64>, config: &NdtAlignConfig) -> Result<NdtResult> {
+    pub fn align(
+        &self,
+        points: &[Point3<f64>],
+        initial: &Isometry3<f64>,
+        config: &NdtAlignConfig,
+    ) -> Result<NdtResult> {
         config.validate()?;
         if self.is_empty() {
             return Err(Error::invalid("map", "is empty: insert a scan before aligning"));
@@ -161,11 +170,12 @@ impl NdtMap {
         let mut converged = false;
         let mut iterations = 0;
         while iterations < config.max_iterations {
-            let Some(direction) = newton_direction(&current, config) else {
-                // Zero gradient: already at a stationary point.
+            if current.gradient.iter().all(|g| *g == 0.0) {
+                // Already at a stationary point (or every point is far from every distribution).
                 converged = true;
                 break;
-            };
+            }
+            let Some(direction) = newton_direction(&current, config) else { break };
             iterations += 1;
             if is_small(&direction, config.translation_epsilon, rotation_epsilon) {
                 // Below the tolerances the cost change is lost in round-off: take the step unchecked.
@@ -194,7 +204,12 @@ impl NdtMap {
     }
 
     /// [`align`](Self::align) with the initial `T_map_source` as a 4×4 matrix (checked to be rigid).
-    pub fn align_matrix(&self, points: &[Point3<f64>], initial: &Matrix4<f64>, config: &NdtAlignConfig) -> Result<NdtResult> {
+    pub fn align_matrix(
+        &self,
+        points: &[Point3<f64>],
+        initial: &Matrix4<f64>,
+        config: &NdtAlignConfig,
+    ) -> Result<NdtResult> {
         let initial = isometry_from_matrix4(initial, "initial_transform")?;
         self.align(points, &initial, config)
     }
@@ -206,20 +221,22 @@ fn is_small(step: &Vector6<f64>, translation_epsilon: f64, rotation_epsilon: f64
         && Vector3::new(step[3], step[4], step[5]).norm() < rotation_epsilon
 }
 
-/// The Newton step `−H⁻¹g` with every Hessian eigenvalue replaced by its magnitude (floored), so the
-/// step descends even where the score is not convex; shortened to the configured step limits.
-/// `None` when the gradient vanishes.
+/// The Newton step `−H⁻¹g`; where the full Hessian is not positive definite (far from the optimum) its
+/// positive semi-definite first-order part stands in (with a small floor on its eigenvalues). Shortened to
+/// the configured step limits. `None` when the curvature vanishes or is not finite.
 fn newton_direction(at: &Evaluation, config: &NdtAlignConfig) -> Option<Vector6<f64>> {
-    if at.gradient.iter().all(|g| *g == 0.0) {
-        return None;
-    }
-    let eigen = SymmetricEigen::new((at.hessian + at.hessian.transpose()) * 0.5);
+    let full = SymmetricEigen::new((at.hessian + at.hessian.transpose()) * 0.5);
+    let eigen = if full.eigenvalues.min() > 0.0 {
+        full
+    } else {
+        SymmetricEigen::new((at.hessian_psd + at.hessian_psd.transpose()) * 0.5)
+    };
     let largest = eigen.eigenvalues.amax();
     if !(largest.is_finite() && largest > 0.0) {
         return None;
     }
     let floor = largest * 1e-9;
-    let inverse = eigen.eigenvalues.map(|value| 1.0 / value.abs().max(floor));
+    let inverse = eigen.eigenvalues.map(|value| 1.0 / value.max(floor));
     let projected = eigen.eigenvectors.transpose() * at.gradient;
     let mut step = -(eigen.eigenvectors * projected.component_mul(&inverse));
     let translation = Vector3::new(step[0], step[1], step[2]).norm();
@@ -315,9 +332,12 @@ mod tests {
                     })
                     .unwrap_or(&patches[0]);
                 let (origin, a, b) = patch;
-                Vector3::from(*origin) + Vector3::from(*a) * rng.random::<f64>() + Vector3::from(*b) * rng.random::<f64>()
+                Vector3::from(*origin)
+                    + Vector3::from(*a) * rng.random::<f64>()
+                    + Vector3::from(*b) * rng.random::<f64>()
             };
-            let noise = Vector3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()) - Vector3::repeat(0.5);
+            let noise =
+                Vector3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()) - Vector3::repeat(0.5);
             points.push(Point3::from(point + noise * 0.02));
         }
         points
@@ -342,7 +362,8 @@ mod tests {
     /// Map from one sample of the scene; the source an independent sample seen from `T_map_source`.
     fn align_scene(truth: &Isometry3<f64>, initial: &Isometry3<f64>) -> NdtResult {
         let map = map_of(&sample_scene(40_000, 1));
-        let source: Vec<Point3<f64>> = sample_scene(8_000, 2).iter().map(|p| truth.inverse_transform_point(p)).collect();
+        let source: Vec<Point3<f64>> =
+            sample_scene(8_000, 2).iter().map(|p| truth.inverse_transform_point(p)).collect();
         map.align(&source, initial, &NdtAlignConfig::default()).unwrap()
     }
 
@@ -420,6 +441,32 @@ mod tests {
             map.align(&source, &far_away, &config),
             Err(Error::TooFewPoints { needed: config.min_correspondences, got: 0 })
         );
+    }
+
+    #[test]
+    fn planar_map_fixes_the_constrained_directions_and_stays_put_in_the_others() {
+        // Only the ground: height, roll and pitch are observable, the in-plane motion is not. The solve
+        // must recover the former and neither blow up nor wander off in the latter.
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut plane = |count: usize| -> Vec<Point3<f64>> {
+            (0..count)
+                .map(|_| {
+                    let (x, y, z) = (rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>());
+                    Point3::new(40.0 * x - 20.0, 30.0 * y - 15.0, 0.02 * z - 0.01)
+                })
+                .collect()
+        };
+        let map = map_of(&plane(40_000));
+        let truth = motion([0.0, 0.0, 0.1], [1.0, -0.5, 0.0]);
+        let source: Vec<Point3<f64>> = plane(8_000).iter().map(|p| truth.inverse_transform_point(p)).collect();
+        let result = map.align(&source, &Isometry3::identity(), &NdtAlignConfig::default()).unwrap();
+        let estimate = result.transform;
+        assert!(result.converged, "{result:?}");
+        assert!((estimate.translation.z - 0.1).abs() < 0.002, "{result:?}");
+        let up = estimate.rotation * Vector3::z();
+        let true_up = truth.rotation * Vector3::z();
+        assert!(up.angle(&true_up).to_degrees() < 0.02, "{result:?}");
+        assert!(estimate.translation.vector.xy().norm() < 0.02, "{result:?}");
     }
 
     #[test]

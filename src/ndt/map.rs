@@ -124,7 +124,10 @@ impl NdtMap {
         if let Some(row) = points_world.iter().position(|p| VoxelKey::containing(p, inverse).is_none()) {
             return Err(Error::invalid(
                 "points_world",
-                format!("row {row} is not finite or too far from the origin: {:?}", points_world[row].coords.as_slice()),
+                format!(
+                    "row {row} is not finite or too far from the origin: {:?}",
+                    points_world[row].coords.as_slice()
+                ),
             ));
         }
         let (order, mut stats) = voxel_statistics(points_world, self.config.voxel_size);

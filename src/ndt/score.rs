@@ -63,9 +63,9 @@ impl NeighbourSearch {
             let mut offsets = [[0i32; 3]; 27];
             offsets[0] = [0, 0, 0];
             let mut next = 1;
-            let mut i = 0;
+            let mut i: i32 = 0;
             while i < 27 {
-                let offset = [(i / 9) as i32 - 1, ((i / 3) % 3) as i32 - 1, (i % 3) as i32 - 1];
+                let offset = [i / 9 - 1, (i / 3) % 3 - 1, i % 3 - 1];
                 if !(offset[0] == 0 && offset[1] == 0 && offset[2] == 0) {
                     offsets[next] = offset;
                     next += 1;
@@ -91,6 +91,9 @@ pub struct Evaluation {
     pub likelihood: f64,
     pub gradient: Vector6<f64>,
     pub hessian: Matrix6<f64>,
+    /// `Σ −d1·d2·e·JᵀΣ⁻¹J`: the Hessian without its curvature terms, positive semi-definite everywhere
+    /// (the Gauss-Newton-like fallback where the full Hessian is indefinite, far from the optimum).
+    pub hessian_psd: Matrix6<f64>,
     /// Source points with at least one distribution in their neighbourhood.
     pub num_correspondences: usize,
 }
@@ -102,6 +105,7 @@ impl Evaluation {
             likelihood: 0.0,
             gradient: Vector6::zeros(),
             hessian: Matrix6::zeros(),
+            hessian_psd: Matrix6::zeros(),
             num_correspondences: 0,
         }
     }
@@ -111,6 +115,7 @@ impl Evaluation {
         self.likelihood += other.likelihood;
         self.gradient += other.gradient;
         self.hessian += other.hessian;
+        self.hessian_psd += other.hessian_psd;
         self.num_correspondences += other.num_correspondences;
     }
 }
@@ -126,8 +131,7 @@ pub struct ScoreContext<'a> {
 /// The NDT cost, gradient and Hessian of `source` (sensor frame) placed by `pose`, over the increment
 /// `δ = (v, ω)` described in the module docs. Parallel over chunks of points; deterministic.
 pub fn evaluate(context: &ScoreContext<'_>, source: &[Point3<f64>], pose: &Isometry3<f64>) -> Evaluation {
-    let partial: Vec<Evaluation> =
-        source.par_chunks(CHUNK).map(|chunk| evaluate_chunk(context, chunk, pose)).collect();
+    let partial: Vec<Evaluation> = source.par_chunks(CHUNK).map(|chunk| evaluate_chunk(context, chunk, pose)).collect();
     let mut total = Evaluation::zero();
     for part in &partial {
         total.add(part);
@@ -166,10 +170,12 @@ fn evaluate_chunk(context: &ScoreContext<'_>, chunk: &[Point3<f64>], pose: &Isom
             let weight = -d1 * d2 * e;
             let g = jacobian.transpose() * a;
             sum.gradient += g * weight;
-            let mut hessian = jacobian.transpose() * (gaussian.inverse_covariance * jacobian) - g * g.transpose() * d2;
+            let first_order = jacobian.transpose() * (gaussian.inverse_covariance * jacobian);
+            sum.hessian_psd += first_order * weight;
+            let mut hessian = first_order - g * g.transpose() * d2;
             // qᵀΣ⁻¹ ∂²x/∂ωᵢ∂ωⱼ = ½(aᵢyⱼ + aⱼyᵢ) − (a·y)δᵢⱼ
-            let second_order = (a * rotated.transpose() + rotated * a.transpose()) * 0.5
-                - Matrix3::identity() * a.dot(&rotated);
+            let second_order =
+                (a * rotated.transpose() + rotated * a.transpose()) * 0.5 - Matrix3::identity() * a.dot(&rotated);
             let mut block = hessian.fixed_view_mut::<3, 3>(3, 3);
             block += second_order;
             sum.hessian += hessian * weight;
@@ -245,10 +251,8 @@ mod tests {
         let pose = Isometry3::new(Vector3::new(0.05, -0.03, 0.04), Vector3::new(0.02, -0.01, 0.03));
         // Points close to a voxel face would switch neighbours within the finite-difference steps (the
         // cost jumps there); keep those at least 1 cm inside their voxel.
-        let source: Vec<Point3<f64>> = source
-            .into_iter()
-            .filter(|p| (pose * p).coords.iter().all(|v| (v - v.round()).abs() > 0.01))
-            .collect();
+        let source: Vec<Point3<f64>> =
+            source.into_iter().filter(|p| (pose * p).coords.iter().all(|v| (v - v.round()).abs() > 0.01)).collect();
         let at = evaluate(&context, &source, &pose);
         let cost = |delta: Vector6<f64>| evaluate(&context, &source, &apply_increment(&pose, &delta)).cost;
         let unit = |i: usize| {
@@ -265,7 +269,10 @@ mod tests {
                 let (ei, ej) = (unit(i) * h, unit(j) * h);
                 let numeric = (cost(ei + ej) - cost(ei - ej) - cost(ej - ei) + cost(-ei - ej)) / (4.0 * h * h);
                 let analytic = at.hessian[(i, j)];
-                assert!((numeric - analytic).abs() < 1e-3 * (1.0 + analytic.abs()), "hessian ({i}, {j}): {numeric} vs {analytic}");
+                assert!(
+                    (numeric - analytic).abs() < 1e-3 * (1.0 + analytic.abs()),
+                    "hessian ({i}, {j}): {numeric} vs {analytic}"
+                );
             }
         }
     }

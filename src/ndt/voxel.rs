@@ -21,8 +21,8 @@ impl VoxelKey {
         let mut key = [0i32; 3];
         for (axis, slot) in key.iter_mut().enumerate() {
             let scaled = (point[axis] * inverse_voxel_size).floor();
-            // NaN fails this comparison too.
-            if !(scaled.abs() < MAX_KEY) {
+            // NaN is neither less nor greater: refused too.
+            if scaled.abs().partial_cmp(&MAX_KEY) != Some(std::cmp::Ordering::Less) {
                 return None;
             }
             *slot = scaled as i32;
