@@ -260,7 +260,10 @@ class Odometry:
     ) -> Matrix4:
         assert self._map is not None
         try:
-            result = self._map.align(cloud[:, :3], pose, max_iterations=self.config.mapping.max_iterations)
+            c = self.config.mapping
+            result = self._map.align(
+                cloud[:, :3], pose, max_iterations=c.max_iterations, source_voxel_size=c.downsample
+            )
         except ValueError:
             diagnostics.ndt_converged = False
             return pose
