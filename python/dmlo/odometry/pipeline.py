@@ -16,7 +16,14 @@ import numpy.typing as npt
 
 import dmlo_rs
 from dmlo.odometry.config import OdometryConfig
-from dmlo.odometry.matcher import Features, FrameOutput, Matcher, OnnxMatcher, default_model_path
+from dmlo.odometry.matcher import (
+    Features,
+    FrameOutput,
+    Matcher,
+    OnnxMatcher,
+    default_model_path,
+    wide_graph_path,
+)
 
 Matrix4 = npt.NDArray[np.float64]
 
@@ -102,6 +109,7 @@ class Odometry:
         self._reference_index = -1
         self._velocity = np.eye(4)  # T_tgt_ref per frame, for the constant-velocity model
         self._map = self._make_map() if self.config.mapping.enabled else None
+        self._wide: Matcher | None = None  # loaded on the first large-motion pair
 
     @classmethod
     def from_default(cls, config: OdometryConfig | None = None) -> Odometry:
@@ -152,14 +160,26 @@ class Odometry:
         """Records a scan that could not be read: its pose comes from the motion model."""
         return self._skip(FrameDiagnostics(index=len(self.poses), num_points=0), reason)
 
-    def register_pair(self, reference: npt.ArrayLike, target: npt.ArrayLike) -> PairResult:
-        """The motion `T_tgt_ref` between two scans, with no motion model, map or initial guess."""
+    def register_pair(
+        self, reference: npt.ArrayLike, target: npt.ArrayLike, large_motion: bool = False
+    ) -> PairResult:
+        """The motion `T_tgt_ref` between two scans, with no motion model, map or initial guess.
+
+        `large_motion` matches with the model's wide-window graph (the paper's D = 40 at inference,
+        §IV-D) for scans far apart, e.g. several frames or metres.
+        """
+        matcher = self._wide_matcher() if large_motion else self.matcher
         ref_image, ref_range = self._project(_as_scan(reference, "reference"))
         tgt_image, tgt_range = self._project(_as_scan(target, "target"))
-        ref_features = self.matcher.frame(ref_image, None).features
-        output = self.matcher.frame(tgt_image, ref_features)
+        ref_features = matcher.frame(ref_image, None).features
+        output = matcher.frame(tgt_image, ref_features)
         assert output.flow is not None and output.confidence is not None
         return self._match(ref_range, tgt_range, output.flow, output.confidence)
+
+    def _wide_matcher(self) -> Matcher:
+        if self._wide is None:
+            self._wide = OnnxMatcher(wide_graph_path(self.matcher.path), threads=self.config.threads)
+        return self._wide
 
     # -- the paper's steps ----------------------------------------------------------------------
 
