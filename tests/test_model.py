@@ -223,7 +223,7 @@ def test_training_learns_synthetic_shifts() -> None:
     rng = np.random.default_rng(0)
 
     def batch(seed: int) -> tuple:
-        pairs = [synthetic_pair(16, 128, (int(rng.integers(-6, 7)), int(rng.integers(-24, 25))), seed * 4 + k) for k in range(4)]
+        pairs = [synthetic_pair(16, 64, (int(rng.integers(-6, 7)), int(rng.integers(-16, 17))), seed * 4 + k) for k in range(4)]
         return tuple(torch.cat(items) for items in zip(*pairs, strict=True))
 
     def epe(seed: int) -> float:
