@@ -9,7 +9,7 @@ from typing import Any
 
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
-        "export", help="export a trained matcher to ONNX", description=__doc__,
+        "export", help="Export a trained matcher to ONNX for onnxruntime.", description=__doc__,
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("checkpoint", help="a checkpoint (.pt) or a run folder (uses best.pt, else last.pt)")
