@@ -83,6 +83,8 @@ class OnnxMatcher:
         if not graph.is_file():
             raise ModelError(f"model not found: {graph}")
         options = ort.SessionOptions()
+        # Idle worker threads would spin between frames and steal the cores from projection and RANSAC.
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         if threads > 0:
             options.intra_op_num_threads = threads
         providers = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
