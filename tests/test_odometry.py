@@ -122,3 +122,19 @@ def test_a_model_whose_input_does_not_fit_its_cylinder_is_refused(tmp_path: Path
     onnx.save(model, str(tmp_path / "frame.onnx"))
     with pytest.raises(ModelError, match=r"network input 64×1792 does not match its cylinder image 64×896"):
         Odometry(tmp_path)
+
+
+def test_large_motion_pair_uses_the_wide_window_graph(scans: list[np.ndarray]) -> None:
+    odometry = Odometry.from_default()
+    result = odometry.register_pair(scans[0], scans[4], large_motion=True)
+    assert result.T_tgt_ref.shape == (4, 4)
+    assert odometry._wide is not None
+    assert odometry._wide.model_config["coarse_window"] > odometry.matcher.model_config["coarse_window"]
+
+
+def test_large_motion_without_a_wide_graph_says_how_to_make_one(scans: list[np.ndarray], tmp_path: Path) -> None:
+    import shutil
+
+    shutil.copy(default_model_path() / "frame.onnx", tmp_path / "frame.onnx")
+    with pytest.raises(ModelError, match="no frame_wide.onnx for large motion.*--wide-window 41"):
+        Odometry(tmp_path).register_pair(scans[0], scans[1], large_motion=True)

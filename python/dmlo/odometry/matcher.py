@@ -68,7 +68,7 @@ def wide_graph_path(frame_graph: Path) -> Path:
     if not wide.is_file():
         raise ModelError(
             f"{frame_graph.parent} has no {WIDE_FRAME_GRAPH} for large motion; export one from the "
-            "checkpoint with `dmlo export CHECKPOINT --out DIR --coarse-window 41`"
+            "checkpoint with `dmlo export CHECKPOINT --out DIR --wide-window 41`"
         )
     return wide
 
