@@ -13,11 +13,12 @@ import collections
 import json
 import tempfile
 import time
+from typing import Any
 from pathlib import Path
 
 import numpy as np
 
-VARIANTS = {
+VARIANTS: dict[str, dict[str, Any]] = {
     "paper (2 plain + 3 deformable, 16 ch)": dict(refine_channels=16, refine_plain_layers=2, refine_deformable_layers=3),
     "paper, 8 ch": dict(refine_channels=8, refine_plain_layers=2, refine_deformable_layers=3),
     "light (4 plain + 1 deformable, 8 ch)": dict(refine_channels=8, refine_plain_layers=4, refine_deformable_layers=1),
@@ -63,7 +64,9 @@ def main(argv: list[str] | None = None) -> None:
     scan = np.stack(
         (rng.uniform(2, 60, (args.height, args.width)), rng.uniform(0, 1, (args.height, args.width)))
     )[None].astype(np.float32)
-    sessions, feeds, paths = {}, {}, {}
+    sessions: dict[str, Any] = {}
+    feeds: dict[str, Any] = {}
+    paths: dict[str, Path] = {}
     with tempfile.TemporaryDirectory() as folder:
         for name, changes in VARIANTS.items():
             model = Matcher(MatcherConfig(**changes)).eval()

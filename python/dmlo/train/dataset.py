@@ -195,7 +195,7 @@ class PairDataset:
         ref, T_world_ref = self._scan(sequence, ref_index)
         tgt, T_world_tgt = self._scan(sequence, tgt_index)
         T_tgt_ref = np.linalg.solve(T_world_tgt, T_world_ref)
-        flow, valid = self.geometry.ground_truth(ref[0], tgt[0], T_tgt_ref)
+        flow, valid = self.geometry.ground_truth(ref[0], tgt[0], T_tgt_ref.astype(np.float64))
         return {"ref": ref, "tgt": tgt, "flow": flow.astype(np.float32), "valid": valid.astype(bool)}
 
     def __getitem__(self, index: int) -> Sample:
