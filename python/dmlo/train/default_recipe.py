@@ -35,7 +35,8 @@ TRAIN_ARGUMENTS = (
 def simulate_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Path]]:
     from dmlo.simulator import simulate_sequence
 
-    train, val = [], []
+    train: list[Path] = []
+    val: list[Path] = []
     for name, sequence, seed, start, frames in DRIVES:
         out = data / name
         trajectory = poses / f"{sequence}.txt" if poses is not None and sequence is not None else None
