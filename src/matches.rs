@@ -15,7 +15,7 @@ use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::ground_truth::check_range_image;
-use crate::projection::CylinderConfig;
+use crate::projection::{floor_fast, CylinderConfig};
 
 /// Thresholds of [`decode_matches`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -46,6 +46,15 @@ pub struct DecodedMatches {
 }
 
 impl DecodedMatches {
+    fn with_capacity(n: usize) -> Self {
+        DecodedMatches {
+            source: Vec::with_capacity(n),
+            target: Vec::with_capacity(n),
+            confidence: Vec::with_capacity(n),
+            cells: Vec::with_capacity(n),
+        }
+    }
+
     /// Number of matches.
     pub fn len(&self) -> usize {
         self.confidence.len()
@@ -62,7 +71,7 @@ impl DecodedMatches {
 pub fn sample_range(range: &[f32], row: f64, col: f64, config: &CylinderConfig, max_relative_spread: f32) -> Option<f64> {
     let (height, width) = (config.height as i64, config.width as i64);
     config.cell_of(row, col)?;
-    let (r0, c0) = (row.floor(), col.floor());
+    let (r0, c0) = (floor_fast(row), floor_fast(col));
     let (fr, fc) = (row - r0, col - c0);
     let (r0, c0) = (r0 as i64, c0 as i64);
     let period = config.columns_per_turn().round() as i64;
@@ -140,7 +149,7 @@ pub fn decode_matches(
     let per_row: Vec<DecodedMatches> = (0..height)
         .into_par_iter()
         .map(|row| {
-            let mut out = DecodedMatches::default();
+            let mut out = DecodedMatches::with_capacity(width);
             for col in 0..width {
                 let cell = row * width + col;
                 let (range, score) = (ref_range[cell], confidence[cell]);
@@ -168,7 +177,7 @@ pub fn decode_matches(
             out
         })
         .collect();
-    let mut all = DecodedMatches::default();
+    let mut all = DecodedMatches::with_capacity(per_row.iter().map(DecodedMatches::len).sum());
     for part in per_row {
         all.source.extend(part.source);
         all.target.extend(part.target);
@@ -223,7 +232,7 @@ impl DirectionTable {
     /// `(sin, cos)` of the angle at continuous index `x` (angle = (origin − x)·step).
     #[inline(always)]
     fn lookup(table: &[(f64, f64)], origin: f64, x: f64, step: f64) -> (f64, f64) {
-        let nearest = x.round();
+        let nearest = floor_fast(x + 0.5);
         let slot = nearest + 1.0;
         let base = if slot >= 0.0 && (slot as usize) < table.len() {
             table[slot as usize]

@@ -192,8 +192,8 @@ impl CylinderConfig {
 
     /// The cell `(row, col)` containing a continuous location, if inside the cropped image.
     pub fn cell_of(&self, row: f64, col: f64) -> Option<(usize, usize)> {
-        let r = (row + 0.5).floor();
-        let c = (col + 0.5).floor();
+        let r = floor_fast(row + 0.5);
+        let c = floor_fast(col + 0.5);
         if r >= 0.0 && c >= 0.0 && r < self.height as f64 && c < self.width as f64 {
             Some((r as usize, c as usize))
         } else {
@@ -242,6 +242,17 @@ impl Projection {
 const NO_CELL: u32 = u32::MAX;
 /// Sentinel for "this point is NaN/Inf".
 const NON_FINITE: u32 = u32::MAX - 1;
+
+/// `x.floor()` without a libm call on baseline x86-64 (which lacks an inline rounding instruction);
+/// NaN and huge values go to `floor` itself.
+#[inline(always)]
+pub(crate) fn floor_fast(x: f64) -> f64 {
+    if !(x.abs() < 4.5e15) {
+        return x.floor();
+    }
+    let truncated = (x as i64) as f64;
+    if truncated > x { truncated - 1.0 } else { truncated }
+}
 
 /// Bound on the error of [`atan2_fast`], radians: the series is cut after the u¹³ term for |u| ≤
 /// tan(π/8), so the first omitted term is below 0.4143¹⁵/15 = 1.3e-7; 1e-6 leaves room for rounding.
@@ -437,6 +448,14 @@ mod tests {
             assert!((atan2_fast(y, x) - f64::atan2(y, x)).abs() < 1e-12, "({y}, {x})");
             assert_eq!(atan2_fast(y, x).is_sign_negative(), f64::atan2(y, x).is_sign_negative());
         }
+    }
+
+    #[test]
+    fn fast_floor_equals_floor() {
+        for x in [-2.5, -1.0, -0.5, -0.0, 0.0, 0.3, 1.0, 1.5, 1e15, -1e15 - 0.5, 1e300, f64::INFINITY] {
+            assert_eq!(floor_fast(x), x.floor(), "{x}");
+        }
+        assert!(floor_fast(f64::NAN).is_nan());
     }
 
     #[test]
