@@ -1,0 +1,112 @@
+"""Collects simulator primitives with their semantic class, instance id and albedo, and turns them into a
+`dmlo_rs.RayScene` whose hit indices map back to those attributes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from dmlo_rs import RayScene
+
+# SemanticKITTI class ids used by the simulator.
+CAR = 10
+PERSON = 30
+ROAD = 40
+SIDEWALK = 48
+BUILDING = 50
+FENCE = 51
+OTHER_STRUCTURE = 52
+LANE_MARKING = 60
+VEGETATION = 70
+TRUNK = 71
+TERRAIN = 72
+POLE = 80
+TRAFFIC_SIGN = 81
+OTHER_OBJECT = 99
+MOVING_CAR = 252
+
+
+def yaw_pitch_rotation(yaw: float, pitch: float = 0.0) -> npt.NDArray[np.float64]:
+    """Rotation about z by `yaw`, then about the new y by `pitch` (radians)."""
+    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+    return np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]]) @ np.array(
+        [[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]]
+    )
+
+
+@dataclass
+class SceneAttributes:
+    """Per-primitive attributes in `RayScene` numbering (triangles, boxes, cylinders, ellipsoids)."""
+
+    semantic: npt.NDArray[np.uint32]
+    instance: npt.NDArray[np.uint32]
+    albedo: npt.NDArray[np.float32]
+
+
+class PrimitiveSet:
+    """Accumulates primitives of the four kinds, each with (class, instance, albedo)."""
+
+    def __init__(self) -> None:
+        self._params: dict[str, list[npt.NDArray[np.float64]]] = {k: [] for k in _KINDS}
+        self._attrs: dict[str, list[tuple[int, int, float]]] = {k: [] for k in _KINDS}
+
+    def __len__(self) -> int:
+        return sum(len(v) for v in self._attrs.values())
+
+    def add_triangles(
+        self, triangles: npt.NDArray[np.float64], semantic: int, instance: int, albedo: float | npt.NDArray[np.float64]
+    ) -> None:
+        """`triangles` (N, 3, 3); `albedo` one value or one per triangle."""
+        triangles = np.asarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
+        albedos = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (len(triangles),))
+        self._params["triangles"].extend(triangles)
+        self._attrs["triangles"].extend((semantic, instance, float(a)) for a in albedos)
+
+    def add_box(
+        self,
+        center: npt.ArrayLike,
+        half_extents: npt.ArrayLike,
+        rotation: npt.NDArray[np.float64],
+        semantic: int,
+        instance: int,
+        albedo: float,
+    ) -> None:
+        row = np.concatenate([np.asarray(center, float), np.asarray(rotation, float).ravel(), np.asarray(half_extents, float)])
+        self._params["boxes"].append(row)
+        self._attrs["boxes"].append((semantic, instance, albedo))
+
+    def add_cylinder(
+        self, base: npt.ArrayLike, height: float, radius: float, semantic: int, instance: int, albedo: float
+    ) -> None:
+        self._params["cylinders"].append(np.array([*np.asarray(base, float), height, radius]))
+        self._attrs["cylinders"].append((semantic, instance, albedo))
+
+    def add_ellipsoid(
+        self, center: npt.ArrayLike, radii: npt.ArrayLike, semantic: int, instance: int, albedo: float
+    ) -> None:
+        self._params["ellipsoids"].append(np.concatenate([np.asarray(center, float), np.asarray(radii, float)]))
+        self._attrs["ellipsoids"].append((semantic, instance, albedo))
+
+    def arrays(self) -> dict[str, npt.NDArray[np.float64] | None]:
+        """Primitive parameter arrays as `RayScene` takes them (None for an empty kind)."""
+        shapes = {"triangles": (-1, 3, 3), "boxes": (-1, 15), "cylinders": (-1, 5), "ellipsoids": (-1, 6)}
+        return {
+            kind: (np.asarray(self._params[kind], dtype=np.float64).reshape(shapes[kind]) if self._params[kind] else None)
+            for kind in _KINDS
+        }
+
+    def build(self) -> tuple[RayScene, SceneAttributes]:
+        """The ray-casting scene and the attributes of its primitives, in its numbering."""
+        attrs = [a for kind in _KINDS for a in self._attrs[kind]]
+        table = np.asarray(attrs, dtype=np.float64).reshape(-1, 3)
+        attributes = SceneAttributes(
+            semantic=table[:, 0].astype(np.uint32),
+            instance=table[:, 1].astype(np.uint32),
+            albedo=table[:, 2].astype(np.float32),
+        )
+        return RayScene(**self.arrays()), attributes
+
+
+_KINDS = ("triangles", "boxes", "cylinders", "ellipsoids")

@@ -1,0 +1,183 @@
+"""Simulates a drive and writes it as a KITTI odometry sequence (plus SemanticKITTI labels)."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+import dmlo_rs
+from dmlo.simulator.scene import StreetScene, generate_street
+from dmlo.simulator.sensor import SENSORS, LidarModel, measure
+from dmlo.simulator.trajectory import (
+    FRAME_RATE_HZ,
+    KITTI_TR,
+    camera_to_lidar_poses,
+    generate_drive,
+    lidar_to_camera_poses,
+    orthonormalize,
+    read_kitti_calib_tr,
+    read_kitti_poses,
+)
+
+# Camera matrices of KITTI sequences 00–02, written as placeholders so readers expecting P0..P3 work.
+_KITTI_P = {
+    "P0": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 0.000000000000e+00 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00",
+    "P1": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 -3.861448000000e+02 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00",
+    "P2": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 4.538225000000e+01 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 -1.130887000000e-01 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 3.779761000000e-03",
+    "P3": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 -3.372877000000e+02 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 2.369057000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 4.915215000000e-03",
+}
+
+
+@dataclass
+class SimulationResult:
+    """What `simulate_sequence` wrote and how long it took."""
+
+    out_dir: Path
+    lidar_poses: npt.NDArray[np.float64]  # (N,4,4) T_world_lidar, frame 0 = identity
+    points_per_frame: list[int] = field(default_factory=list)
+    cast_seconds: list[float] = field(default_factory=list)
+    frame_seconds: list[float] = field(default_factory=list)
+    scene_seconds: float = 0.0
+    static_primitives: int = 0
+
+
+def simulate_sequence(
+    out_dir: str | Path,
+    frames: int,
+    seed: int,
+    trajectory: str | Path | None = None,
+    start: int = 0,
+    calib: str | Path | None = None,
+    sensor: str | LidarModel = "hdl64e",
+    progress: bool = True,
+) -> SimulationResult:
+    """Simulates `frames` scans of a street drive and writes a KITTI-layout sequence into `out_dir`:
+    `velodyne/NNNNNN.bin` (float32 x y z reflectance), `labels/NNNNNN.label` (uint32, class | instance << 16,
+    moving cars class 252), `poses.txt` (camera frame, `Tr · T_world_lidar · Tr⁻¹`, frame 0 identity),
+    `calib.txt` (`Tr:` and placeholder P0..P3), `times.txt` and `simulation.json` (seed and parameters).
+
+    The ego motion is frames `start … start+frames−1` of the KITTI camera-frame pose file `trajectory`
+    (converted with `Tr` from `calib`, or the built-in KITTI 00–02 `Tr`), or else a generated drive.
+    The same arguments always give byte-identical files.
+    """
+    if frames < 1:
+        raise ValueError(f"frames: must be at least 1, got {frames}")
+    if start < 0:
+        raise ValueError(f"start: must be non-negative, got {start}")
+    model = SENSORS[sensor] if isinstance(sensor, str) else sensor
+    tr = read_kitti_calib_tr(calib) if calib is not None else KITTI_TR
+    if trajectory is not None:
+        camera_poses = read_kitti_poses(trajectory)
+        if start + frames > len(camera_poses):
+            raise ValueError(
+                f"trajectory {trajectory} has {len(camera_poses)} poses; start {start} + frames {frames} exceeds it"
+            )
+        lidar_poses = orthonormalize(camera_to_lidar_poses(camera_poses[start : start + frames], tr))
+    else:
+        if start != 0:
+            raise ValueError("start: only meaningful with a trajectory file")
+        lidar_poses = generate_drive(frames, seed)
+
+    out = Path(out_dir)
+    (out / "velodyne").mkdir(parents=True, exist_ok=True)
+    (out / "labels").mkdir(parents=True, exist_ok=True)
+    result = SimulationResult(out_dir=out, lidar_poses=lidar_poses)
+
+    began = time.perf_counter()
+    street = generate_street(lidar_poses, seed, model.mount_height)
+    static_scene, static_attributes = street.static.build()
+    result.scene_seconds = time.perf_counter() - began
+    result.static_primitives = len(static_scene)
+
+    elevations = model.elevations()
+    directions = dmlo_rs.lidar_scan_directions(elevations, model.azimuth_count)
+    times = np.arange(frames) / FRAME_RATE_HZ
+
+    indices = range(frames)
+    if progress:
+        from tqdm import tqdm  # type: ignore[import-untyped]
+
+        indices = tqdm(indices, desc="simulate", unit="scan")
+    for k in indices:
+        frame_began = time.perf_counter()
+        points, labels, cast_seconds = render_frame(
+            street, static_scene, static_attributes, model, directions, lidar_poses[k], float(times[k]),
+            np.random.default_rng([seed, 0x5CA7, k]),
+        )
+        points.tofile(out / "velodyne" / f"{k:06d}.bin")
+        labels.tofile(out / "labels" / f"{k:06d}.label")
+        result.points_per_frame.append(len(points))
+        result.cast_seconds.append(cast_seconds)
+        result.frame_seconds.append(time.perf_counter() - frame_began)
+
+    camera_poses_out = lidar_to_camera_poses(lidar_poses, tr)
+    with open(out / "poses.txt", "w") as f:
+        for pose in camera_poses_out:
+            f.write(" ".join(f"{v:.12e}" for v in pose[:3, :].ravel()) + "\n")
+    with open(out / "calib.txt", "w") as f:
+        for name, values in _KITTI_P.items():
+            f.write(f"{name}: {values}\n")
+        f.write("Tr: " + " ".join(f"{v:.12e}" for v in tr[:3, :].ravel()) + "\n")
+    with open(out / "times.txt", "w") as f:
+        for t in times:
+            f.write(f"{t:.6e}\n")
+    meta = {
+        "generator": "dmlo simulate",
+        "dmlo_version": dmlo_rs.__version__,
+        "seed": seed,
+        "frames": frames,
+        "start": start,
+        "trajectory": str(trajectory) if trajectory is not None else None,
+        "calib": str(calib) if calib is not None else None,
+        "frame_rate_hz": FRAME_RATE_HZ,
+        "sensor": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(model).items()},
+        "street": asdict(street.layout),
+        "static_primitives": result.static_primitives,
+        "moving_cars": len(street.moving_cars),
+        "motion_distortion": False,
+    }
+    (out / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return result
+
+
+def render_frame(
+    street: StreetScene,
+    static_scene: dmlo_rs.RayScene,
+    static_attributes: object,
+    model: LidarModel,
+    directions: npt.NDArray[np.float64],
+    pose: npt.NDArray[np.float64],
+    time_s: float,
+    rng: np.random.Generator,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], float]:
+    """One scan at `pose` and `time_s`: static scene plus the moving cars at that time.
+    Returns points, labels and the seconds spent ray casting."""
+    from dmlo.simulator.primitives import SceneAttributes
+
+    assert isinstance(static_attributes, SceneAttributes)
+    elevations = model.elevations()
+    began = time.perf_counter()
+    ranges, primitive, cosines = static_scene.cast_scan(pose, elevations, model.azimuth_count, model.max_range)
+    dynamic = street.dynamic(time_s, pose[:2, 3])
+    attributes = static_attributes
+    if len(dynamic):
+        dynamic_scene, dynamic_attributes = dynamic.build()
+        d_ranges, d_primitive, d_cosines = dynamic_scene.cast_scan(pose, elevations, model.azimuth_count, model.max_range)
+        closer = d_ranges < ranges
+        offset = len(static_scene)
+        ranges = np.where(closer, d_ranges, ranges)
+        primitive = np.where(closer, d_primitive + offset, primitive)
+        cosines = np.where(closer, d_cosines, cosines)
+        attributes = SceneAttributes(
+            semantic=np.concatenate([static_attributes.semantic, dynamic_attributes.semantic]),
+            instance=np.concatenate([static_attributes.instance, dynamic_attributes.instance]),
+            albedo=np.concatenate([static_attributes.albedo, dynamic_attributes.albedo]),
+        )
+    cast_seconds = time.perf_counter() - began
+    points, labels = measure(model, directions, ranges, primitive, cosines, attributes, rng)
+    return points, labels, cast_seconds
