@@ -36,7 +36,8 @@ fn nearest_cell_flow(
     let points_b: Vec<Option<Point3<f64>>> = (0..b.range.len())
         .map(|i| {
             let range = b.range[i] as f64;
-            (range > 0.0).then(|| config.unproject((i as i64 / w) as f64, (i as i64 % w) as f64, range))
+            (range > 0.0)
+                .then(|| config.unproject((i as i64 / w) as f64, (i as i64 % w) as f64, range))
         })
         .collect();
     let per_cell: Vec<(f32, f32, f32)> = (0..a.range.len())
@@ -47,7 +48,9 @@ fn nearest_cell_flow(
                 return (0.0, 0.0, 0.0);
             }
             let moved = t_b_a * config.unproject(row as f64, col as f64, a.range[i] as f64);
-            let Some((row_p, col_p)) = config.locate(&moved) else { return (0.0, 0.0, 0.0) };
+            let Some((row_p, col_p)) = config.locate(&moved) else {
+                return (0.0, 0.0, 0.0);
+            };
             let (row_p, col_p) = (row_p.round() as i64, col_p.round() as i64);
             let mut best = (gate * gate, None);
             for r in (row_p - 2).max(0)..=(row_p + 2).min(h - 1) {
@@ -65,7 +68,11 @@ fn nearest_cell_flow(
                 // matches uniformly instead of favouring the first rows.
                 (_, Some((r, c))) => {
                     let hash = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
-                    ((r - row) as f32, (c - col) as f32, 0.5 + 0.5 * (hash as f32 + 1.0) / (1u64 << 24) as f32)
+                    (
+                        (r - row) as f32,
+                        (c - col) as f32,
+                        0.5 + 0.5 * (hash as f32 + 1.0) / (1u64 << 24) as f32,
+                    )
                 }
                 _ => (0.0, 0.0, 0.0),
             }
@@ -79,12 +86,16 @@ fn nearest_cell_flow(
 fn read_scan(path: &str) -> Result<Vec<[f32; 4]>, String> {
     let bytes = std::fs::read(path).map_err(|e| format!("{path}: {e}"))?;
     if bytes.len() % 16 != 0 {
-        return Err(format!("{path}: {} bytes is not a whole number of 16-byte points (truncated?)", bytes.len()));
+        return Err(format!(
+            "{path}: {} bytes is not a whole number of 16-byte points (truncated?)",
+            bytes.len()
+        ));
     }
     Ok(bytes
         .chunks_exact(16)
         .map(|p| {
-            let value = |k: usize| f32::from_le_bytes([p[4 * k], p[4 * k + 1], p[4 * k + 2], p[4 * k + 3]]);
+            let value =
+                |k: usize| f32::from_le_bytes([p[4 * k], p[4 * k + 1], p[4 * k + 2], p[4 * k + 3]]);
             [value(0), value(1), value(2), value(3)]
         })
         .collect())
@@ -96,9 +107,15 @@ fn parse_motion(args: &[String]) -> Result<Option<Isometry3<f64>>, String> {
         [flag, values @ ..] if flag == "--move-b" && values.len() == 4 => {
             let v: Vec<f64> = values
                 .iter()
-                .map(|s| s.parse::<f64>().map_err(|e| format!("--move-b: {s:?}: {e}")))
+                .map(|s| {
+                    s.parse::<f64>()
+                        .map_err(|e| format!("--move-b: {s:?}: {e}"))
+                })
                 .collect::<Result<_, _>>()?;
-            Ok(Some(Isometry3::new(Vector3::new(v[1], v[2], v[3]), Vector3::z() * v[0].to_radians())))
+            Ok(Some(Isometry3::new(
+                Vector3::new(v[1], v[2], v[3]),
+                Vector3::z() * v[0].to_radians(),
+            )))
         }
         _ => Err("usage: register_pair A.bin B.bin [--move-b YAW_DEG TX TY TZ]".into()),
     }
@@ -136,14 +153,32 @@ fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error>> {
     let gates = [1.0; 12].into_iter().chain([0.5; 6]).chain([0.2; 6]);
     for (round, gate) in gates.enumerate() {
         let (flow, confidence) = nearest_cell_flow(&image_a, &image_b, &t_b_a, &config, gate);
-        let decode = DecodeConfig { min_confidence: f32::MIN_POSITIVE, ..Default::default() };
-        let matches = decode_matches(&image_a.range, &image_b.range, &flow, &confidence, None, &config, &decode)?;
+        let decode = DecodeConfig {
+            min_confidence: f32::MIN_POSITIVE,
+            ..Default::default()
+        };
+        let matches = decode_matches(
+            &image_a.range,
+            &image_b.range,
+            &flow,
+            &confidence,
+            None,
+            &config,
+            &decode,
+        )?;
         let rows: Vec<i64> = matches.cells.iter().map(|c| c[0] as i64).collect();
         let cols: Vec<i64> = matches.cells.iter().map(|c| c[1] as i64).collect();
         let kept = nms(&rows, &cols, &matches.confidence, 1, Some(3000))?;
         let src: Vec<Point3<f64>> = kept.iter().map(|&i| matches.source[i]).collect();
         let dst: Vec<Point3<f64>> = kept.iter().map(|&i| matches.target[i]).collect();
-        let result = ransac_rigid(&src, &dst, &RansacConfig { threshold: (gate / 2.0).max(0.1), ..Default::default() })?;
+        let result = ransac_rigid(
+            &src,
+            &dst,
+            &RansacConfig {
+                threshold: (gate / 2.0).max(0.1),
+                ..Default::default()
+            },
+        )?;
         t_b_a = result.transform;
         println!(
             "round {round}: {} of {} cells matched, {} after NMS, {} inliers, rmse {:.3} m, {} hypotheses",

@@ -6,10 +6,20 @@
 pub enum Error {
     /// An argument has the wrong shape, size or value; `argument` names it as the API does.
     #[error("{argument}: {reason}")]
-    InvalidArgument { argument: &'static str, reason: String },
+    InvalidArgument {
+        /// The argument's name, as the Rust and Python APIs spell it.
+        argument: &'static str,
+        /// What is wrong with it.
+        reason: String,
+    },
     /// A solve needs more points than it was given.
     #[error("need at least {needed} point pairs, got {got}")]
-    TooFewPoints { needed: usize, got: usize },
+    TooFewPoints {
+        /// The minimum the computation needs.
+        needed: usize,
+        /// How many (usable) pairs it was given.
+        got: usize,
+    },
     /// The points do not determine a unique solution (e.g. all collinear).
     #[error("degenerate input: {0}")]
     Degenerate(String),
@@ -21,6 +31,9 @@ pub type Result<T> = std::result::Result<T, Error>;
 impl Error {
     /// Shorthand for [`Error::InvalidArgument`].
     pub fn invalid(argument: &'static str, reason: impl Into<String>) -> Self {
-        Error::InvalidArgument { argument, reason: reason.into() }
+        Error::InvalidArgument {
+            argument,
+            reason: reason.into(),
+        }
     }
 }

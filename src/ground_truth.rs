@@ -30,7 +30,11 @@ pub struct GroundTruthFlow {
 }
 
 /// Checks that a range image has the config's size and only finite, non-negative values.
-pub(crate) fn check_range_image(argument: &'static str, range: &[f32], config: &CylinderConfig) -> Result<()> {
+pub(crate) fn check_range_image(
+    argument: &'static str,
+    range: &[f32],
+    config: &CylinderConfig,
+) -> Result<()> {
     if range.len() != config.height * config.width {
         return Err(Error::invalid(
             argument,
@@ -46,7 +50,10 @@ pub(crate) fn check_range_image(argument: &'static str, range: &[f32], config: &
     if let Some(i) = range.iter().position(|r| !(r.is_finite() && *r >= 0.0)) {
         return Err(Error::invalid(
             argument,
-            format!("cell {i} holds {} (ranges must be finite and >= 0; 0 = empty)", range[i]),
+            format!(
+                "cell {i} holds {} (ranges must be finite and >= 0; 0 = empty)",
+                range[i]
+            ),
         ));
     }
     Ok(())
@@ -66,7 +73,10 @@ pub fn ground_truth_flow(
     check_range_image("ref_range", ref_range, config)?;
     check_range_image("tgt_range", tgt_range, config)?;
     if !(max_range_error.is_finite() && max_range_error > 0.0) {
-        return Err(Error::invalid("max_range_error", format!("must be finite and > 0, got {max_range_error}")));
+        return Err(Error::invalid(
+            "max_range_error",
+            format!("must be finite and > 0, got {max_range_error}"),
+        ));
     }
     let (height, width) = (config.height, config.width);
     let wraps = config.wraps_azimuth();
@@ -88,7 +98,9 @@ pub fn ground_truth_flow(
                 }
                 let virtual_point = config.unproject(row as f64, col as f64, range as f64);
                 let p_t = t_tgt_ref * virtual_point;
-                let Some((row_t, col_t)) = config.locate(&p_t) else { continue };
+                let Some((row_t, col_t)) = config.locate(&p_t) else {
+                    continue;
+                };
                 // The short way round: a point crossing the back of the sensor moves a few columns,
                 // not a whole turn. In a cropped image that path may leave the crop (→ invalid).
                 let d_col = (col_t - col as f64 + period / 2.0).rem_euclid(period) - period / 2.0;
@@ -96,7 +108,9 @@ pub fn ground_truth_flow(
                 if wraps {
                     col_t = (col_t + 0.5).rem_euclid(period) - 0.5;
                 }
-                let Some((cell_row, cell_col)) = config.cell_of(row_t, col_t) else { continue };
+                let Some((cell_row, cell_col)) = config.cell_of(row_t, col_t) else {
+                    continue;
+                };
                 let range_t = tgt_range[cell_row * width + cell_col];
                 if range_t <= 0.0 || (range_t as f64 - p_t.coords.norm()).abs() >= max_range_error {
                     continue;
@@ -106,7 +120,12 @@ pub fn ground_truth_flow(
                 valid_row[col] = true;
             }
         });
-    Ok(GroundTruthFlow { height, width, flow, valid })
+    Ok(GroundTruthFlow {
+        height,
+        width,
+        flow,
+        valid,
+    })
 }
 
 #[cfg(test)]
@@ -123,7 +142,11 @@ mod tests {
             .map(|_| {
                 let azimuth = rng.random_range(-180.0f64..180.0).to_radians();
                 let elevation = rng.random_range(-24.0f64..1.5).to_radians();
-                let d = Vector3::new(elevation.cos() * azimuth.cos(), elevation.cos() * azimuth.sin(), elevation.sin());
+                let d = Vector3::new(
+                    elevation.cos() * azimuth.cos(),
+                    elevation.cos() * azimuth.sin(),
+                    elevation.sin(),
+                );
                 // Box |x| <= 20, |y| <= 12, z >= -1.7.
                 let mut t = f64::INFINITY;
                 for (component, limit) in [(d.x, 20.0), (d.y, 12.0)] {
@@ -146,7 +169,14 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let scan = room_scan(&mut rng, 150_000);
         let image = project(&scan, &config).unwrap();
-        let gt = ground_truth_flow(&image.range, &image.range, &Isometry3::identity(), &config, 0.1).unwrap();
+        let gt = ground_truth_flow(
+            &image.range,
+            &image.range,
+            &Isometry3::identity(),
+            &config,
+            0.1,
+        )
+        .unwrap();
         let valid_cells = image.range.iter().filter(|&&r| r > 0.0).count();
         assert_eq!(gt.valid.iter().filter(|&&v| v).count(), valid_cells);
         assert!(gt.flow.iter().all(|f| f.abs() < 1e-3));
@@ -156,7 +186,11 @@ mod tests {
     fn a_pure_yaw_shifts_columns_and_wraps_in_a_full_circle() {
         // Full-circle image: p_t = R p_r with R a yaw of +2° raises every azimuth by 2°, i.e. moves it
         // 10 columns to the left (Δcol = −10), wrapping around the back.
-        let config = CylinderConfig { width: 1801, height: 64, ..CylinderConfig::kitti() };
+        let config = CylinderConfig {
+            width: 1801,
+            height: 64,
+            ..CylinderConfig::kitti()
+        };
         assert!(config.wraps_azimuth());
         let mut range = vec![0.0f32; config.height * config.width];
         for cell in range.iter_mut() {
@@ -169,7 +203,10 @@ mod tests {
         let gt = ground_truth_flow(&range, &range, &yaw, &config, 0.1).unwrap();
         let n = config.height * config.width;
         assert!(gt.valid.iter().all(|&v| v));
-        assert!(gt.flow[n..].iter().all(|&d| (d + 10.0).abs() < 1e-3), "Δcol must be −10 everywhere");
+        assert!(
+            gt.flow[n..].iter().all(|&d| (d + 10.0).abs() < 1e-3),
+            "Δcol must be −10 everywhere"
+        );
         assert!(gt.flow[..n].iter().all(|&d| d.abs() < 1e-3));
 
         // The cropped image loses the cells that leave it through the back.
@@ -199,7 +236,8 @@ mod tests {
             .collect();
         let image_ref = project(&scan_ref, &config).unwrap();
         let image_tgt = project(&scan_tgt, &config).unwrap();
-        let gt = ground_truth_flow(&image_ref.range, &image_tgt.range, &t_tgt_ref, &config, 0.1).unwrap();
+        let gt = ground_truth_flow(&image_ref.range, &image_tgt.range, &t_tgt_ref, &config, 0.1)
+            .unwrap();
         let n = config.height * config.width;
         let mut checked = 0;
         for cell in 0..n {
@@ -225,11 +263,17 @@ mod tests {
         let id = Isometry3::identity();
         assert!(matches!(
             ground_truth_flow(&good[1..], &good, &id, &config, 0.1),
-            Err(Error::InvalidArgument { argument: "ref_range", .. })
+            Err(Error::InvalidArgument {
+                argument: "ref_range",
+                ..
+            })
         ));
         assert!(matches!(
             ground_truth_flow(&good, &nan, &id, &config, 0.1),
-            Err(Error::InvalidArgument { argument: "tgt_range", .. })
+            Err(Error::InvalidArgument {
+                argument: "tgt_range",
+                ..
+            })
         ));
         assert!(ground_truth_flow(&good, &good, &id, &config, 0.0).is_err());
     }

@@ -15,7 +15,7 @@ use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::ground_truth::check_range_image;
-use crate::projection::CylinderConfig;
+use crate::projection::{floor_fast, CylinderConfig};
 
 /// Thresholds of [`decode_matches`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -28,7 +28,10 @@ pub struct DecodeConfig {
 
 impl Default for DecodeConfig {
     fn default() -> Self {
-        DecodeConfig { min_confidence: 0.0, max_relative_range_spread: 0.1 }
+        DecodeConfig {
+            min_confidence: 0.0,
+            max_relative_range_spread: 0.1,
+        }
     }
 }
 
@@ -46,6 +49,15 @@ pub struct DecodedMatches {
 }
 
 impl DecodedMatches {
+    fn with_capacity(n: usize) -> Self {
+        DecodedMatches {
+            source: Vec::with_capacity(n),
+            target: Vec::with_capacity(n),
+            confidence: Vec::with_capacity(n),
+            cells: Vec::with_capacity(n),
+        }
+    }
+
     /// Number of matches.
     pub fn len(&self) -> usize {
         self.confidence.len()
@@ -59,10 +71,16 @@ impl DecodedMatches {
 
 /// Samples the range image at a continuous location (see the module docs); `None` when no valid cell
 /// surrounds it or it lies outside the image. `col` must already be wrapped for 360° images.
-pub fn sample_range(range: &[f32], row: f64, col: f64, config: &CylinderConfig, max_relative_spread: f32) -> Option<f64> {
+pub fn sample_range(
+    range: &[f32],
+    row: f64,
+    col: f64,
+    config: &CylinderConfig,
+    max_relative_spread: f32,
+) -> Option<f64> {
     let (height, width) = (config.height as i64, config.width as i64);
     config.cell_of(row, col)?;
-    let (r0, c0) = (row.floor(), col.floor());
+    let (r0, c0) = (floor_fast(row), floor_fast(col));
     let (fr, fc) = (row - r0, col - c0);
     let (r0, c0) = (r0 as i64, c0 as i64);
     let period = config.columns_per_turn().round() as i64;
@@ -77,9 +95,21 @@ pub fn sample_range(range: &[f32], row: f64, col: f64, config: &CylinderConfig, 
     };
     let corners = [
         (at(r0, c0), (1.0 - fr) * (1.0 - fc), fr * fr + fc * fc),
-        (at(r0, c0 + 1), (1.0 - fr) * fc, fr * fr + (1.0 - fc) * (1.0 - fc)),
-        (at(r0 + 1, c0), fr * (1.0 - fc), (1.0 - fr) * (1.0 - fr) + fc * fc),
-        (at(r0 + 1, c0 + 1), fr * fc, (1.0 - fr) * (1.0 - fr) + (1.0 - fc) * (1.0 - fc)),
+        (
+            at(r0, c0 + 1),
+            (1.0 - fr) * fc,
+            fr * fr + (1.0 - fc) * (1.0 - fc),
+        ),
+        (
+            at(r0 + 1, c0),
+            fr * (1.0 - fc),
+            (1.0 - fr) * (1.0 - fr) + fc * fc,
+        ),
+        (
+            at(r0 + 1, c0 + 1),
+            fr * fc,
+            (1.0 - fr) * (1.0 - fr) + (1.0 - fc) * (1.0 - fc),
+        ),
     ];
     let all_valid = corners.iter().all(|c| c.0 > 0.0);
     if all_valid {
@@ -116,21 +146,33 @@ pub fn decode_matches(
     let (height, width) = (config.height, config.width);
     let cells = height * width;
     if flow.len() != 2 * cells {
-        return Err(Error::invalid("flow", format!("has {} values, need 2 x {height} x {width}", flow.len())));
+        return Err(Error::invalid(
+            "flow",
+            format!("has {} values, need 2 x {height} x {width}", flow.len()),
+        ));
     }
     if confidence.len() != cells {
-        return Err(Error::invalid("confidence", format!("has {} values, need {height} x {width}", confidence.len())));
+        return Err(Error::invalid(
+            "confidence",
+            format!("has {} values, need {height} x {width}", confidence.len()),
+        ));
     }
     if let Some(mask) = exclude {
         if mask.len() != cells {
-            return Err(Error::invalid("mask", format!("has {} values, need {height} x {width}", mask.len())));
+            return Err(Error::invalid(
+                "mask",
+                format!("has {} values, need {height} x {width}", mask.len()),
+            ));
         }
     }
     if decode.min_confidence.is_nan() {
         return Err(Error::invalid("min_confidence", "is NaN"));
     }
     if !(decode.max_relative_range_spread.is_finite() && decode.max_relative_range_spread >= 0.0) {
-        return Err(Error::invalid("max_relative_range_spread", "must be finite and >= 0"));
+        return Err(Error::invalid(
+            "max_relative_range_spread",
+            "must be finite and >= 0",
+        ));
     }
     let wraps = config.wraps_azimuth();
     let period = config.columns_per_turn();
@@ -140,11 +182,13 @@ pub fn decode_matches(
     let per_row: Vec<DecodedMatches> = (0..height)
         .into_par_iter()
         .map(|row| {
-            let mut out = DecodedMatches::default();
+            let mut out = DecodedMatches::with_capacity(width);
             for col in 0..width {
                 let cell = row * width + col;
                 let (range, score) = (ref_range[cell], confidence[cell]);
-                if range <= 0.0 || !(score >= decode.min_confidence) || exclude.is_some_and(|m| m[cell]) {
+                // NaN confidences fail the comparison and are dropped.
+                let confident = score >= decode.min_confidence;
+                if range <= 0.0 || !confident || exclude.is_some_and(|m| m[cell]) {
                     continue;
                 }
                 let (d_row, d_col) = (d_rows[cell], d_cols[cell]);
@@ -156,19 +200,27 @@ pub fn decode_matches(
                 if wraps {
                     col_t = (col_t + 0.5).rem_euclid(period) - 0.5;
                 }
-                let Some(range_t) = sample_range(tgt_range, row_t, col_t, config, decode.max_relative_range_spread)
-                else {
+                let Some(range_t) = sample_range(
+                    tgt_range,
+                    row_t,
+                    col_t,
+                    config,
+                    decode.max_relative_range_spread,
+                ) else {
                     continue;
                 };
-                out.source.push(Point3::from(directions.at(row as f64, col as f64) * range as f64));
-                out.target.push(Point3::from(directions.at(row_t, col_t) * range_t));
+                out.source.push(Point3::from(
+                    directions.at(row as f64, col as f64) * range as f64,
+                ));
+                out.target
+                    .push(Point3::from(directions.at(row_t, col_t) * range_t));
                 out.confidence.push(score);
                 out.cells.push([row, col]);
             }
             out
         })
         .collect();
-    let mut all = DecodedMatches::default();
+    let mut all = DecodedMatches::with_capacity(per_row.iter().map(DecodedMatches::len).sum());
     for part in per_row {
         all.source.extend(part.source);
         all.target.extend(part.target);
@@ -204,8 +256,12 @@ impl DirectionTable {
             col0,
             d_phi,
             d_theta,
-            rows: (-1..=config.height as i64).map(|r| ((row0 - r as f64) * d_phi).sin_cos()).collect(),
-            cols: (-1..=config.width as i64).map(|c| ((col0 - c as f64) * d_theta).sin_cos()).collect(),
+            rows: (-1..=config.height as i64)
+                .map(|r| ((row0 - r as f64) * d_phi).sin_cos())
+                .collect(),
+            cols: (-1..=config.width as i64)
+                .map(|c| ((col0 - c as f64) * d_theta).sin_cos())
+                .collect(),
         }
     }
 
@@ -217,13 +273,16 @@ impl DirectionTable {
         let d2 = delta * delta;
         let sin_delta = delta * (1.0 - d2 / 6.0 * (1.0 - d2 / 20.0 * (1.0 - d2 / 42.0)));
         let cos_delta = 1.0 - d2 / 2.0 * (1.0 - d2 / 12.0 * (1.0 - d2 / 30.0));
-        (sin_base * cos_delta + cos_base * sin_delta, cos_base * cos_delta - sin_base * sin_delta)
+        (
+            sin_base * cos_delta + cos_base * sin_delta,
+            cos_base * cos_delta - sin_base * sin_delta,
+        )
     }
 
     /// `(sin, cos)` of the angle at continuous index `x` (angle = (origin − x)·step).
     #[inline(always)]
     fn lookup(table: &[(f64, f64)], origin: f64, x: f64, step: f64) -> (f64, f64) {
-        let nearest = x.round();
+        let nearest = floor_fast(x + 0.5);
         let slot = nearest + 1.0;
         let base = if slot >= 0.0 && (slot as usize) < table.len() {
             table[slot as usize]
@@ -249,9 +308,19 @@ mod tests {
     fn direction_table_equals_the_inverse_projection() {
         let config = CylinderConfig::kitti();
         let table = DirectionTable::new(&config);
-        for (row, col) in [(0.0, 0.0), (3.0, 896.0), (10.3, 5.7), (63.49, 1791.49), (-0.4, 100.25), (70.2, -30.7)] {
+        for (row, col) in [
+            (0.0, 0.0),
+            (3.0, 896.0),
+            (10.3, 5.7),
+            (63.49, 1791.49),
+            (-0.4, 100.25),
+            (70.2, -30.7),
+        ] {
             let exact = config.unproject(row, col, 1.0).coords;
-            assert!((table.at(row, col) - exact).norm() < 1e-14, "({row}, {col})");
+            assert!(
+                (table.at(row, col) - exact).norm() < 1e-14,
+                "({row}, {col})"
+            );
         }
     }
 
@@ -259,13 +328,33 @@ mod tests {
     fn zero_flow_on_identical_images_gives_identical_points() {
         let config = CylinderConfig::kitti();
         let n = config.height * config.width;
-        let range: Vec<f32> = (0..n).map(|i| if i % 7 == 0 { 0.0 } else { 5.0 + (i % 13) as f32 * 0.01 }).collect();
+        let range: Vec<f32> = (0..n)
+            .map(|i| {
+                if i % 7 == 0 {
+                    0.0
+                } else {
+                    5.0 + (i % 13) as f32 * 0.01
+                }
+            })
+            .collect();
         let flow = vec![0.0f32; 2 * n];
         let confidence: Vec<f32> = (0..n).map(|i| (i % 10) as f32 / 10.0).collect();
-        let decoded =
-            decode_matches(&range, &range, &flow, &confidence, None, &config, &DecodeConfig { min_confidence: 0.5, ..Default::default() })
-                .unwrap();
-        let expected = (0..n).filter(|&i| i % 7 != 0 && confidence[i] >= 0.5).count();
+        let decoded = decode_matches(
+            &range,
+            &range,
+            &flow,
+            &confidence,
+            None,
+            &config,
+            &DecodeConfig {
+                min_confidence: 0.5,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let expected = (0..n)
+            .filter(|&i| i % 7 != 0 && confidence[i] >= 0.5)
+            .count();
         assert_eq!(decoded.len(), expected);
         for i in 0..decoded.len() {
             assert!((decoded.source[i] - decoded.target[i]).norm() < 1e-12);
@@ -274,13 +363,29 @@ mod tests {
         }
         let mut mask = vec![false; n];
         mask[..n / 2].fill(true);
-        let masked = decode_matches(&range, &range, &flow, &confidence, Some(&mask), &config, &DecodeConfig::default()).unwrap();
-        assert!(masked.cells.iter().all(|&[row, col]| row * config.width + col >= n / 2));
+        let masked = decode_matches(
+            &range,
+            &range,
+            &flow,
+            &confidence,
+            Some(&mask),
+            &config,
+            &DecodeConfig::default(),
+        )
+        .unwrap();
+        assert!(masked
+            .cells
+            .iter()
+            .all(|&[row, col]| row * config.width + col >= n / 2));
     }
 
     #[test]
     fn range_sampling_does_not_blend_across_depth_edges() {
-        let config = CylinderConfig { height: 2, width: 2, ..CylinderConfig::kitti() };
+        let config = CylinderConfig {
+            height: 2,
+            width: 2,
+            ..CylinderConfig::kitti()
+        };
         // Smooth patch: bilinear.
         let smooth = [10.0, 10.4, 10.2, 10.6];
         let r = sample_range(&smooth, 0.5, 0.5, &config, 0.1).unwrap();
@@ -307,12 +412,31 @@ mod tests {
         let range = vec![12.0f32; n];
         let mut flow = vec![0.0f32; 2 * n];
         flow[n..].fill(2.0);
-        let decoded = decode_matches(&range, &range, &flow, &vec![1.0; n], None, &config, &DecodeConfig::default()).unwrap();
+        let decoded = decode_matches(
+            &range,
+            &range,
+            &flow,
+            &vec![1.0; n],
+            None,
+            &config,
+            &DecodeConfig::default(),
+        )
+        .unwrap();
         assert_eq!(decoded.len(), config.height * (config.width - 2));
-        let yaw = nalgebra::Rotation3::from_axis_angle(&Vector3::z_axis(), -(2.0 * 0.2f64).to_radians());
+        let yaw =
+            nalgebra::Rotation3::from_axis_angle(&Vector3::z_axis(), -(2.0 * 0.2f64).to_radians());
         for i in (0..decoded.len()).step_by(997) {
             assert!((yaw * decoded.source[i] - decoded.target[i]).norm() < 1e-9);
         }
-        assert!(decode_matches(&range, &range, &flow[1..], &vec![1.0; n], None, &config, &DecodeConfig::default()).is_err());
+        assert!(decode_matches(
+            &range,
+            &range,
+            &flow[1..],
+            &vec![1.0; n],
+            None,
+            &config,
+            &DecodeConfig::default()
+        )
+        .is_err());
     }
 }

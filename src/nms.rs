@@ -18,20 +18,35 @@ const MAX_GRID_CELLS: usize = 1 << 28;
 /// Greedy NMS. `rows[i]`, `cols[i]` are the grid cell of entry `i` (≥ 0), `scores[i]` its confidence
 /// (not NaN). Returns the indices of the kept entries, best first, at most `top_n` (all when `None`).
 /// Entries in the same cell suppress each other (the better one survives).
-pub fn nms(rows: &[i64], cols: &[i64], scores: &[f32], radius: usize, top_n: Option<usize>) -> Result<Vec<usize>> {
+pub fn nms(
+    rows: &[i64],
+    cols: &[i64],
+    scores: &[f32],
+    radius: usize,
+    top_n: Option<usize>,
+) -> Result<Vec<usize>> {
     let n = scores.len();
     if rows.len() != n {
-        return Err(Error::invalid("rows", format!("has {} entries, scores has {n}", rows.len())));
+        return Err(Error::invalid(
+            "rows",
+            format!("has {} entries, scores has {n}", rows.len()),
+        ));
     }
     if cols.len() != n {
-        return Err(Error::invalid("cols", format!("has {} entries, scores has {n}", cols.len())));
+        return Err(Error::invalid(
+            "cols",
+            format!("has {} entries, scores has {n}", cols.len()),
+        ));
     }
     if let Some(i) = scores.iter().position(|s| s.is_nan()) {
         return Err(Error::invalid("scores", format!("element {i} is NaN")));
     }
     for (name, values) in [("rows", rows), ("cols", cols)] {
         if let Some(i) = values.iter().position(|&v| v < 0) {
-            return Err(Error::invalid(name, format!("element {i} is negative ({})", values[i])));
+            return Err(Error::invalid(
+                name,
+                format!("element {i} is negative ({})", values[i]),
+            ));
         }
     }
     let limit = top_n.unwrap_or(n).min(n);
@@ -43,12 +58,16 @@ pub fn nms(rows: &[i64], cols: &[i64], scores: &[f32], radius: usize, top_n: Opt
     if grid_rows.saturating_mul(grid_cols) > MAX_GRID_CELLS {
         return Err(Error::invalid(
             "rows",
-            format!("cells span {grid_rows} x {grid_cols}, more than the {MAX_GRID_CELLS} supported"),
+            format!(
+                "cells span {grid_rows} x {grid_cols}, more than the {MAX_GRID_CELLS} supported"
+            ),
         ));
     }
 
     let better = |a: &u32, b: &u32| -> Ordering {
-        scores[*b as usize].total_cmp(&scores[*a as usize]).then(a.cmp(b))
+        scores[*b as usize]
+            .total_cmp(&scores[*a as usize])
+            .then(a.cmp(b))
     };
     let mut order: Vec<u32> = (0..n as u32).collect();
     let window = (2 * radius + 1).saturating_mul(2 * radius + 1);
@@ -70,8 +89,14 @@ pub fn nms(rows: &[i64], cols: &[i64], scores: &[f32], radius: usize, top_n: Opt
                 continue;
             }
             kept.push(i as usize);
-            let (r0, r1) = (row.saturating_sub(radius), (row + radius).min(grid_rows - 1));
-            let (c0, c1) = (col.saturating_sub(radius), (col + radius).min(grid_cols - 1));
+            let (r0, r1) = (
+                row.saturating_sub(radius),
+                (row + radius).min(grid_rows - 1),
+            );
+            let (c0, c1) = (
+                col.saturating_sub(radius),
+                (col + radius).min(grid_cols - 1),
+            );
             for r in r0..=r1 {
                 suppressed[r * grid_cols + c0..=r * grid_cols + c1].fill(true);
             }
@@ -93,7 +118,13 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     /// Straightforward O(n²) greedy NMS as the reference.
-    fn reference(rows: &[i64], cols: &[i64], scores: &[f32], radius: i64, top_n: usize) -> Vec<usize> {
+    fn reference(
+        rows: &[i64],
+        cols: &[i64],
+        scores: &[f32],
+        radius: i64,
+        top_n: usize,
+    ) -> Vec<usize> {
         let mut order: Vec<usize> = (0..scores.len()).collect();
         order.sort_by(|&a, &b| scores[b].total_cmp(&scores[a]).then(a.cmp(&b)));
         let mut kept: Vec<usize> = Vec::new();
@@ -101,7 +132,10 @@ mod tests {
             if kept.len() == top_n {
                 break;
             }
-            if kept.iter().all(|&k| (rows[k] - rows[i]).abs() > radius || (cols[k] - cols[i]).abs() > radius) {
+            if kept
+                .iter()
+                .all(|&k| (rows[k] - rows[i]).abs() > radius || (cols[k] - cols[i]).abs() > radius)
+            {
                 kept.push(i);
             }
         }
@@ -116,9 +150,15 @@ mod tests {
             let rows: Vec<i64> = (0..n).map(|_| rng.random_range(0..20)).collect();
             let cols: Vec<i64> = (0..n).map(|_| rng.random_range(0..60)).collect();
             // Coarse scores create ties, which must break by index.
-            let scores: Vec<f32> = (0..n).map(|_| (rng.random_range(0..50) as f32) / 10.0).collect();
+            let scores: Vec<f32> = (0..n)
+                .map(|_| (rng.random_range(0..50) as f32) / 10.0)
+                .collect();
             let radius = trial % 3;
-            let top_n = if trial % 2 == 0 { n } else { rng.random_range(1..50) };
+            let top_n = if trial % 2 == 0 {
+                n
+            } else {
+                rng.random_range(1..50)
+            };
             assert_eq!(
                 nms(&rows, &cols, &scores, radius, Some(top_n)).unwrap(),
                 reference(&rows, &cols, &scores, radius as i64, top_n),
@@ -140,7 +180,11 @@ mod tests {
                 rows.push(r);
                 cols.push(c);
                 let peak = r % 4 == 1 && c % 4 == 1;
-                scores.push(if peak { 1.0 + (r * w + c) as f32 * 1e-6 } else { 0.5 });
+                scores.push(if peak {
+                    1.0 + (r * w + c) as f32 * 1e-6
+                } else {
+                    0.5
+                });
             }
         }
         let kept = nms(&rows, &cols, &scores, 1, None).unwrap();
@@ -155,12 +199,23 @@ mod tests {
         }
         let top = nms(&rows, &cols, &scores, 1, Some(10)).unwrap();
         assert_eq!(top.len(), 10);
-        assert_eq!(top[0], ((h - 3) * w + (w - 3)) as usize, "the best peak is the last one");
+        assert_eq!(
+            top[0],
+            ((h - 3) * w + (w - 3)) as usize,
+            "the best peak is the last one"
+        );
     }
 
     #[test]
     fn duplicates_empty_and_bad_input() {
-        let kept = nms(&[0, 0, 0, 5], &[0, 0, 0, 5], &[0.5, 0.9, 0.9, 0.1], 1, Some(3)).unwrap();
+        let kept = nms(
+            &[0, 0, 0, 5],
+            &[0, 0, 0, 5],
+            &[0.5, 0.9, 0.9, 0.1],
+            1,
+            Some(3),
+        )
+        .unwrap();
         assert_eq!(kept, vec![1, 3]);
         assert!(nms(&[], &[], &[], 1, Some(5)).unwrap().is_empty());
         assert!(nms(&[0], &[0, 1], &[1.0], 1, None).is_err());

@@ -138,13 +138,21 @@ impl CylinderConfig {
         if !finite_positive(self.vertical_resolution_deg) {
             return Err(Error::invalid(
                 "vertical_resolution_deg",
-                format!("must be finite and > 0, got {}", self.vertical_resolution_deg),
+                format!(
+                    "must be finite and > 0, got {}",
+                    self.vertical_resolution_deg
+                ),
             ));
         }
-        if !finite_positive(self.horizontal_resolution_deg) || self.horizontal_resolution_deg > 180.0 {
+        if !finite_positive(self.horizontal_resolution_deg)
+            || self.horizontal_resolution_deg > 180.0
+        {
             return Err(Error::invalid(
                 "horizontal_resolution_deg",
-                format!("must be finite, > 0 and <= 180, got {}", self.horizontal_resolution_deg),
+                format!(
+                    "must be finite, > 0 and <= 180, got {}",
+                    self.horizontal_resolution_deg
+                ),
             ));
         }
         if !(self.fov_up_deg.is_finite() && self.fov_down_deg.is_finite())
@@ -163,13 +171,21 @@ impl CylinderConfig {
         if self.height == 0 || self.height > self.full_height() {
             return Err(Error::invalid(
                 "height",
-                format!("must be in 1..={} (the full grid's rows), got {}", self.full_height(), self.height),
+                format!(
+                    "must be in 1..={} (the full grid's rows), got {}",
+                    self.full_height(),
+                    self.height
+                ),
             ));
         }
         if self.width == 0 || self.width > self.full_width() {
             return Err(Error::invalid(
                 "width",
-                format!("must be in 1..={} (the full grid's columns), got {}", self.full_width(), self.width),
+                format!(
+                    "must be in 1..={} (the full grid's columns), got {}",
+                    self.full_width(),
+                    self.width
+                ),
             ));
         }
         Ok(())
@@ -192,8 +208,8 @@ impl CylinderConfig {
 
     /// The cell `(row, col)` containing a continuous location, if inside the cropped image.
     pub fn cell_of(&self, row: f64, col: f64) -> Option<(usize, usize)> {
-        let r = (row + 0.5).floor();
-        let c = (col + 0.5).floor();
+        let r = floor_fast(row + 0.5);
+        let c = floor_fast(col + 0.5);
         if r >= 0.0 && c >= 0.0 && r < self.height as f64 && c < self.width as f64 {
             Some((r as usize, c as usize))
         } else {
@@ -204,8 +220,10 @@ impl CylinderConfig {
     /// Φ⁻¹ (Eq. 4): the point at `range` metres in the direction of the continuous location
     /// `(row, col)` (a cell centre when both are integers).
     pub fn unproject(&self, row: f64, col: f64, range: f64) -> Point3<f64> {
-        let elevation = ((self.row_of_zero_elevation() - row) * self.vertical_resolution_deg).to_radians();
-        let azimuth = ((self.col_of_zero_azimuth() - col) * self.horizontal_resolution_deg).to_radians();
+        let elevation =
+            ((self.row_of_zero_elevation() - row) * self.vertical_resolution_deg).to_radians();
+        let azimuth =
+            ((self.col_of_zero_azimuth() - col) * self.horizontal_resolution_deg).to_radians();
         let (sin_el, cos_el) = elevation.sin_cos();
         let (sin_az, cos_az) = azimuth.sin_cos();
         Point3::from(Vector3::new(cos_el * cos_az, cos_el * sin_az, sin_el) * range)
@@ -243,6 +261,21 @@ const NO_CELL: u32 = u32::MAX;
 /// Sentinel for "this point is NaN/Inf".
 const NON_FINITE: u32 = u32::MAX - 1;
 
+/// `x.floor()` without a libm call on baseline x86-64 (which lacks an inline rounding instruction);
+/// NaN and huge values go to `floor` itself.
+#[inline(always)]
+pub(crate) fn floor_fast(x: f64) -> f64 {
+    if x.is_nan() || x.abs() >= 4.5e15 {
+        return x.floor();
+    }
+    let truncated = (x as i64) as f64;
+    if truncated > x {
+        truncated - 1.0
+    } else {
+        truncated
+    }
+}
+
 /// Bound on the error of [`atan2_fast`], radians: the series is cut after the u¹³ term for |u| ≤
 /// tan(π/8), so the first omitted term is below 0.4143¹⁵/15 = 1.3e-7; 1e-6 leaves room for rounding.
 const ATAN_ERROR_BOUND: f64 = 1e-6;
@@ -259,7 +292,8 @@ fn atan_unit(t: f64) -> f64 {
     let u2 = u * u;
     let series = 1.0
         - u2 * (1.0 / 3.0
-            - u2 * (1.0 / 5.0 - u2 * (1.0 / 7.0 - u2 * (1.0 / 9.0 - u2 * (1.0 / 11.0 - u2 * (1.0 / 13.0))))));
+            - u2 * (1.0 / 5.0
+                - u2 * (1.0 / 7.0 - u2 * (1.0 / 9.0 - u2 * (1.0 / 11.0 - u2 * (1.0 / 13.0))))));
     offset + u * series
 }
 
@@ -278,7 +312,11 @@ fn atan2_fast(y: f64, x: f64) -> f64 {
     if x.is_sign_negative() {
         angle = std::f64::consts::PI - angle;
     }
-    if y.is_sign_negative() { -angle } else { angle }
+    if y.is_sign_negative() {
+        -angle
+    } else {
+        angle
+    }
 }
 
 /// `⌊origin − atan2(y, x)·cells_per_radian + ½⌋`, exactly as with libm's `atan2`: the fast arctangent
@@ -299,7 +337,11 @@ fn cell_index(origin: f64, y: f64, x: f64, cells_per_radian: f64) -> f64 {
         cell
     } else {
         let exact = origin - y.atan2(x) * cells_per_radian + 0.5;
-        if exact < 0.0 { -1.0 } else { exact.floor() }
+        if exact < 0.0 {
+            -1.0
+        } else {
+            exact.floor()
+        }
     }
 }
 
@@ -308,10 +350,17 @@ fn cell_index(origin: f64, y: f64, x: f64, cells_per_radian: f64) -> f64 {
 /// `points` is a flat row-major array of `N × channels` values, `channels` = 3 (x, y, z) or 4 (x, y, z,
 /// reflectance). Points with a NaN/Inf value are dropped and counted; so are points outside the
 /// cropped image. Runs in the caller's rayon pool.
-pub fn project_flat(points: &[f32], channels: usize, config: &CylinderConfig) -> Result<Projection> {
+pub fn project_flat(
+    points: &[f32],
+    channels: usize,
+    config: &CylinderConfig,
+) -> Result<Projection> {
     config.validate()?;
     if channels != 3 && channels != 4 {
-        return Err(Error::invalid("points", format!("need 3 or 4 values per point, got {channels}")));
+        return Err(Error::invalid(
+            "points",
+            format!("need 3 or 4 values per point, got {channels}"),
+        ));
     }
     if points.len() % channels != 0 {
         return Err(Error::invalid(
@@ -399,7 +448,10 @@ pub fn unproject_many(
 ) -> Result<Vec<Point3<f64>>> {
     config.validate()?;
     if cols.len() != rows.len() {
-        return Err(Error::invalid("cols", format!("length {} differs from rows' {}", cols.len(), rows.len())));
+        return Err(Error::invalid(
+            "cols",
+            format!("length {} differs from rows' {}", cols.len(), rows.len()),
+        ));
     }
     if ranges.len() != rows.len() {
         return Err(Error::invalid(
@@ -409,7 +461,10 @@ pub fn unproject_many(
     }
     for (name, values) in [("rows", rows), ("cols", cols), ("ranges", ranges)] {
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
-            return Err(Error::invalid(name, format!("element {i} is not finite ({})", values[i])));
+            return Err(Error::invalid(
+                name,
+                format!("element {i} is not finite ({})", values[i]),
+            ));
         }
     }
     Ok(rows
@@ -430,13 +485,51 @@ mod tests {
     fn fast_arctangent_stays_within_its_bound_and_keeps_libm_signs() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         for _ in 0..200_000 {
-            let (y, x) = (rng.random_range(-100.0..100.0), rng.random_range(-100.0..100.0));
+            let (y, x) = (
+                rng.random_range(-100.0..100.0),
+                rng.random_range(-100.0..100.0),
+            );
             assert!((atan2_fast(y, x) - f64::atan2(y, x)).abs() < ATAN_ERROR_BOUND / 4.0);
         }
-        for (y, x) in [(0.0, -1.0), (-0.0, -1.0), (0.0, 1.0), (-0.0, 1.0), (1.0, 0.0), (-1.0, -0.0), (0.0, 0.0)] {
-            assert!((atan2_fast(y, x) - f64::atan2(y, x)).abs() < 1e-12, "({y}, {x})");
-            assert_eq!(atan2_fast(y, x).is_sign_negative(), f64::atan2(y, x).is_sign_negative());
+        for (y, x) in [
+            (0.0, -1.0),
+            (-0.0, -1.0),
+            (0.0, 1.0),
+            (-0.0, 1.0),
+            (1.0, 0.0),
+            (-1.0, -0.0),
+            (0.0, 0.0),
+        ] {
+            assert!(
+                (atan2_fast(y, x) - f64::atan2(y, x)).abs() < 1e-12,
+                "({y}, {x})"
+            );
+            assert_eq!(
+                atan2_fast(y, x).is_sign_negative(),
+                f64::atan2(y, x).is_sign_negative()
+            );
         }
+    }
+
+    #[test]
+    fn fast_floor_equals_floor() {
+        for x in [
+            -2.5,
+            -1.0,
+            -0.5,
+            -0.0,
+            0.0,
+            0.3,
+            1.0,
+            1.5,
+            1e15,
+            -1e15 - 0.5,
+            1e300,
+            f64::INFINITY,
+        ] {
+            assert_eq!(floor_fast(x), x.floor(), "{x}");
+        }
+        assert!(floor_fast(f64::NAN).is_nan());
     }
 
     #[test]
@@ -450,7 +543,10 @@ mod tests {
         assert_eq!(config.col_of_zero_azimuth(), 896.0);
         assert!(!config.wraps_azimuth());
         let argoverse = CylinderConfig::argoverse();
-        assert_eq!((argoverse.full_height(), argoverse.full_width()), (68, 1801));
+        assert_eq!(
+            (argoverse.full_height(), argoverse.full_width()),
+            (68, 1801)
+        );
         argoverse.validate().unwrap();
     }
 
@@ -486,8 +582,10 @@ mod tests {
             })
             .collect();
         let projection = project(&points, &config).unwrap();
-        let half_diagonal =
-            (config.vertical_resolution_deg.powi(2) + config.horizontal_resolution_deg.powi(2)).sqrt() / 2.0;
+        let half_diagonal = (config.vertical_resolution_deg.powi(2)
+            + config.horizontal_resolution_deg.powi(2))
+        .sqrt()
+            / 2.0;
         let mut checked = 0;
         for cell in 0..projection.index.len() {
             let index = projection.index[cell];
@@ -497,10 +595,15 @@ mod tests {
             let (row, col) = (cell / config.width, cell % config.width);
             let p = points[index as usize];
             let original = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-            let back = config.unproject(row as f64, col as f64, projection.range[cell] as f64).coords;
+            let back = config
+                .unproject(row as f64, col as f64, projection.range[cell] as f64)
+                .coords;
             assert!((back.norm() - original.norm()).abs() < 1e-4);
             let angle = original.angle(&back).to_degrees();
-            assert!(angle <= half_diagonal + 1e-4, "angle {angle} beyond {half_diagonal}");
+            assert!(
+                angle <= half_diagonal + 1e-4,
+                "angle {angle} beyond {half_diagonal}"
+            );
             assert_eq!(projection.reflectance[cell], p[3]);
             checked += 1;
         }
@@ -517,7 +620,7 @@ mod tests {
             [f32::NAN, 0.0, 0.0, 0.0],
             [1.0, 0.0, f32::INFINITY, 0.0],
             [0.0, 0.0, 0.0, 0.0],
-            [0.0, 0.0, 10.0, 0.0], // straight up: outside the field of view
+            [0.0, 0.0, 10.0, 0.0],  // straight up: outside the field of view
             [-10.0, 0.0, 0.0, 0.0], // straight back: cropped away
         ];
         let projection = project(&points, &config).unwrap();
@@ -536,9 +639,21 @@ mod tests {
         let projection = project(&[], &config).unwrap();
         assert_eq!(projection.num_valid(), 0);
         assert!(projection.range.iter().all(|&r| r == 0.0));
-        let too_wide = CylinderConfig { width: 1802, ..config };
-        assert!(matches!(too_wide.validate(), Err(Error::InvalidArgument { argument: "width", .. })));
-        let bad = CylinderConfig { vertical_resolution_deg: 0.0, ..config };
+        let too_wide = CylinderConfig {
+            width: 1802,
+            ..config
+        };
+        assert!(matches!(
+            too_wide.validate(),
+            Err(Error::InvalidArgument {
+                argument: "width",
+                ..
+            })
+        ));
+        let bad = CylinderConfig {
+            vertical_resolution_deg: 0.0,
+            ..config
+        };
         assert!(bad.validate().is_err());
         assert!(project_flat(&[1.0; 10], 4, &config).is_err());
         assert!(project_flat(&[1.0; 10], 5, &config).is_err());

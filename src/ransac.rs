@@ -105,7 +105,9 @@ impl Hypothesis32 {
 
 impl Matches {
     fn new(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Self {
-        let column = |points: &[Point3<f64>], k: usize| points.iter().map(|p| p[k] as f32).collect::<Vec<f32>>();
+        let column = |points: &[Point3<f64>], k: usize| {
+            points.iter().map(|p| p[k] as f32).collect::<Vec<f32>>()
+        };
         Matches {
             src: [column(src, 0), column(src, 1), column(src, 2)],
             dst: [column(dst, 0), column(dst, 1), column(dst, 2)],
@@ -132,8 +134,16 @@ impl Matches {
         let [sx, sy, sz] = &self.src;
         let [dx, dy, dz] = &self.dst;
         for base in (0..full).step_by(LANES) {
-            let (sx, sy, sz) = (&sx[base..base + LANES], &sy[base..base + LANES], &sz[base..base + LANES]);
-            let (dx, dy, dz) = (&dx[base..base + LANES], &dy[base..base + LANES], &dz[base..base + LANES]);
+            let (sx, sy, sz) = (
+                &sx[base..base + LANES],
+                &sy[base..base + LANES],
+                &sz[base..base + LANES],
+            );
+            let (dx, dy, dz) = (
+                &dx[base..base + LANES],
+                &dy[base..base + LANES],
+                &dz[base..base + LANES],
+            );
             for l in 0..LANES {
                 let d = h.distance_sq([sx[l], sy[l], sz[l]], [dx[l], dy[l], dz[l]]);
                 let inlier = d < threshold_sq;
@@ -179,7 +189,10 @@ impl Matches {
             h += (p - p_mean) * (q - q_mean).transpose();
         }
         let rotation = svd.rotation_from_cross_covariance(&h)?;
-        Some(isometry_from_parts(&rotation, &(q_mean - rotation * p_mean)))
+        Some(isometry_from_parts(
+            &rotation,
+            &(q_mean - rotation * p_mean),
+        ))
     }
 }
 
@@ -194,7 +207,11 @@ fn required_iterations(inlier_ratio: f64, confidence: f64, max_iterations: usize
         return max_iterations;
     }
     let needed = (1.0 - confidence).ln() / (1.0 - all_inliers).ln();
-    if needed.is_finite() { (needed.ceil().max(1.0) as usize).min(max_iterations) } else { max_iterations }
+    if needed.is_finite() {
+        (needed.ceil().max(1.0) as usize).min(max_iterations)
+    } else {
+        max_iterations
+    }
 }
 
 /// (count, error, hypothesis index): `a` better than `b`?
@@ -216,12 +233,22 @@ fn is_better(a: (usize, f64, usize), b: (usize, f64, usize)) -> bool {
 /// settings, mismatched lengths or non-finite points; [`Error::Degenerate`] when every sample drawn was
 /// collinear. With no consistent motion at all (all outliers) the result is the best hypothesis found,
 /// typically with only its own 3 sample matches as inliers: callers judge `num_inliers`.
-pub fn ransac_rigid(src: &[Point3<f64>], dst: &[Point3<f64>], config: &RansacConfig) -> Result<RansacResult> {
+pub fn ransac_rigid(
+    src: &[Point3<f64>],
+    dst: &[Point3<f64>],
+    config: &RansacConfig,
+) -> Result<RansacResult> {
     if !(config.threshold.is_finite() && config.threshold > 0.0) {
-        return Err(Error::invalid("threshold", format!("must be finite and > 0, got {}", config.threshold)));
+        return Err(Error::invalid(
+            "threshold",
+            format!("must be finite and > 0, got {}", config.threshold),
+        ));
     }
     if !(config.confidence > 0.0 && config.confidence < 1.0) {
-        return Err(Error::invalid("confidence", format!("must be in (0, 1), got {}", config.confidence)));
+        return Err(Error::invalid(
+            "confidence",
+            format!("must be in (0, 1), got {}", config.confidence),
+        ));
     }
     if config.max_iterations == 0 {
         return Err(Error::invalid("max_iterations", "must be >= 1"));
@@ -230,10 +257,16 @@ pub fn ransac_rigid(src: &[Point3<f64>], dst: &[Point3<f64>], config: &RansacCon
         return Err(Error::invalid("batch_size", "must be >= 1"));
     }
     if dst.len() != src.len() {
-        return Err(Error::invalid("dst", format!("has {} points, src has {}", dst.len(), src.len())));
+        return Err(Error::invalid(
+            "dst",
+            format!("has {} points, src has {}", dst.len(), src.len()),
+        ));
     }
     for (name, points) in [("src", src), ("dst", dst)] {
-        if let Some(i) = points.iter().position(|p| !p.coords.iter().all(|v| v.is_finite())) {
+        if let Some(i) = points
+            .iter()
+            .position(|p| !p.coords.iter().all(|v| v.is_finite()))
+        {
             return Err(Error::invalid(name, format!("point {i} is not finite")));
         }
     }
@@ -280,10 +313,16 @@ pub fn ransac_rigid(src: &[Point3<f64>], dst: &[Point3<f64>], config: &RansacCon
             let index = start + k;
             iterations = index + 1;
             if let Some((count, error, hypothesis)) = outcome {
-                let improves = best.as_ref().is_none_or(|b| is_better((count, error, index), (b.0, b.1, b.2)));
+                let improves = best
+                    .as_ref()
+                    .is_none_or(|b| is_better((count, error, index), (b.0, b.1, b.2)));
                 if improves {
                     best = Some((count, error, index, hypothesis));
-                    required = required_iterations(count as f64 / n as f64, config.confidence, config.max_iterations);
+                    required = required_iterations(
+                        count as f64 / n as f64,
+                        config.confidence,
+                        config.max_iterations,
+                    );
                 }
             }
             if iterations >= required {
@@ -292,15 +331,23 @@ pub fn ransac_rigid(src: &[Point3<f64>], dst: &[Point3<f64>], config: &RansacCon
         }
     }
     let Some((mut count, mut error, _, mut transform)) = best else {
-        return Err(Error::Degenerate(format!("all {iterations} samples were collinear")));
+        return Err(Error::Degenerate(format!(
+            "all {iterations} samples were collinear"
+        )));
     };
 
     // Refit on all inliers while that keeps (or grows) the consensus.
     let mut inliers = matches.inlier_mask(&transform, threshold_sq);
     for _ in 0..config.refine_iterations {
-        let (inlier_src, inlier_dst): (Vec<Point3<f64>>, Vec<Point3<f64>>) =
-            inliers.iter().enumerate().filter(|(_, &inlier)| inlier).map(|(i, _)| (src[i], dst[i])).unzip();
-        let Ok(refit) = rigid_transform(&inlier_src, &inlier_dst, None) else { break };
+        let (inlier_src, inlier_dst): (Vec<Point3<f64>>, Vec<Point3<f64>>) = inliers
+            .iter()
+            .enumerate()
+            .filter(|(_, &inlier)| inlier)
+            .map(|(i, _)| (src[i], dst[i]))
+            .unzip();
+        let Ok(refit) = rigid_transform(&inlier_src, &inlier_dst, None) else {
+            break;
+        };
         let (refit_count, refit_error) = matches.score(&refit, threshold_sq);
         if refit_count < count {
             break;
@@ -316,30 +363,70 @@ pub fn ransac_rigid(src: &[Point3<f64>], dst: &[Point3<f64>], config: &RansacCon
         .iter()
         .enumerate()
         .filter(|(_, &inlier)| inlier)
-        .map(|(i, _)| (transform * Point3::from(matches.src64[i]) - Point3::from(matches.dst64[i])).norm_squared())
+        .map(|(i, _)| {
+            (transform * Point3::from(matches.src64[i]) - Point3::from(matches.dst64[i]))
+                .norm_squared()
+        })
         .sum();
     let _ = error;
-    let rmse = if count > 0 { (squared / count as f64).sqrt() } else { 0.0 };
-    Ok(RansacResult { transform, num_inliers: count, inliers, iterations, rmse })
+    let rmse = if count > 0 {
+        (squared / count as f64).sqrt()
+    } else {
+        0.0
+    };
+    Ok(RansacResult {
+        transform,
+        num_inliers: count,
+        inliers,
+        iterations,
+        rmse,
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    fn scene(seed: u64, n: usize, outlier_ratio: f64, noise: f64) -> (Vec<Point3<f64>>, Vec<Point3<f64>>, Isometry3<f64>, Vec<bool>) {
+    #[allow(clippy::type_complexity)]
+    fn scene(
+        seed: u64,
+        n: usize,
+        outlier_ratio: f64,
+        noise: f64,
+    ) -> (
+        Vec<Point3<f64>>,
+        Vec<Point3<f64>>,
+        Isometry3<f64>,
+        Vec<bool>,
+    ) {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let truth = Isometry3::new(Vector3::new(0.9, -0.05, 0.02), Vector3::new(0.003, -0.002, 0.04));
+        let truth = Isometry3::new(
+            Vector3::new(0.9, -0.05, 0.02),
+            Vector3::new(0.003, -0.002, 0.04),
+        );
         let mut src = Vec::new();
         let mut dst = Vec::new();
         let mut is_inlier = Vec::new();
         for i in 0..n {
-            let p = Point3::new(rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(-2.0..3.0));
+            let p = Point3::new(
+                rng.random_range(-40.0..40.0),
+                rng.random_range(-40.0..40.0),
+                rng.random_range(-2.0..3.0),
+            );
             let outlier = (i as f64) < outlier_ratio * n as f64;
             let q = if outlier {
-                Point3::new(rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(-2.0..3.0))
+                Point3::new(
+                    rng.random_range(-40.0..40.0),
+                    rng.random_range(-40.0..40.0),
+                    rng.random_range(-2.0..3.0),
+                )
             } else {
-                truth * p + Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)) * noise
+                truth * p
+                    + Vector3::new(
+                        rng.random_range(-1.0..1.0),
+                        rng.random_range(-1.0..1.0),
+                        rng.random_range(-1.0..1.0),
+                    ) * noise
             };
             src.push(p);
             dst.push(q);
@@ -352,22 +439,43 @@ mod tests {
     fn recovers_a_known_motion_with_80_percent_outliers() {
         let (src, dst, truth, is_inlier) = scene(21, 1000, 0.8, 0.02);
         let result = ransac_rigid(&src, &dst, &RansacConfig::default()).unwrap();
-        let rotation_error = (result.transform.rotation.inverse() * truth.rotation).angle().to_degrees();
-        let translation_error = (result.transform.translation.vector - truth.translation.vector).norm();
+        let rotation_error = (result.transform.rotation.inverse() * truth.rotation)
+            .angle()
+            .to_degrees();
+        let translation_error =
+            (result.transform.translation.vector - truth.translation.vector).norm();
         assert!(rotation_error < 0.05, "rotation error {rotation_error}°");
-        assert!(translation_error < 0.02, "translation error {translation_error} m");
-        let wrong = result.inliers.iter().zip(&is_inlier).filter(|(a, b)| a != b).count();
+        assert!(
+            translation_error < 0.02,
+            "translation error {translation_error} m"
+        );
+        let wrong = result
+            .inliers
+            .iter()
+            .zip(&is_inlier)
+            .filter(|(a, b)| a != b)
+            .count();
         assert!(wrong <= 3, "{wrong} matches misclassified");
-        assert_eq!(result.num_inliers, result.inliers.iter().filter(|&&v| v).count());
+        assert_eq!(
+            result.num_inliers,
+            result.inliers.iter().filter(|&&v| v).count()
+        );
         assert!(result.iterations <= 1000 && result.iterations > 0);
     }
 
     #[test]
     fn same_seed_same_result_with_1_or_4_threads() {
         let (src, dst, _, _) = scene(22, 2000, 0.7, 0.05);
-        let config = RansacConfig { seed: 9, batch_size: 16, ..Default::default() };
+        let config = RansacConfig {
+            seed: 9,
+            batch_size: 16,
+            ..Default::default()
+        };
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
             pool.install(|| ransac_rigid(&src, &dst, &config).unwrap())
         };
         let one = run(1);
@@ -378,10 +486,24 @@ mod tests {
             .num_threads(2)
             .build()
             .unwrap()
-            .install(|| ransac_rigid(&src, &dst, &RansacConfig { batch_size: 100, ..config.clone() }).unwrap());
+            .install(|| {
+                ransac_rigid(
+                    &src,
+                    &dst,
+                    &RansacConfig {
+                        batch_size: 100,
+                        ..config.clone()
+                    },
+                )
+                .unwrap()
+            });
         assert_eq!(one, other_batches);
-        let different_seed = ransac_rigid(&src, &dst, &RansacConfig { seed: 10, ..config }).unwrap();
-        assert!(different_seed.iterations != one.iterations || different_seed.transform != one.transform);
+        let different_seed =
+            ransac_rigid(&src, &dst, &RansacConfig { seed: 10, ..config }).unwrap();
+        assert!(
+            different_seed.iterations != one.iterations
+                || different_seed.transform != one.transform
+        );
     }
 
     #[test]
@@ -390,7 +512,12 @@ mod tests {
         let result = ransac_rigid(&src, &dst, &RansacConfig::default()).unwrap();
         assert_eq!(result.num_inliers, 500);
         assert!(result.iterations < 10, "{} iterations", result.iterations);
-        assert!((result.transform.to_homogeneous() - truth.to_homogeneous()).abs().max() < 1e-9);
+        assert!(
+            (result.transform.to_homogeneous() - truth.to_homogeneous())
+                .abs()
+                .max()
+                < 1e-9
+        );
         assert!(result.rmse < 1e-9);
     }
 
@@ -398,23 +525,51 @@ mod tests {
     fn few_degenerate_and_outlier_only_inputs_do_not_panic_or_hang() {
         let p = |x: f64| Point3::new(x, 2.0 * x, -x);
         assert_eq!(
-            ransac_rigid(&[p(0.0), p(1.0)], &[p(0.0), p(1.0)], &RansacConfig::default()),
+            ransac_rigid(
+                &[p(0.0), p(1.0)],
+                &[p(0.0), p(1.0)],
+                &RansacConfig::default()
+            ),
             Err(Error::TooFewPoints { needed: 3, got: 2 })
         );
         let line: Vec<_> = (0..50).map(|i| p(i as f64)).collect();
-        assert!(matches!(ransac_rigid(&line, &line, &RansacConfig::default()), Err(Error::Degenerate(_))));
+        assert!(matches!(
+            ransac_rigid(&line, &line, &RansacConfig::default()),
+            Err(Error::Degenerate(_))
+        ));
         let (src, dst, _, _) = scene(24, 300, 1.0, 0.0);
         let result = ransac_rigid(&src, &dst, &RansacConfig::default()).unwrap();
         assert!(result.num_inliers < 10);
         assert_eq!(result.iterations, 1000);
         for bad in [
-            RansacConfig { threshold: 0.0, ..Default::default() },
-            RansacConfig { confidence: 1.0, ..Default::default() },
-            RansacConfig { max_iterations: 0, ..Default::default() },
+            RansacConfig {
+                threshold: 0.0,
+                ..Default::default()
+            },
+            RansacConfig {
+                confidence: 1.0,
+                ..Default::default()
+            },
+            RansacConfig {
+                max_iterations: 0,
+                ..Default::default()
+            },
         ] {
-            assert!(matches!(ransac_rigid(&src, &dst, &bad), Err(Error::InvalidArgument { .. })));
+            assert!(matches!(
+                ransac_rigid(&src, &dst, &bad),
+                Err(Error::InvalidArgument { .. })
+            ));
         }
-        let three = [Point3::new(0.0, 0.0, 0.0), Point3::new(1.0, 0.0, 0.0), Point3::new(0.0, 1.0, 0.0)];
-        assert_eq!(ransac_rigid(&three, &three, &RansacConfig::default()).unwrap().num_inliers, 3);
+        let three = [
+            Point3::new(0.0, 0.0, 0.0),
+            Point3::new(1.0, 0.0, 0.0),
+            Point3::new(0.0, 1.0, 0.0),
+        ];
+        assert_eq!(
+            ransac_rigid(&three, &three, &RansacConfig::default())
+                .unwrap()
+                .num_inliers,
+            3
+        );
     }
 }

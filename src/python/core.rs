@@ -12,8 +12,8 @@ use std::sync::{Arc, Mutex};
 use nalgebra::{Isometry3, Matrix4, Point3};
 use numpy::ndarray::{Array1, Array2, Array3};
 use numpy::{
-    Element, IntoPyArray, PyArray1, PyArray2, PyArray3, PyArrayDescrMethods, PyReadonlyArrayDyn, PyUntypedArray,
-    PyUntypedArrayMethods,
+    Element, IntoPyArray, PyArray1, PyArray2, PyArray3, PyArrayDescrMethods, PyReadonlyArrayDyn,
+    PyUntypedArray, PyUntypedArrayMethods,
 };
 use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
@@ -29,15 +29,24 @@ use crate::rigid;
 
 /// Rayon pools of this process, keyed by thread count; the owning pid detects a `fork()` (the child
 /// has no worker threads, so it must build its own pools; the parent's are leaked, never joined).
-static POOLS: Mutex<Option<(u32, Vec<(usize, Arc<rayon::ThreadPool>)>)>> = Mutex::new(None);
+static POOLS: Mutex<Option<ProcessPools>> = Mutex::new(None);
+
+/// The owning process id and its pools by thread count.
+type ProcessPools = (u32, Vec<(usize, Arc<rayon::ThreadPool>)>);
 
 fn thread_pool(num_threads: Option<usize>) -> PyResult<Arc<rayon::ThreadPool>> {
     let threads = match num_threads {
-        Some(0) => return Err(PyValueError::new_err("num_threads: must be >= 1 (or None for all cores)")),
+        Some(0) => {
+            return Err(PyValueError::new_err(
+                "num_threads: must be >= 1 (or None for all cores)",
+            ))
+        }
         Some(n) => n,
         None => std::thread::available_parallelism().map_or(1, |n| n.get()),
     };
-    let mut guard = POOLS.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    let mut guard = POOLS
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
     let pid = std::process::id();
     if guard.as_ref().is_some_and(|(owner, _)| *owner != pid) {
         if let Some((_, pools)) = guard.take() {
@@ -74,7 +83,9 @@ fn run<T: Send>(
                 .cloned()
                 .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
                 .unwrap_or_else(|| "unknown panic".into());
-            Err(PyRuntimeError::new_err(format!("internal error in dmlo_rs (please report): {message}")))
+            Err(PyRuntimeError::new_err(format!(
+                "internal error in dmlo_rs (please report): {message}"
+            )))
         }
     }
 }
@@ -85,9 +96,16 @@ enum Floats<'py> {
     F64(PyReadonlyArrayDyn<'py, f64>),
 }
 
-fn as_array<'a, 'py>(name: &str, obj: &'a Bound<'py, PyAny>) -> PyResult<&'a Bound<'py, PyUntypedArray>> {
+fn as_array<'a, 'py>(
+    name: &str,
+    obj: &'a Bound<'py, PyAny>,
+) -> PyResult<&'a Bound<'py, PyUntypedArray>> {
     obj.cast::<PyUntypedArray>().map_err(|_| {
-        let type_name = obj.get_type().name().map(|n| n.to_string()).unwrap_or_else(|_| "?".into());
+        let type_name = obj
+            .get_type()
+            .name()
+            .map(|n| n.to_string())
+            .unwrap_or_else(|_| "?".into());
         PyTypeError::new_err(format!("{name}: expected a numpy array, got {type_name}"))
     })
 }
@@ -107,7 +125,10 @@ fn floats<'py>(name: &str, obj: &Bound<'py, PyAny>) -> PyResult<Floats<'py>> {
     } else if is_dtype::<f64>(array) {
         Ok(Floats::F64(array.extract()?))
     } else {
-        Err(PyTypeError::new_err(format!("{name}: expected float32 or float64, got {}", dtype_name(array))))
+        Err(PyTypeError::new_err(format!(
+            "{name}: expected float32 or float64, got {}",
+            dtype_name(array)
+        )))
     }
 }
 
@@ -151,7 +172,10 @@ fn shape_error(name: &str, expected: &str, shape: &[usize]) -> PyErr {
 
 fn check_finite(name: &str, values: &[f64]) -> PyResult<()> {
     match values.iter().position(|v| !v.is_finite()) {
-        Some(i) => Err(PyValueError::new_err(format!("{name}: element {i} is not finite ({})", values[i]))),
+        Some(i) => Err(PyValueError::new_err(format!(
+            "{name}: element {i} is not finite ({})",
+            values[i]
+        ))),
         None => Ok(()),
     }
 }
@@ -165,7 +189,10 @@ fn points3(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Vec<Point3<f64>>> {
     }
     let data = array.f64_data();
     check_finite(name, &data)?;
-    Ok(data.chunks_exact(3).map(|p| Point3::new(p[0], p[1], p[2])).collect())
+    Ok(data
+        .chunks_exact(3)
+        .map(|p| Point3::new(p[0], p[1], p[2]))
+        .collect())
 }
 
 /// A 1-D float array (any float width) → float64 values, checked finite.
@@ -192,16 +219,27 @@ fn vector_i64(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Vec<i64>> {
         let a: PyReadonlyArrayDyn<'_, i32> = array.extract()?;
         Ok(a.as_array().iter().map(|&v| v as i64).collect())
     } else {
-        Err(PyTypeError::new_err(format!("{name}: expected int32 or int64, got {}", dtype_name(array))))
+        Err(PyTypeError::new_err(format!(
+            "{name}: expected int32 or int64, got {}",
+            dtype_name(array)
+        )))
     }
 }
 
 /// A `height × width` float image (float32, or float64 to be converted by `f32_data`).
-fn image<'py>(name: &str, obj: &Bound<'py, PyAny>, config: &CylinderConfig) -> PyResult<Floats<'py>> {
+fn image<'py>(
+    name: &str,
+    obj: &Bound<'py, PyAny>,
+    config: &CylinderConfig,
+) -> PyResult<Floats<'py>> {
     let array = floats(name, obj)?;
     let shape = array.shape();
     if shape != [config.height, config.width] {
-        return Err(shape_error(name, &format!("({}, {}) (the config's image)", config.height, config.width), shape));
+        return Err(shape_error(
+            name,
+            &format!("({}, {}) (the config's image)", config.height, config.width),
+            shape,
+        ));
     }
     Ok(array)
 }
@@ -263,13 +301,17 @@ impl PyCylinderConfig {
     /// The paper's KITTI HDL-64E setting: 0.4° × 0.2°, full 68 × 1801, centre crop 64 × 1792.
     #[staticmethod]
     fn kitti() -> Self {
-        PyCylinderConfig { inner: CylinderConfig::kitti() }
+        PyCylinderConfig {
+            inner: CylinderConfig::kitti(),
+        }
     }
 
     /// The paper's Argoverse setting: 0.3° within −5°…+15°, 0.2° horizontal, 64 × 1792.
     #[staticmethod]
     fn argoverse() -> Self {
-        PyCylinderConfig { inner: CylinderConfig::argoverse() }
+        PyCylinderConfig {
+            inner: CylinderConfig::argoverse(),
+        }
     }
 
     #[getter]
@@ -333,12 +375,23 @@ impl PyCylinderConfig {
         format!(
             "CylinderConfig(fov_up_deg={:?}, fov_down_deg={:?}, vertical_resolution_deg={:?}, \
              horizontal_resolution_deg={:?}, height={}, width={})",
-            c.fov_up_deg, c.fov_down_deg, c.vertical_resolution_deg, c.horizontal_resolution_deg, c.height, c.width
+            c.fov_up_deg,
+            c.fov_down_deg,
+            c.vertical_resolution_deg,
+            c.horizontal_resolution_deg,
+            c.height,
+            c.width
         )
     }
 
     /// Pickling (e.g. into spawned DataLoader workers) re-creates the config from its keywords.
-    fn __getnewargs_ex__<'py>(&self, py: Python<'py>) -> PyResult<(Bound<'py, pyo3::types::PyTuple>, Bound<'py, pyo3::types::PyDict>)> {
+    fn __getnewargs_ex__<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<(
+        Bound<'py, pyo3::types::PyTuple>,
+        Bound<'py, pyo3::types::PyDict>,
+    )> {
         let c = &self.inner;
         let kwargs = pyo3::types::PyDict::new(py);
         kwargs.set_item("fov_up_deg", c.fov_up_deg)?;
@@ -397,9 +450,13 @@ fn project(
     let data = array.f32_data();
     let config = config.inner;
     let data_ref: &[f32] = &data;
-    let image = run(py, num_threads, || projection::project_flat(data_ref, shape[1], &config))?;
+    let image = run(py, num_threads, || {
+        projection::project_flat(data_ref, shape[1], &config)
+    })?;
     let (h, w) = (image.height, image.width);
-    let to_image = |v: Vec<f32>| Array2::from_shape_vec((h, w), v).map_err(|e| PyRuntimeError::new_err(e.to_string()));
+    let to_image = |v: Vec<f32>| {
+        Array2::from_shape_vec((h, w), v).map_err(|e| PyRuntimeError::new_err(e.to_string()))
+    };
     Ok(PyProjection {
         range: to_image(image.range)?.into_pyarray(py).unbind(),
         reflectance: to_image(image.reflectance)?.into_pyarray(py).unbind(),
@@ -422,16 +479,22 @@ fn unproject<'py>(
     ranges: &Bound<'py, PyAny>,
     config: &PyCylinderConfig,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-    let (rows, cols, ranges) = (vector_f64("rows", rows)?, vector_f64("cols", cols)?, vector_f64("ranges", ranges)?);
+    let (rows, cols, ranges) = (
+        vector_f64("rows", rows)?,
+        vector_f64("cols", cols)?,
+        vector_f64("ranges", ranges)?,
+    );
     let config = config.inner;
-    let points = run(py, Some(1), || projection::unproject_many(&rows, &cols, &ranges, &config))?;
+    let points = run(py, Some(1), || {
+        projection::unproject_many(&rows, &cols, &ranges, &config)
+    })?;
     Ok(points_to_numpy(py, &points))
 }
 
 /// Ground-truth flow (Eq. 5–8) → `(flow[2, H, W] float32 (Δrow, Δcol), valid[H, W] bool)`.
 #[pyfunction]
 #[pyo3(signature = (ref_range, tgt_range, T_tgt_ref, config, max_range_error = 0.1, *, num_threads = None))]
-#[allow(non_snake_case)]
+#[allow(non_snake_case, clippy::type_complexity)]
 fn ground_truth_flow<'py>(
     py: Python<'py>,
     ref_range: &Bound<'py, PyAny>,
@@ -442,7 +505,10 @@ fn ground_truth_flow<'py>(
     num_threads: Option<usize>,
 ) -> PyResult<(Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<bool>>)> {
     let config = config.inner;
-    let (reference, target) = (image("ref_range", ref_range, &config)?, image("tgt_range", tgt_range, &config)?);
+    let (reference, target) = (
+        image("ref_range", ref_range, &config)?,
+        image("tgt_range", tgt_range, &config)?,
+    );
     let (reference, target) = (reference.f32_data(), target.f32_data());
     let (reference, target): (&[f32], &[f32]) = (&reference, &target);
     let motion = transform("T_tgt_ref", T_tgt_ref)?;
@@ -450,8 +516,10 @@ fn ground_truth_flow<'py>(
         ground_truth::ground_truth_flow(reference, target, &motion, &config, max_range_error)
     })?;
     let (h, w) = (gt.height, gt.width);
-    let flow = Array3::from_shape_vec((2, h, w), gt.flow).map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
-    let valid = Array2::from_shape_vec((h, w), gt.valid).map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+    let flow = Array3::from_shape_vec((2, h, w), gt.flow)
+        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+    let valid = Array2::from_shape_vec((h, w), gt.valid)
+        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
     Ok((flow.into_pyarray(py), valid.into_pyarray(py)))
 }
 
@@ -468,7 +536,9 @@ fn rigid_transform<'py>(
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
     let (src, dst) = (points3("src", src)?, points3("dst", dst)?);
     let weights = weights.map(|w| vector_f64("weights", w)).transpose()?;
-    let solved = run(py, Some(1), || rigid::rigid_transform(&src, &dst, weights.as_deref()))?;
+    let solved = run(py, Some(1), || {
+        rigid::rigid_transform(&src, &dst, weights.as_deref())
+    })?;
     Ok(matrix_to_numpy(py, &solved))
 }
 
@@ -516,8 +586,17 @@ fn ransac_rigid(
     num_threads: Option<usize>,
 ) -> PyResult<PyRansacResult> {
     let (src, dst) = (points3("src", src)?, points3("dst", dst)?);
-    let config = RansacConfig { threshold, confidence, max_iterations, seed, refine_iterations, ..Default::default() };
-    let result = run(py, num_threads, || ransac::ransac_rigid(&src, &dst, &config))?;
+    let config = RansacConfig {
+        threshold,
+        confidence,
+        max_iterations,
+        seed,
+        refine_iterations,
+        ..Default::default()
+    };
+    let result = run(py, num_threads, || {
+        ransac::ransac_rigid(&src, &dst, &config)
+    })?;
     Ok(PyRansacResult {
         transform: matrix_to_numpy(py, &result.transform).unbind(),
         inliers: Array1::from_vec(result.inliers).into_pyarray(py).unbind(),
@@ -548,7 +627,9 @@ fn non_maximum_suppression<'py>(
         return Err(shape_error("scores", "(N,)", array.shape()));
     }
     let scores = array.f32_data().into_owned();
-    let kept = run(py, Some(1), || nms::nms(&rows, &cols, &scores, radius, top_n))?;
+    let kept = run(py, Some(1), || {
+        nms::nms(&rows, &cols, &scores, radius, top_n)
+    })?;
     Ok(Array1::from_iter(kept.into_iter().map(|i| i as i64)).into_pyarray(py))
 }
 
@@ -608,15 +689,23 @@ fn decode_matches(
     if flow.shape() != [2, h, w] {
         return Err(shape_error("flow", &format!("(2, {h}, {w})"), flow.shape()));
     }
-    let (reference, target, confidence, flow) =
-        (reference.f32_data(), target.f32_data(), confidence.f32_data(), flow.f32_data());
-    let (reference, target, confidence, flow): (&[f32], &[f32], &[f32], &[f32]) = (&reference, &target, &confidence, &flow);
+    let (reference, target, confidence, flow) = (
+        reference.f32_data(),
+        target.f32_data(),
+        confidence.f32_data(),
+        flow.f32_data(),
+    );
+    let (reference, target, confidence, flow): (&[f32], &[f32], &[f32], &[f32]) =
+        (&reference, &target, &confidence, &flow);
     let mask = match mask {
         None => None,
         Some(obj) => {
             let array = as_array("mask", obj)?;
             if !is_dtype::<bool>(array) {
-                return Err(PyTypeError::new_err(format!("mask: expected bool, got {}", dtype_name(array))));
+                return Err(PyTypeError::new_err(format!(
+                    "mask: expected bool, got {}",
+                    dtype_name(array)
+                )));
             }
             if array.shape() != [h, w] {
                 return Err(shape_error("mask", &format!("({h}, {w})"), array.shape()));
@@ -625,15 +714,30 @@ fn decode_matches(
             Some(a.as_array().iter().copied().collect::<Vec<bool>>())
         }
     };
-    let decode = DecodeConfig { min_confidence, max_relative_range_spread };
+    let decode = DecodeConfig {
+        min_confidence,
+        max_relative_range_spread,
+    };
     let decoded = run(py, num_threads, || {
-        matches::decode_matches(reference, target, flow, confidence, mask.as_deref(), &cylinder, &decode)
+        matches::decode_matches(
+            reference,
+            target,
+            flow,
+            confidence,
+            mask.as_deref(),
+            &cylinder,
+            &decode,
+        )
     })?;
-    let cells = Array2::from_shape_fn((decoded.cells.len(), 2), |(i, j)| decoded.cells[i][j] as i64);
+    let cells = Array2::from_shape_fn((decoded.cells.len(), 2), |(i, j)| {
+        decoded.cells[i][j] as i64
+    });
     Ok(PyMatches {
         source: points_to_numpy(py, &decoded.source).unbind(),
         target: points_to_numpy(py, &decoded.target).unbind(),
-        confidence: Array1::from_vec(decoded.confidence).into_pyarray(py).unbind(),
+        confidence: Array1::from_vec(decoded.confidence)
+            .into_pyarray(py)
+            .unbind(),
         cells: cells.into_pyarray(py).unbind(),
     })
 }
