@@ -266,3 +266,44 @@ def test_command_line(tmp_path: Path) -> None:
     assert main(["simulate", "--frames", "1", "--seed", "2", "--out", str(tmp_path / "seq"), "--quiet"]) == 0
     assert (tmp_path / "seq" / "velodyne" / "000000.bin").stat().st_size > 1_000_000
     assert main(["simulate", "--frames", "0", "--out", str(tmp_path / "x"), "--quiet"]) == 2
+
+
+def test_sweep_column_poses_interpolate_the_frame_motion() -> None:
+    from dmlo.simulator.primitives import yaw_pitch_rotation
+    from dmlo.simulator.trajectory import sweep_column_poses
+
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    for k in range(3):
+        poses[k, :3, :3] = yaw_pitch_rotation(0.1 * k)
+        poses[k, :3, 3] = [2.0 * k, 0.3 * k, 0.0]
+    columns = sweep_column_poses(poses, 1, 100)
+    assert columns.shape == (100, 4, 4)
+    np.testing.assert_allclose(columns[50], poses[1], atol=1e-12)
+    yaw = np.unwrap(np.arctan2(columns[:, 1, 0], columns[:, 0, 0]))
+    np.testing.assert_allclose(yaw, 0.1 + 0.1 * (np.arange(100) - 50) / 100, atol=1e-12)
+    motion = np.linalg.inv(poses[1]) @ poses[2]
+    np.testing.assert_allclose(columns[0, :3, 3], poses[1, :3, 3] - 0.5 * poses[1, :3, :3] @ motion[:3, 3], atol=1e-12)
+    # The last frame extrapolates with the previous motion.
+    np.testing.assert_allclose(sweep_column_poses(poses, 2, 100)[50], poses[2], atol=1e-12)
+
+
+def test_motion_distortion_skews_the_rear_but_not_the_front(tmp_path: Path, shared_data: Path) -> None:
+    from scipy.spatial import cKDTree
+
+    trajectory = shared_data / "kitti_gt_poses" / "00.txt"
+    simulate_sequence(tmp_path / "still", 2, seed=3, trajectory=trajectory, start=300, progress=False)
+    simulate_sequence(
+        tmp_path / "skewed", 2, seed=3, trajectory=trajectory, start=300, progress=False, motion_distortion=True
+    )
+    still, _ = _read_scan(tmp_path / "still", 0)
+    skewed, _ = _read_scan(tmp_path / "skewed", 0)
+
+    def sector(points: np.ndarray, center_deg: float) -> np.ndarray:
+        azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+        gap = np.abs((azimuth - center_deg + 180.0) % 360.0 - 180.0)
+        return points[(gap < 3.0) & (points[:, 2] > -1.0), :3]  # above the ground: vertical structure
+
+    front = cKDTree(sector(still, 0.0)).query(sector(skewed, 0.0))[0]
+    rear = cKDTree(sector(still, 180.0)).query(sector(skewed, 180.0))[0]
+    assert np.median(front) < 0.05
+    assert np.median(rear) > 0.15  # ~0.8 m a frame: the rear columns fire half a frame before or after

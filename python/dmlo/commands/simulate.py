@@ -26,6 +26,11 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("--start", type=int, default=0, help="first pose of --trajectory to use (default 0)")
     parser.add_argument("--calib", help="KITTI calib.txt whose Tr converts --trajectory (default: KITTI 00-02 Tr)")
+    parser.add_argument(
+        "--motion-distortion",
+        action="store_true",
+        help="the sensor moves while it spins (raw-KITTI-like skew); default: instantaneous sweeps",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     parser.set_defaults(run=run)
 
@@ -43,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
             start=args.start,
             calib=args.calib,
             progress=not args.quiet,
+            motion_distortion=args.motion_distortion,
         )
     except (ValueError, FileNotFoundError) as err:
         raise UserError(str(err)) from None

@@ -8,8 +8,8 @@ Measurement model (per ray that hits within `max_range`):
 - dropouts: a base probability, more for weak returns (far and dark), and more in vegetation;
 - no returns closer than `min_range` (the ego car's body) or beyond `max_range`.
 
-All rays of a revolution leave from the pose of the frame (no motion distortion within a sweep — KITTI's
-odometry benchmark scans are also treated as instantaneous by most methods).
+By default all rays of a revolution leave from the pose of the frame (no motion distortion within a
+sweep); `simulate_sequence(..., motion_distortion=True)` casts each azimuth column from its own pose.
 """
 
 from __future__ import annotations

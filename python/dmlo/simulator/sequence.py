@@ -22,6 +22,7 @@ from dmlo.simulator.trajectory import (
     orthonormalize,
     read_kitti_calib_tr,
     read_kitti_poses,
+    sweep_column_poses,
 )
 
 # Camera matrices of KITTI sequences 00–02, written as placeholders so readers expecting P0..P3 work.
@@ -55,6 +56,7 @@ def simulate_sequence(
     calib: str | Path | None = None,
     sensor: str | LidarModel = "hdl64e",
     progress: bool = True,
+    motion_distortion: bool = False,
 ) -> SimulationResult:
     """Simulates `frames` scans of a street drive and writes a KITTI-layout sequence into `out_dir`:
     `velodyne/NNNNNN.bin` (float32 x y z reflectance), `labels/NNNNNN.label` (uint32, class | instance << 16,
@@ -63,6 +65,9 @@ def simulate_sequence(
 
     The ego motion is frames `start … start+frames−1` of the KITTI camera-frame pose file `trajectory`
     (converted with `Tr` from `calib`, or the built-in KITTI 00–02 `Tr`), or else a generated drive.
+    With `motion_distortion`, every azimuth column is cast from the pose of the moment it fires (constant
+    velocity within a sweep, the frame pose at the forward-looking column) and points stay in the sensor
+    frame of their firing time, as in raw KITTI scans; by default a sweep is instantaneous.
     The same arguments always give byte-identical files.
     """
     if frames < 1:
@@ -105,8 +110,11 @@ def simulate_sequence(
         indices = tqdm(indices, desc="simulate", unit="scan")
     for k in indices:
         frame_began = time.perf_counter()
+        sweep_poses = (
+            sweep_column_poses(lidar_poses, k, model.azimuth_count) if motion_distortion else lidar_poses[k]
+        )
         points, labels, cast_seconds = render_frame(
-            street, static_scene, static_attributes, model, directions, lidar_poses[k], float(times[k]),
+            street, static_scene, static_attributes, model, directions, sweep_poses, float(times[k]),
             np.random.default_rng([seed, 0x5CA7, k]),
         )
         points.tofile(out / "velodyne" / f"{k:06d}.bin")
@@ -139,7 +147,7 @@ def simulate_sequence(
         "street": asdict(street.layout),
         "static_primitives": result.static_primitives,
         "moving_cars": len(street.moving_cars),
-        "motion_distortion": False,
+        "motion_distortion": motion_distortion,
     }
     (out / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
     return result
@@ -155,15 +163,15 @@ def render_frame(
     time_s: float,
     rng: np.random.Generator,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], float]:
-    """One scan at `pose` and `time_s`: static scene plus the moving cars at that time.
-    Returns points, labels and the seconds spent ray casting."""
+    """One scan at `pose` ((4,4), or (W,4,4) per azimuth column) and `time_s`: static scene plus the moving
+    cars at that time. Returns points, labels and the seconds spent ray casting."""
     from dmlo.simulator.primitives import SceneAttributes
 
     assert isinstance(static_attributes, SceneAttributes)
     elevations = model.elevations()
     began = time.perf_counter()
     ranges, primitive, cosines = static_scene.cast_scan(pose, elevations, model.azimuth_count, model.max_range)
-    dynamic = street.dynamic(time_s, pose[:2, 3])
+    dynamic = street.dynamic(time_s, pose[..., :2, 3].reshape(-1, 2).mean(0))
     attributes = static_attributes
     if len(dynamic):
         dynamic_scene, dynamic_attributes = dynamic.build()
