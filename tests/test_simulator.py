@@ -258,6 +258,18 @@ def test_bad_input_is_reported(tmp_path: Path, shared_data: Path) -> None:
         read_kitti_poses(bad)
     with pytest.raises(ValueError, match="start"):
         simulate_sequence(tmp_path, 2, seed=1, start=3, progress=False)
+    with pytest.raises(ValueError, match="sensor: unknown preset 'hdl32'"):
+        simulate_sequence(tmp_path, 2, seed=1, sensor="hdl32", progress=False)
+
+
+def test_existing_output_is_refused_or_replaced_without_stale_frames(tmp_path: Path) -> None:
+    simulate_sequence(tmp_path, 3, seed=1, progress=False)
+    with pytest.raises(ValueError, match="already holds a sequence"):
+        simulate_sequence(tmp_path, 2, seed=1, progress=False)
+    simulate_sequence(tmp_path, 2, seed=1, progress=False, overwrite=True)
+    assert sorted(p.name for p in (tmp_path / "velodyne").iterdir()) == ["000000.bin", "000001.bin"]
+    assert sorted(p.name for p in (tmp_path / "labels").iterdir()) == ["000000.label", "000001.label"]
+    assert len(read_kitti_poses(tmp_path / "poses.txt")) == 2
 
 
 def test_command_line(tmp_path: Path) -> None:

@@ -31,6 +31,7 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="the sensor moves while it spins (raw-KITTI-like skew); default: instantaneous sweeps",
     )
+    parser.add_argument("--overwrite", action="store_true", help="replace the scans of an existing OUT")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     parser.set_defaults(run=run)
 
@@ -49,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
             calib=args.calib,
             progress=not args.quiet,
             motion_distortion=args.motion_distortion,
+            overwrite=args.overwrite,
         )
     except (ValueError, FileNotFoundError) as err:
         raise UserError(str(err)) from None

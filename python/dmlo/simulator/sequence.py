@@ -57,6 +57,7 @@ def simulate_sequence(
     sensor: str | LidarModel = "hdl64e",
     progress: bool = True,
     motion_distortion: bool = False,
+    overwrite: bool = False,
 ) -> SimulationResult:
     """Simulates `frames` scans of a street drive and writes a KITTI-layout sequence into `out_dir`:
     `velodyne/NNNNNN.bin` (float32 x y z reflectance), `labels/NNNNNN.label` (uint32, class | instance << 16,
@@ -68,13 +69,19 @@ def simulate_sequence(
     With `motion_distortion`, every azimuth column is cast from the pose of the moment it fires (constant
     velocity within a sweep, the frame pose at the forward-looking column) and points stay in the sensor
     frame of their firing time, as in raw KITTI scans; by default a sweep is instantaneous.
-    The same arguments always give byte-identical files.
+    The same arguments always give byte-identical files. An `out_dir` that already holds scans is refused
+    unless `overwrite`, which first deletes its old `.bin`/`.label` files so no stale frame survives.
     """
     if frames < 1:
         raise ValueError(f"frames: must be at least 1, got {frames}")
     if start < 0:
         raise ValueError(f"start: must be non-negative, got {start}")
-    model = SENSORS[sensor] if isinstance(sensor, str) else sensor
+    if isinstance(sensor, str):
+        if sensor not in SENSORS:
+            raise ValueError(f"sensor: unknown preset {sensor!r}; known: {', '.join(sorted(SENSORS))}")
+        model = SENSORS[sensor]
+    else:
+        model = sensor
     tr = read_kitti_calib_tr(calib) if calib is not None else KITTI_TR
     if trajectory is not None:
         camera_poses = read_kitti_poses(trajectory)
@@ -89,6 +96,11 @@ def simulate_sequence(
         lidar_poses = generate_drive(frames, seed)
 
     out = Path(out_dir)
+    old_scans = sorted((out / "velodyne").glob("*.bin")) + sorted((out / "labels").glob("*.label"))
+    if old_scans and not overwrite:
+        raise ValueError(f"out: {out} already holds a sequence ({len(old_scans)} files); pass overwrite=True (--overwrite)")
+    for old in old_scans:
+        old.unlink()
     (out / "velodyne").mkdir(parents=True, exist_ok=True)
     (out / "labels").mkdir(parents=True, exist_ok=True)
     result = SimulationResult(out_dir=out, lidar_poses=lidar_poses)
