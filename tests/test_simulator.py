@@ -319,3 +319,30 @@ def test_motion_distortion_skews_the_rear_but_not_the_front(tmp_path: Path, shar
     rear = cKDTree(sector(still, 180.0)).query(sector(skewed, 180.0))[0]
     assert np.median(front) < 0.05
     assert np.median(rear) > 0.15  # ~0.8 m a frame: the rear columns fire half a frame before or after
+
+
+def test_facade_windows_return_from_the_room_behind() -> None:
+    """A facade with a window grid: window rays drop or return `depth` behind the facade, darker."""
+    import dmlo_rs
+    from dmlo.simulator.primitives import BUILDING, PrimitiveSet, yaw_pitch_rotation
+    from dmlo.simulator.sensor import measure
+
+    prims = PrimitiveSet()
+    # Facade plane x = 10 (box 10..30 deep), 40 m wide, from z = -2 (box bottom) to 30.
+    prims.add_box([20.0, 0, 14.0], [10.0, 20.0, 16.0], yaw_pitch_rotation(0.0), BUILDING, 0, 0.5, (3.0, 3.0, 2.0))
+    scene, attributes = prims.build()
+    elevations = np.linspace(-10, 30, 200)
+    directions = dmlo_rs.lidar_scan_directions(elevations, 2000)
+    ranges, primitive, cosines = scene.cast_scan(np.eye(4), elevations, 2000, 120.0)
+    front = (directions[:, 0] > 0.95).reshape(ranges.shape)
+    points, _ = measure(
+        HDL64E, directions[front.ravel()], ranges[front], primitive[front], cosines[front], attributes,
+        np.random.default_rng(0), np.eye(4),
+    )
+    depth_behind = points[:, 0] - 10.0
+    room = depth_behind > 1.0
+    assert 0.01 < room.mean() < 0.3
+    np.testing.assert_allclose(np.median(depth_behind[room]), 2.0, atol=0.05)
+    assert np.median(points[room, 3]) < 0.5 * np.median(points[~room, 3])
+    # Windows sit on the grid: none in the lowest floor band (height above the box bottom < 3 m).
+    assert (points[room, 2] + 2.0 > 3.0).all()

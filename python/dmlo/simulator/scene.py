@@ -255,8 +255,8 @@ def _add_corridor(prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, r
     xy = path.xy[:, None, :] + offsets[None, :, None] * normal[:, None, :]
     z = path.ground_z[:, None] + heights[None, :]
     vertices = np.concatenate([xy, z[..., None]], axis=-1)  # (S, P, 3)
-    road_albedo = float(rng.uniform(0.12, 0.22))
-    walk_albedo = float(rng.uniform(0.25, 0.4))
+    road_albedo = float(rng.uniform(0.28, 0.4))
+    walk_albedo = float(rng.uniform(0.3, 0.45))
     for j in range(len(profile) - 1):
         a, b = vertices[:-1, j], vertices[:-1, j + 1]
         c, d = vertices[1:, j], vertices[1:, j + 1]
@@ -279,7 +279,7 @@ def _add_corridor(prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, r
             tris = np.stack([quad[[0, 1, 3]], quad[[0, 3, 2]]])
             tris = tris[_non_degenerate(tris)]
             if len(tris):
-                prims.add_triangles(tris, LANE_MARKING, 0, 0.75)
+                prims.add_triangles(tris, LANE_MARKING, 0, 0.9)
 
 
 def _non_degenerate(tris: npt.NDArray[np.float64]) -> npt.NDArray[np.bool_]:
@@ -339,11 +339,11 @@ def _add_roadside(
     """Block by block beside the sidewalk: buildings, walls/fences/hedges, or open ground with trees."""
     clearance = min(layout.road_left, layout.road_right) + 1.5
     s = float(rng.uniform(0, 10))
-    building_albedo = float(rng.uniform(0.25, 0.5))
+    building_albedo = float(rng.uniform(0.1, 0.35))
     while s < path.length:
         kind = rng.choice(["building", "fence", "open"], p=[0.72, 0.14, 0.14])
         length = float(rng.uniform(10.0, 35.0) if kind == "building" else rng.uniform(10.0, 40.0))
-        front = layout.outer(side) + float(rng.uniform(0.3, 3.0))
+        front = layout.outer(side) + float(rng.uniform(0.5, 6.0))
         if kind == "building":
             depth = _add_building(prims, path, side, s, length, front, clearance, building_albedo, rng)
             if rng.random() < 0.5:  # a second row behind: structure at long range
@@ -380,7 +380,12 @@ def _add_building(
     parts = int(rng.integers(1, 5))
     cuts = np.sort(rng.uniform(0, length, parts - 1))
     edges = np.concatenate([[0.0], cuts, [length]])
-    facade_albedo = float(np.clip(albedo + rng.normal(0, 0.08), 0.08, 0.9))
+    facade_albedo = float(np.clip(albedo + rng.normal(0, 0.08), 0.03, 0.9))
+    windows = (
+        (float(rng.uniform(2.2, 4.5)), float(rng.uniform(2.8, 3.6)), float(rng.uniform(0.3, 4.0)))
+        if rng.random() < 0.8
+        else (0.0, 0.0, 0.0)
+    )
     for a, b in zip(edges[:-1], edges[1:]):
         if b - a < 2.0:
             continue
@@ -393,7 +398,8 @@ def _add_building(
         if not _clear(path, _footprint(xy, heading, half[0], half[1]), clearance):
             continue
         rot = yaw_pitch_rotation(heading)
-        prims.add_box([xy[0], xy[1], z - 1.0 + half[2]], half, rot, BUILDING, 0, facade_albedo)
+        # Boxes reach 1 m below the ground (no gap on slopes); the window grid counts from the box bottom.
+        prims.add_box([xy[0], xy[1], z - 1.0 + half[2]], half, rot, BUILDING, 0, facade_albedo, windows)
         # Balconies / ledges sticking out of the facade on some parts.
         if rng.random() < 0.35 and b - a > 5.0:
             floors = int((height - 3.0) // 3.0)
@@ -447,7 +453,7 @@ def _add_tree(prims: PrimitiveSet, xy: npt.NDArray[np.float64], ground: float, r
         offset = rng.normal(0, 0.35 * crown, 3) * np.array([1, 1, 0.6])
         radii = crown * rng.uniform(0.5, 0.9) * np.array([1.0, 1.0, rng.uniform(0.7, 1.0)])
         prims.add_ellipsoid(
-            [xy[0] + offset[0], xy[1] + offset[1], center_z + offset[2]], radii, VEGETATION, 0, float(rng.uniform(0.4, 0.6))
+            [xy[0] + offset[0], xy[1] + offset[1], center_z + offset[2]], radii, VEGETATION, 0, float(rng.uniform(0.2, 0.45))
         )
 
 
@@ -555,7 +561,7 @@ def _add_parked_cars(
     rng: np.random.Generator,
     instances: object,
 ) -> None:
-    occupancy = float(rng.uniform(0.3, 0.85))
+    occupancy = float(rng.uniform(0.15, 0.6))
     s = float(rng.uniform(0, 10))
     while s < path.length:
         stretch = float(rng.uniform(20.0, 60.0))

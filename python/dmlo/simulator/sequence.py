@@ -193,11 +193,7 @@ def render_frame(
         ranges = np.where(closer, d_ranges, ranges)
         primitive = np.where(closer, d_primitive + offset, primitive)
         cosines = np.where(closer, d_cosines, cosines)
-        attributes = SceneAttributes(
-            semantic=np.concatenate([static_attributes.semantic, dynamic_attributes.semantic]),
-            instance=np.concatenate([static_attributes.instance, dynamic_attributes.instance]),
-            albedo=np.concatenate([static_attributes.albedo, dynamic_attributes.albedo]),
-        )
+        attributes = SceneAttributes.concatenate([static_attributes, dynamic_attributes])
     cast_seconds = time.perf_counter() - began
-    points, labels = measure(model, directions, ranges, primitive, cosines, attributes, rng)
+    points, labels = measure(model, directions, ranges, primitive, cosines, attributes, rng, pose)
     return points, labels, cast_seconds
