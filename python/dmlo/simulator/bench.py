@@ -36,7 +36,11 @@ def main() -> None:
     print(f"scene: {result.static_primitives} static primitives, generated + BVH in {result.scene_seconds:.2f} s")
     print(f"points per scan: {np.mean(result.points_per_frame):.0f} (of {64 * 2083} rays)")
     print(f"ray casting per scan: median {np.median(cast):.1f} ms (min {cast.min():.1f})")
-    print(f"whole frame incl. noise model and writing: median {np.median(frame):.1f} ms (min {frame.min():.1f})")
+    frame_cpu = np.asarray(result.frame_cpu_seconds[1:] or result.frame_cpu_seconds) * 1000
+    print(
+        f"whole frame incl. moving cars, noise model and writing: wall median {np.median(frame):.1f} ms "
+        f"(min {frame.min():.1f}), CPU median {np.median(frame_cpu):.1f} ms"
+    )
     print(f"total for {args.frames} frames: {total:.2f} s")
     _cast_only(args)
 
