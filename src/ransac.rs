@@ -1,2 +1,420 @@
 #![forbid(unsafe_code)]
-//! (to be written)
+//! RANSAC around the closed-form rigid solve (paper §III-D-b): minimal samples of 3 matches,
+//! inliers within a distance threshold, an adaptive number of hypotheses for a target confidence, and
+//! a final refit on all inliers.
+//!
+//! Determinism: samples are drawn serially from a ChaCha8 generator seeded by
+//! [`RansacConfig::seed`], in batches; each batch's hypotheses are solved and scored in parallel
+//! (rayon, in the caller's pool), then walked in order exactly as a serial loop would, with the best
+//! chosen by (more inliers, then lower summed squared inlier error, then earlier hypothesis). The
+//! result is therefore identical for any number of threads.
+
+use std::cmp::Ordering;
+
+use nalgebra::{Isometry3, Matrix3, Point3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use crate::rigid::{isometry_from_parts, rigid_transform, Svd3};
+
+/// RANSAC settings; `Default` is the paper's (0.1 m threshold) with 0.999 confidence.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RansacConfig {
+    /// A match is an inlier when `‖dst − T·src‖ < threshold` (metres).
+    pub threshold: f64,
+    /// Stop once a better hypothesis would have been found with this probability (0 < c < 1).
+    pub confidence: f64,
+    /// Upper bound on the hypotheses drawn (≥ 1).
+    pub max_iterations: usize,
+    /// Seed of the sampler.
+    pub seed: u64,
+    /// Hypotheses drawn per parallel batch (≥ 1); changes speed only, never the result.
+    pub batch_size: usize,
+    /// Refits on all inliers after the search, repeated while the inlier set changes (0 = no refit).
+    pub refine_iterations: usize,
+}
+
+impl Default for RansacConfig {
+    fn default() -> Self {
+        RansacConfig {
+            threshold: 0.1,
+            confidence: 0.999,
+            max_iterations: 1000,
+            seed: 0,
+            batch_size: 64,
+            refine_iterations: 3,
+        }
+    }
+}
+
+/// What RANSAC found.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RansacResult {
+    /// The motion `T` with `dst ≈ T·src` (after refitting on the inliers).
+    pub transform: Isometry3<f64>,
+    /// Per match: true when it is an inlier of `transform`.
+    pub inliers: Vec<bool>,
+    /// Number of `true` in `inliers`.
+    pub num_inliers: usize,
+    /// Hypotheses drawn (including degenerate samples).
+    pub iterations: usize,
+    /// Root mean square distance of the inliers under `transform`, metres.
+    pub rmse: f64,
+}
+
+/// Matches in structure-of-arrays form. Hypotheses are scored in `f32` (residuals of 0.1 m on points
+/// within a few hundred metres are far above its rounding) in independent lanes, so the loop
+/// vectorises; the final refit and RMSE use the `f64` points.
+struct Matches {
+    src: [Vec<f32>; 3],
+    dst: [Vec<f32>; 3],
+    src64: Vec<Vector3<f64>>,
+    dst64: Vec<Vector3<f64>>,
+}
+
+/// Lanes of the scoring loop.
+const LANES: usize = 8;
+
+/// A hypothesis as the scoring loop uses it: row-major rotation, then translation.
+struct Hypothesis32 {
+    r: [f32; 9],
+    t: [f32; 3],
+}
+
+impl Hypothesis32 {
+    fn new(transform: &Isometry3<f64>) -> Self {
+        let r = transform.rotation.to_rotation_matrix().into_inner();
+        let t = transform.translation.vector;
+        Hypothesis32 {
+            r: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| r[(k / 3, k % 3)] as f32),
+            t: [t.x as f32, t.y as f32, t.z as f32],
+        }
+    }
+
+    #[inline(always)]
+    fn distance_sq(&self, s: [f32; 3], d: [f32; 3]) -> f32 {
+        let r = &self.r;
+        let ex = r[0] * s[0] + r[1] * s[1] + r[2] * s[2] + self.t[0] - d[0];
+        let ey = r[3] * s[0] + r[4] * s[1] + r[5] * s[2] + self.t[1] - d[1];
+        let ez = r[6] * s[0] + r[7] * s[1] + r[8] * s[2] + self.t[2] - d[2];
+        ex * ex + ey * ey + ez * ez
+    }
+}
+
+impl Matches {
+    fn new(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Self {
+        let column = |points: &[Point3<f64>], k: usize| points.iter().map(|p| p[k] as f32).collect::<Vec<f32>>();
+        Matches {
+            src: [column(src, 0), column(src, 1), column(src, 2)],
+            dst: [column(dst, 0), column(dst, 1), column(dst, 2)],
+            src64: src.iter().map(|p| p.coords).collect(),
+            dst64: dst.iter().map(|p| p.coords).collect(),
+        }
+    }
+
+    fn at(&self, i: usize) -> ([f32; 3], [f32; 3]) {
+        (
+            [self.src[0][i], self.src[1][i], self.src[2][i]],
+            [self.dst[0][i], self.dst[1][i], self.dst[2][i]],
+        )
+    }
+
+    /// (inlier count, summed squared distance of the inliers).
+    fn score(&self, transform: &Isometry3<f64>, threshold_sq: f64) -> (usize, f64) {
+        let h = Hypothesis32::new(transform);
+        let threshold_sq = threshold_sq as f32;
+        let n = self.src[0].len();
+        let full = n - n % LANES;
+        let mut counts = [0u32; LANES];
+        let mut errors = [0.0f32; LANES];
+        let [sx, sy, sz] = &self.src;
+        let [dx, dy, dz] = &self.dst;
+        for base in (0..full).step_by(LANES) {
+            let (sx, sy, sz) = (&sx[base..base + LANES], &sy[base..base + LANES], &sz[base..base + LANES]);
+            let (dx, dy, dz) = (&dx[base..base + LANES], &dy[base..base + LANES], &dz[base..base + LANES]);
+            for l in 0..LANES {
+                let d = h.distance_sq([sx[l], sy[l], sz[l]], [dx[l], dy[l], dz[l]]);
+                let inlier = d < threshold_sq;
+                counts[l] += inlier as u32;
+                errors[l] += if inlier { d } else { 0.0 };
+            }
+        }
+        let mut count = counts.iter().map(|&c| c as usize).sum::<usize>();
+        let mut error = errors.iter().map(|&e| e as f64).sum::<f64>();
+        for i in full..n {
+            let (s, d) = self.at(i);
+            let d = h.distance_sq(s, d);
+            if d < threshold_sq {
+                count += 1;
+                error += d as f64;
+            }
+        }
+        (count, error)
+    }
+
+    /// The inlier mask, decided exactly as [`Matches::score`] counts.
+    fn inlier_mask(&self, transform: &Isometry3<f64>, threshold_sq: f64) -> Vec<bool> {
+        let h = Hypothesis32::new(transform);
+        (0..self.src[0].len())
+            .map(|i| {
+                let (s, d) = self.at(i);
+                h.distance_sq(s, d) < threshold_sq as f32
+            })
+            .collect()
+    }
+
+    fn point(&self, i: usize) -> (Vector3<f64>, Vector3<f64>) {
+        (self.src64[i], self.dst64[i])
+    }
+
+    /// The rigid solve on three matches; `None` when they are (nearly) collinear.
+    fn minimal_solve(&self, sample: [usize; 3], svd: &mut Svd3) -> Option<Isometry3<f64>> {
+        let pairs = sample.map(|i| self.point(i));
+        let p_mean = (pairs[0].0 + pairs[1].0 + pairs[2].0) / 3.0;
+        let q_mean = (pairs[0].1 + pairs[1].1 + pairs[2].1) / 3.0;
+        let mut h = Matrix3::zeros();
+        for (p, q) in &pairs {
+            h += (p - p_mean) * (q - q_mean).transpose();
+        }
+        let rotation = svd.rotation_from_cross_covariance(&h)?;
+        Some(isometry_from_parts(&rotation, &(q_mean - rotation * p_mean)))
+    }
+}
+
+/// Hypotheses needed to draw an all-inlier sample of 3 with probability `confidence` when a fraction
+/// `inlier_ratio` of the matches are inliers.
+fn required_iterations(inlier_ratio: f64, confidence: f64, max_iterations: usize) -> usize {
+    let all_inliers = inlier_ratio.powi(3);
+    if all_inliers >= 1.0 {
+        return 1;
+    }
+    if all_inliers <= 0.0 {
+        return max_iterations;
+    }
+    let needed = (1.0 - confidence).ln() / (1.0 - all_inliers).ln();
+    if needed.is_finite() { (needed.ceil().max(1.0) as usize).min(max_iterations) } else { max_iterations }
+}
+
+/// (count, error, hypothesis index): `a` better than `b`?
+fn is_better(a: (usize, f64, usize), b: (usize, f64, usize)) -> bool {
+    match a.0.cmp(&b.0) {
+        Ordering::Greater => true,
+        Ordering::Less => false,
+        Ordering::Equal => match a.1.total_cmp(&b.1) {
+            Ordering::Less => true,
+            Ordering::Greater => false,
+            Ordering::Equal => a.2 < b.2,
+        },
+    }
+}
+
+/// Estimates `T` with `dst ≈ T·src` from putative matches `src[i] ↔ dst[i]`, robust to outliers.
+///
+/// Errors: [`Error::TooFewPoints`] for fewer than 3 matches; [`Error::InvalidArgument`] for bad
+/// settings, mismatched lengths or non-finite points; [`Error::Degenerate`] when every sample drawn was
+/// collinear. With no consistent motion at all (all outliers) the result is the best hypothesis found,
+/// typically with only its own 3 sample matches as inliers: callers judge `num_inliers`.
+pub fn ransac_rigid(src: &[Point3<f64>], dst: &[Point3<f64>], config: &RansacConfig) -> Result<RansacResult> {
+    if !(config.threshold.is_finite() && config.threshold > 0.0) {
+        return Err(Error::invalid("threshold", format!("must be finite and > 0, got {}", config.threshold)));
+    }
+    if !(config.confidence > 0.0 && config.confidence < 1.0) {
+        return Err(Error::invalid("confidence", format!("must be in (0, 1), got {}", config.confidence)));
+    }
+    if config.max_iterations == 0 {
+        return Err(Error::invalid("max_iterations", "must be >= 1"));
+    }
+    if config.batch_size == 0 {
+        return Err(Error::invalid("batch_size", "must be >= 1"));
+    }
+    if dst.len() != src.len() {
+        return Err(Error::invalid("dst", format!("has {} points, src has {}", dst.len(), src.len())));
+    }
+    for (name, points) in [("src", src), ("dst", dst)] {
+        if let Some(i) = points.iter().position(|p| !p.coords.iter().all(|v| v.is_finite())) {
+            return Err(Error::invalid(name, format!("point {i} is not finite")));
+        }
+    }
+    let n = src.len();
+    if n < 3 {
+        return Err(Error::TooFewPoints { needed: 3, got: n });
+    }
+    let matches = Matches::new(src, dst);
+    let threshold_sq = config.threshold * config.threshold;
+    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    let mut draw = || -> [usize; 3] {
+        let a = rng.random_range(0..n);
+        let mut b = rng.random_range(0..n - 1);
+        if b >= a {
+            b += 1;
+        }
+        let (lo, hi) = if a < b { (a, b) } else { (b, a) };
+        let mut c = rng.random_range(0..n - 2);
+        if c >= lo {
+            c += 1;
+        }
+        if c >= hi {
+            c += 1;
+        }
+        [a, b, c]
+    };
+
+    let mut best: Option<(usize, f64, usize, Isometry3<f64>)> = None;
+    let mut required = config.max_iterations;
+    let mut iterations = 0;
+    while iterations < required {
+        let batch = config.batch_size.min(config.max_iterations - iterations);
+        let samples: Vec<[usize; 3]> = (0..batch).map(|_| draw()).collect();
+        let scored: Vec<Option<(usize, f64, Isometry3<f64>)>> = samples
+            .par_iter()
+            .map_init(Svd3::new, |svd, &sample| {
+                let hypothesis = matches.minimal_solve(sample, svd)?;
+                let (count, error) = matches.score(&hypothesis, threshold_sq);
+                Some((count, error, hypothesis))
+            })
+            .collect();
+        let start = iterations;
+        for (k, outcome) in scored.into_iter().enumerate() {
+            let index = start + k;
+            iterations = index + 1;
+            if let Some((count, error, hypothesis)) = outcome {
+                let improves = best.as_ref().is_none_or(|b| is_better((count, error, index), (b.0, b.1, b.2)));
+                if improves {
+                    best = Some((count, error, index, hypothesis));
+                    required = required_iterations(count as f64 / n as f64, config.confidence, config.max_iterations);
+                }
+            }
+            if iterations >= required {
+                break;
+            }
+        }
+    }
+    let Some((mut count, mut error, _, mut transform)) = best else {
+        return Err(Error::Degenerate(format!("all {iterations} samples were collinear")));
+    };
+
+    // Refit on all inliers while that keeps (or grows) the consensus.
+    let mut inliers = matches.inlier_mask(&transform, threshold_sq);
+    for _ in 0..config.refine_iterations {
+        let (inlier_src, inlier_dst): (Vec<Point3<f64>>, Vec<Point3<f64>>) =
+            inliers.iter().enumerate().filter(|(_, &inlier)| inlier).map(|(i, _)| (src[i], dst[i])).unzip();
+        let Ok(refit) = rigid_transform(&inlier_src, &inlier_dst, None) else { break };
+        let (refit_count, refit_error) = matches.score(&refit, threshold_sq);
+        if refit_count < count {
+            break;
+        }
+        let refit_inliers = matches.inlier_mask(&refit, threshold_sq);
+        let stable = refit_inliers == inliers;
+        (count, error, transform, inliers) = (refit_count, refit_error, refit, refit_inliers);
+        if stable {
+            break;
+        }
+    }
+    let squared: f64 = inliers
+        .iter()
+        .enumerate()
+        .filter(|(_, &inlier)| inlier)
+        .map(|(i, _)| (transform * Point3::from(matches.src64[i]) - Point3::from(matches.dst64[i])).norm_squared())
+        .sum();
+    let _ = error;
+    let rmse = if count > 0 { (squared / count as f64).sqrt() } else { 0.0 };
+    Ok(RansacResult { transform, num_inliers: count, inliers, iterations, rmse })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene(seed: u64, n: usize, outlier_ratio: f64, noise: f64) -> (Vec<Point3<f64>>, Vec<Point3<f64>>, Isometry3<f64>, Vec<bool>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let truth = Isometry3::new(Vector3::new(0.9, -0.05, 0.02), Vector3::new(0.003, -0.002, 0.04));
+        let mut src = Vec::new();
+        let mut dst = Vec::new();
+        let mut is_inlier = Vec::new();
+        for i in 0..n {
+            let p = Point3::new(rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(-2.0..3.0));
+            let outlier = (i as f64) < outlier_ratio * n as f64;
+            let q = if outlier {
+                Point3::new(rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(-2.0..3.0))
+            } else {
+                truth * p + Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)) * noise
+            };
+            src.push(p);
+            dst.push(q);
+            is_inlier.push(!outlier);
+        }
+        (src, dst, truth, is_inlier)
+    }
+
+    #[test]
+    fn recovers_a_known_motion_with_80_percent_outliers() {
+        let (src, dst, truth, is_inlier) = scene(21, 1000, 0.8, 0.02);
+        let result = ransac_rigid(&src, &dst, &RansacConfig::default()).unwrap();
+        let rotation_error = (result.transform.rotation.inverse() * truth.rotation).angle().to_degrees();
+        let translation_error = (result.transform.translation.vector - truth.translation.vector).norm();
+        assert!(rotation_error < 0.05, "rotation error {rotation_error}°");
+        assert!(translation_error < 0.02, "translation error {translation_error} m");
+        let wrong = result.inliers.iter().zip(&is_inlier).filter(|(a, b)| a != b).count();
+        assert!(wrong <= 3, "{wrong} matches misclassified");
+        assert_eq!(result.num_inliers, result.inliers.iter().filter(|&&v| v).count());
+        assert!(result.iterations <= 1000 && result.iterations > 0);
+    }
+
+    #[test]
+    fn same_seed_same_result_with_1_or_4_threads() {
+        let (src, dst, _, _) = scene(22, 2000, 0.7, 0.05);
+        let config = RansacConfig { seed: 9, batch_size: 16, ..Default::default() };
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| ransac_rigid(&src, &dst, &config).unwrap())
+        };
+        let one = run(1);
+        let four = run(4);
+        assert_eq!(one, four);
+        // The batch size changes only speed.
+        let other_batches = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap()
+            .install(|| ransac_rigid(&src, &dst, &RansacConfig { batch_size: 100, ..config.clone() }).unwrap());
+        assert_eq!(one, other_batches);
+        let different_seed = ransac_rigid(&src, &dst, &RansacConfig { seed: 10, ..config }).unwrap();
+        assert!(different_seed.iterations != one.iterations || different_seed.transform != one.transform);
+    }
+
+    #[test]
+    fn adaptive_iterations_stop_early_on_clean_data() {
+        let (src, dst, truth, _) = scene(23, 500, 0.0, 0.0);
+        let result = ransac_rigid(&src, &dst, &RansacConfig::default()).unwrap();
+        assert_eq!(result.num_inliers, 500);
+        assert!(result.iterations < 10, "{} iterations", result.iterations);
+        assert!((result.transform.to_homogeneous() - truth.to_homogeneous()).abs().max() < 1e-9);
+        assert!(result.rmse < 1e-9);
+    }
+
+    #[test]
+    fn few_degenerate_and_outlier_only_inputs_do_not_panic_or_hang() {
+        let p = |x: f64| Point3::new(x, 2.0 * x, -x);
+        assert_eq!(
+            ransac_rigid(&[p(0.0), p(1.0)], &[p(0.0), p(1.0)], &RansacConfig::default()),
+            Err(Error::TooFewPoints { needed: 3, got: 2 })
+        );
+        let line: Vec<_> = (0..50).map(|i| p(i as f64)).collect();
+        assert!(matches!(ransac_rigid(&line, &line, &RansacConfig::default()), Err(Error::Degenerate(_))));
+        let (src, dst, _, _) = scene(24, 300, 1.0, 0.0);
+        let result = ransac_rigid(&src, &dst, &RansacConfig::default()).unwrap();
+        assert!(result.num_inliers < 10);
+        assert_eq!(result.iterations, 1000);
+        for bad in [
+            RansacConfig { threshold: 0.0, ..Default::default() },
+            RansacConfig { confidence: 1.0, ..Default::default() },
+            RansacConfig { max_iterations: 0, ..Default::default() },
+        ] {
+            assert!(matches!(ransac_rigid(&src, &dst, &bad), Err(Error::InvalidArgument { .. })));
+        }
+        let three = [Point3::new(0.0, 0.0, 0.0), Point3::new(1.0, 0.0, 0.0), Point3::new(0.0, 1.0, 0.0)];
+        assert_eq!(ransac_rigid(&three, &three, &RansacConfig::default()).unwrap().num_inliers, 3);
+    }
+}

@@ -9,6 +9,185 @@ __version__: str
 
 # ---- core (issue 2): projection, ground truth, matches, NMS, rigid solve, RANSAC ----------------------
 
+from typing import final
+
+__all__ += [
+    "CylinderConfig",
+    "Projection",
+    "RansacResult",
+    "Matches",
+    "project",
+    "unproject",
+    "ground_truth_flow",
+    "rigid_transform",
+    "ransac_rigid",
+    "nms",
+    "decode_matches",
+]
+
+@final
+class CylinderConfig:
+    """Geometry of a cylinder image (degrees). A (sub-pixel) location ``(row, col)`` of the cropped
+    image stands for elevation ``(row_of_zero_elevation - row) * vertical_resolution_deg`` and azimuth
+    ``(col_of_zero_azimuth - col) * horizontal_resolution_deg``; integers are cell centres, row 0 is the
+    highest elevation, columns grow clockwise seen from above."""
+
+    def __new__(
+        cls,
+        *,
+        fov_up_deg: float = 2.0,
+        fov_down_deg: float = ...,  # -24.9
+        vertical_resolution_deg: float = 0.4,
+        horizontal_resolution_deg: float = 0.2,
+        height: int = 64,
+        width: int = 1792,
+    ) -> CylinderConfig: ...
+    @staticmethod
+    def kitti() -> CylinderConfig: ...
+    @staticmethod
+    def argoverse() -> CylinderConfig: ...
+    @property
+    def fov_up_deg(self) -> float: ...
+    @property
+    def fov_down_deg(self) -> float: ...
+    @property
+    def vertical_resolution_deg(self) -> float: ...
+    @property
+    def horizontal_resolution_deg(self) -> float: ...
+    @property
+    def height(self) -> int: ...
+    @property
+    def width(self) -> int: ...
+    @property
+    def full_height(self) -> int: ...
+    @property
+    def full_width(self) -> int: ...
+    @property
+    def crop_top(self) -> int: ...
+    @property
+    def crop_left(self) -> int: ...
+    @property
+    def row_of_zero_elevation(self) -> float: ...
+    @property
+    def col_of_zero_azimuth(self) -> float: ...
+    @property
+    def wraps_azimuth(self) -> bool: ...
+    def __getnewargs_ex__(self) -> tuple[tuple[()], dict[str, float | int]]: ...
+    def __eq__(self, value: object, /) -> bool: ...
+    def __ne__(self, value: object, /) -> bool: ...
+
+@final
+class Projection:
+    """A scan's cylinder image: ``range``/``reflectance`` H×W float32 (0 = empty), ``index`` H×W int64
+    (kept point, -1 = empty), and the counts of dropped points."""
+
+    @property
+    def range(self) -> npt.NDArray[np.float32]: ...
+    @property
+    def reflectance(self) -> npt.NDArray[np.float32]: ...
+    @property
+    def index(self) -> npt.NDArray[np.int64]: ...
+    @property
+    def num_non_finite(self) -> int: ...
+    @property
+    def num_out_of_view(self) -> int: ...
+
+@final
+class RansacResult:
+    @property
+    def transform(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def inliers(self) -> npt.NDArray[np.bool_]: ...
+    @property
+    def num_inliers(self) -> int: ...
+    @property
+    def iterations(self) -> int: ...
+    @property
+    def rmse(self) -> float: ...
+
+@final
+class Matches:
+    @property
+    def source(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def target(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def confidence(self) -> npt.NDArray[np.float32]: ...
+    @property
+    def cells(self) -> npt.NDArray[np.int64]: ...
+    def __len__(self) -> int: ...
+
+def project(
+    points: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    config: CylinderConfig,
+    *,
+    num_threads: int | None = None,
+) -> Projection:
+    """Cylinder projection (Eq. 1) of an N×4 (x, y, z, reflectance) or N×3 scan; float64 is converted
+    to float32. Each cell keeps its closest point; NaN/Inf points are dropped and counted."""
+
+def unproject(
+    rows: npt.NDArray[np.floating],
+    cols: npt.NDArray[np.floating],
+    ranges: npt.NDArray[np.floating],
+    config: CylinderConfig,
+) -> npt.NDArray[np.float64]:
+    """Inverse projection (Eq. 4) of continuous (row, col) locations at ranges → N×3 float64."""
+
+def ground_truth_flow(
+    ref_range: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    tgt_range: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    T_tgt_ref: npt.NDArray[np.float64] | npt.NDArray[np.float32],
+    config: CylinderConfig,
+    max_range_error: float = 0.1,
+    *,
+    num_threads: int | None = None,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
+    """Training flow (Eq. 5-8) → (flow[2, H, W] float32 (Δrow, Δcol), valid[H, W] bool)."""
+
+def rigid_transform(
+    src: npt.NDArray[np.floating],
+    dst: npt.NDArray[np.floating],
+    weights: npt.NDArray[np.floating] | None = None,
+) -> npt.NDArray[np.float64]:
+    """Weighted closed-form rigid solve (Eq. 12-14) → 4×4 float64 T with dst ≈ T·src."""
+
+def ransac_rigid(
+    src: npt.NDArray[np.floating],
+    dst: npt.NDArray[np.floating],
+    threshold: float = 0.1,
+    confidence: float = 0.999,
+    max_iterations: int = 1000,
+    seed: int = 0,
+    *,
+    refine_iterations: int = 3,
+    num_threads: int | None = None,
+) -> RansacResult:
+    """RANSAC (samples of 3) around the rigid solve; deterministic for a seed whatever num_threads."""
+
+def nms(
+    rows: npt.NDArray[np.integer],
+    cols: npt.NDArray[np.integer],
+    scores: npt.NDArray[np.floating],
+    radius: int = 1,
+    top_n: int | None = None,
+) -> npt.NDArray[np.int64]:
+    """Greedy NMS in a (2r+1)² window on the grid → kept indices (int64), best first."""
+
+def decode_matches(
+    ref_range: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    tgt_range: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    flow: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    confidence: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    config: CylinderConfig,
+    min_confidence: float = 0.0,
+    mask: npt.NDArray[np.bool_] | None = None,
+    *,
+    max_relative_range_spread: float = 0.1,
+    num_threads: int | None = None,
+) -> Matches:
+    """Network output (flow[2, H, W], confidence[H, W]) → 3D matches; mask True = exclude the cell."""
+
 
 
 # ---- simulator ray casting (issue 3) ------------------------------------------------------------------
@@ -50,3 +229,66 @@ def lidar_scan_directions(
 
 
 # ---- NDT scan-to-map refinement (issue 5) -------------------------------------------------------------
+
+from typing import final as _final
+
+__all__ += ["NdtMap", "NdtResult"]
+
+@_final
+class NdtResult:
+    """The outcome of `NdtMap.align`."""
+
+    @property
+    def transform(self) -> npt.NDArray[np.float64]:
+        """`T_map_source` as a 4×4 float64 array."""
+    @property
+    def converged(self) -> bool: ...
+    @property
+    def iterations(self) -> int: ...
+    @property
+    def num_correspondences(self) -> int: ...
+    @property
+    def score(self) -> float:
+        """Mean NDT likelihood per thinned source point (each nearby distribution adds up to 1, far away 0)."""
+
+@_final
+class NdtMap:
+    """A local NDT submap of the most recent `max_scans` scans and scan-to-map registration against it."""
+
+    def __new__(
+        cls,
+        voxel_size: float = 1.0,
+        max_scans: int = 10,
+        min_points_per_voxel: int = 5,
+        min_eigenvalue_ratio: float = 0.01,
+    ) -> NdtMap: ...
+    def insert(self, points_world: npt.NDArray[np.floating], *, num_threads: int | None = None) -> None:
+        """Adds a scan in map coordinates (N×3 or N×4 float32/float64); evicts the oldest beyond max_scans."""
+    def clear(self) -> None: ...
+    def align(
+        self,
+        points: npt.NDArray[np.floating],
+        initial_transform: npt.NDArray[np.floating],
+        *,
+        max_iterations: int = 30,
+        translation_epsilon: float = 1e-4,
+        rotation_epsilon_deg: float = 1e-3,
+        outlier_ratio: float = 0.55,
+        source_voxel_size: float = 0.5,
+        neighbours: str = "direct7",
+        max_step_translation: float = 0.5,
+        max_step_rotation_deg: float = 5.0,
+        min_correspondences: int = 20,
+        num_threads: int | None = None,
+    ) -> NdtResult:
+        """Registers `points` (sensor frame) to the map from `initial_transform` = T_map_source (4×4)."""
+    @property
+    def num_voxels(self) -> int: ...
+    @property
+    def num_occupied_voxels(self) -> int: ...
+    @property
+    def num_scans(self) -> int: ...
+    @property
+    def voxel_size(self) -> float: ...
+    @property
+    def max_scans(self) -> int: ...

@@ -2,6 +2,7 @@
 //! Python exceptions. Only compiled with the `python` feature.
 
 mod core;
+mod ndt;
 mod sim;
 
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
@@ -30,5 +31,6 @@ fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     core::register(m)?;
     sim::register(m)?;
+    ndt::register(m)?;
     Ok(())
 }

@@ -1,0 +1,1 @@
+"""Side-by-side benchmarks of dmlo against the LiDAR odometry tools people use today."""

@@ -1,0 +1,86 @@
+"""Runs DMLO and the peers over the same in-memory scans and compares drift and speed."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from dmlo.bench.peers import PEERS, FrameOdometry
+from dmlo.datasets import ScanSequence
+from dmlo.poses import write_kitti_poses
+
+REFERENCE_PEER = "KISS-ICP"
+
+
+@dataclass
+class BenchRow:
+    method: str
+    hz: float
+    metrics: dict[str, Any]
+    error: str | None = None
+
+
+def benchmark_sequence(
+    sequence: ScanSequence,
+    dmlo_odometry: FrameOdometry,
+    out_dir: Path,
+    peers: list[str] | None = None,
+    max_frames: int | None = None,
+) -> list[BenchRow]:
+    """Every method sees the same scans (read once, before any timing) and starts from identity."""
+    from dmlo.metrics import evaluate_trajectory
+
+    total = len(sequence) if max_frames is None else min(max_frames, len(sequence))
+    scans = [sequence[i].points for i in tqdm(range(total), desc="reading", unit="scan")]
+    ground_truth = sequence.poses
+    assert ground_truth is not None
+    ground_truth = np.linalg.inv(ground_truth[0]) @ ground_truth[:total]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_kitti_poses(out_dir / "ground_truth.txt", ground_truth)
+
+    methods: list[tuple[str, Any]] = [("DMLO", lambda: dmlo_odometry)]
+    wanted = set(peers) if peers is not None else {p.name for p in PEERS} - {"Open3D FPFH+RANSAC"}
+    unknown = wanted - {p.name for p in PEERS}
+    if unknown:
+        raise ValueError(f"unknown peer(s): {', '.join(sorted(unknown))}; known: {', '.join(p.name for p in PEERS)}")
+    methods += [(p.name, p.make) for p in PEERS if p.name in wanted and p.available]
+
+    rows = []
+    for name, make in methods:
+        odometry = make()
+        poses = []
+        start = time.perf_counter()
+        for points in tqdm(scans, desc=name, unit="scan"):
+            poses.append(odometry.register(points))
+        seconds = time.perf_counter() - start
+        estimate = np.stack(poses)
+        write_kitti_poses(out_dir / f"{name.replace(' ', '_')}.txt", estimate)
+        rows.append(BenchRow(name, total / seconds, evaluate_trajectory(ground_truth, estimate)))
+    return rows
+
+
+def format_table(rows: list[BenchRow]) -> str:
+    """A markdown table; ratios are to KISS-ICP when it ran (speed: ×faster, drift: ×of its error)."""
+    reference = next((r for r in rows if r.method == REFERENCE_PEER), None)
+    long_enough = all(r.metrics.get("t_rel") is not None for r in rows)
+    drift_key, drift_label = ("t_rel", "t_rel %") if long_enough else ("ate_rmse", "ATE m")
+    header = f"| method | {drift_label} | {'r_rel °/100m' if long_enough else 'RPE t m'} | Hz | drift ×KISS | speed ×KISS |"
+    lines = [header, "|---|---|---|---|---|---|"]
+    for row in rows:
+        second = row.metrics.get("r_rel") if long_enough else row.metrics.get("rpe_t_mean")
+        drift = row.metrics.get(drift_key)
+        drift_ratio = speed_ratio = "—"
+        if reference is not None and drift is not None and reference.metrics.get(drift_key):
+            drift_ratio = f"{drift / reference.metrics[drift_key]:.2f}"
+            speed_ratio = f"{row.hz / reference.hz:.2f}"
+        lines.append(f"| {row.method} | {_fmt(drift)} | {_fmt(second)} | {row.hz:.1f} | {drift_ratio} | {speed_ratio} |")
+    return "\n".join(lines)
+
+
+def _fmt(value: float | None) -> str:
+    return "—" if value is None else f"{value:.4g}"

@@ -1,0 +1,1 @@
+"""Benchmark scripts: speed as ratios against peers measured in the same run, never timed assertions."""

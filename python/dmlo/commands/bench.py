@@ -1,0 +1,51 @@
+"""`dmlo bench`: DMLO and the installed peers on the same scans, in one process, one table."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+EXAMPLES = """examples:
+  dmlo bench sim_drive/ --max-frames 200
+  dmlo bench /data/kitti --sequence 07 --peers KISS-ICP "small_gicp GICP"
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from dmlo.commands.run import add_odometry_arguments
+
+    parser = subparsers.add_parser(
+        "bench",
+        help="compare DMLO with KISS-ICP, small_gicp and Open3D on the same scans",
+        description="Run DMLO and every installed peer (KISS-ICP, small_gicp, Open3D ICP/GICP, "
+        "Open3D FPFH+RANSAC) on the same scans and print drift, speed and the ratio to KISS-ICP.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("path", type=Path, help="dataset folder with ground-truth poses")
+    parser.add_argument("--format", choices=["kitti", "argoverse", "argoverse2", "folder"], default=None)
+    parser.add_argument("--sequence", default=None)
+    parser.add_argument("--max-frames", type=int, default=None)
+    parser.add_argument("--peers", nargs="*", default=None,
+                        help="peer names to run (default: every installed peer except FPFH+RANSAC)")
+    parser.add_argument("--out", type=Path, default=Path("runs/bench"))
+    add_odometry_arguments(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from dmlo.bench.runner import benchmark_sequence, format_table
+    from dmlo.cli import UserError
+    from dmlo.commands.run import build_odometry
+    from dmlo.datasets import DatasetError, open_sequence
+
+    try:
+        sequence = open_sequence(args.path, format=args.format, sequence=args.sequence)
+    except DatasetError as err:
+        raise UserError(str(err)) from err
+    if sequence.poses is None:
+        raise UserError(f"{args.path} has no ground-truth poses to compare against")
+    rows = benchmark_sequence(sequence, build_odometry(args), args.out, peers=args.peers,
+                              max_frames=args.max_frames)
+    print(format_table(rows))
+    return 0

@@ -1,0 +1,93 @@
+"""`dmlo run`: DMLO odometry over a dataset folder."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from dmlo.cli import UserError
+
+EXAMPLES = """examples:
+  dmlo run /data/kitti --sequence 07 --out runs/kitti07
+  dmlo run sim_drive/ --mapping --out runs/sim
+  dmlo run my_scans/ --format folder --model my_model.onnx
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "run",
+        help="run DMLO odometry over a sequence of scans",
+        description="Run DMLO odometry over a sequence; write poses (KITTI and TUM), per-frame "
+        "diagnostics, the config used, and metrics + a plot when ground truth exists.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("path", type=Path, help="dataset folder (KITTI, Argoverse 1/2, or plain scans)")
+    add_odometry_arguments(parser)
+    parser.add_argument("--format", choices=["kitti", "argoverse", "argoverse2", "folder"], default=None,
+                        help="dataset layout (default: detected from the folder)")
+    parser.add_argument("--sequence", default=None, help="sequence or log name inside the dataset, e.g. 07")
+    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many scans")
+    parser.add_argument("--out", type=Path, default=Path("runs/dmlo"), help="output folder (default: runs/dmlo)")
+    parser.add_argument("--keep-moving", action="store_true",
+                        help="keep points labelled as moving objects (default: removed when labels exist)")
+    parser.set_defaults(run=run)
+
+
+def add_odometry_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", type=Path, default=None, help="ONNX model (default: the bundled model)")
+    parser.add_argument("--config", type=Path, default=None, help="odometry config JSON (see config.json of a run)")
+    parser.add_argument("--mapping", action="store_true", help="refine every pose by scan-to-map NDT")
+
+
+def build_odometry(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    from dmlo.odometry import Odometry, OdometryConfig
+    from dmlo.odometry.matcher import ModelError, default_model_path
+
+    try:
+        config = OdometryConfig.load(args.config) if args.config else OdometryConfig()
+    except (OSError, ValueError) as err:
+        raise UserError(f"cannot read config {args.config}: {err}") from err
+    if args.mapping:
+        config.mapping.enabled = True
+    model = args.model or default_model_path()
+    try:
+        return Odometry(model, config)
+    except ModelError as err:
+        raise UserError(str(err)) from err
+
+
+def run(args: argparse.Namespace) -> int:
+    from dmlo.datasets import DatasetError, open_sequence
+    from dmlo.odometry.run import run_sequence
+
+    if not args.path.exists():
+        raise UserError(f"no such dataset folder: {args.path}")
+    try:
+        sequence = open_sequence(args.path, format=args.format, sequence=args.sequence)
+    except DatasetError as err:
+        raise UserError(str(err)) from err
+    odometry = build_odometry(args)
+    summary = run_sequence(sequence, odometry, args.out, remove_moving=not args.keep_moving,
+                           max_frames=args.max_frames)
+    print(format_summary(summary))
+    return 0
+
+
+def format_summary(summary) -> str:  # type: ignore[no-untyped-def]
+    lines = [
+        f"{summary.frames} scans in {summary.seconds:.1f} s ({summary.hz:.1f} Hz), "
+        f"{summary.fallbacks} constant-velocity fallbacks, {len(summary.skipped)} skipped",
+        f"results in {summary.out_dir}/",
+    ]
+    if summary.metrics:
+        m = summary.metrics
+        parts = []
+        for key, label, unit in (("t_rel", "t_rel", "%"), ("r_rel", "r_rel", "°/100m"),
+                                 ("ate_rmse", "ATE", "m"), ("rpe_t_mean", "RPE t", "m"),
+                                 ("rpe_r_mean", "RPE r", "°")):
+            if m.get(key) is not None:
+                parts.append(f"{label} {m[key]:.4g} {unit}")
+        lines.append("vs ground truth: " + ", ".join(parts))
+    return "\n".join(lines)

@@ -1,0 +1,21 @@
+"""The DMLO odometry pipeline: `Odometry` registers scans one by one; `run_sequence` runs a dataset."""
+
+from dmlo.odometry.config import (
+    MappingConfig,
+    MatchingConfig,
+    MotionModelConfig,
+    OdometryConfig,
+    RansacConfig,
+)
+from dmlo.odometry.pipeline import FrameDiagnostics, Odometry, PairResult
+
+__all__ = [
+    "FrameDiagnostics",
+    "MappingConfig",
+    "MatchingConfig",
+    "MotionModelConfig",
+    "Odometry",
+    "OdometryConfig",
+    "PairResult",
+    "RansacConfig",
+]

@@ -1,0 +1,87 @@
+"""The odometry's settings: small typed sections with the paper's defaults, saved beside every result."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+
+@dataclass
+class MatchingConfig:
+    """Which network predictions become 3D matches (§III-D-a)."""
+
+    min_confidence: float = 0.0  # Q* below this is dropped before NMS
+    nms_radius: int = 1  # cells; the paper's r = 1
+    max_matches: int = 1000  # top N kept after NMS
+
+
+@dataclass
+class RansacConfig:
+    """RANSAC around the closed-form SVD solve (§III-D-b)."""
+
+    threshold: float = 0.1  # metres; the paper's inlier threshold
+    confidence: float = 0.999
+    max_iterations: int = 1000
+    seed: int = 0
+
+
+@dataclass
+class MotionModelConfig:
+    """Constant-velocity fallback when too few matches agree (§III-D-c)."""
+
+    min_inliers: int = 10  # the paper's 10
+
+
+@dataclass
+class MappingConfig:
+    """Optional scan-to-map NDT refinement over a local submap of recent scans."""
+
+    enabled: bool = False
+    voxel_size: float = 1.0
+    max_scans: int = 10
+    downsample: float = 0.5
+    max_iterations: int = 30
+
+
+@dataclass
+class OdometryConfig:
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    ransac: RansacConfig = field(default_factory=RansacConfig)
+    motion_model: MotionModelConfig = field(default_factory=MotionModelConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    threads: int = 0  # onnxruntime intra-op threads; 0 lets it choose
+    min_points: int = 1000  # scans with fewer finite points are bridged by the motion model
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> OdometryConfig:
+        return _build(cls, data, "config")
+
+    def save(self, path: Path) -> None:
+        path.write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def load(cls, path: Path) -> OdometryConfig:
+        return cls.from_dict(json.loads(path.read_text()))
+
+
+T = TypeVar("T")
+
+
+def _build(cls: type[T], data: dict[str, Any], where: str) -> T:
+    """Builds a config section, rejecting unknown keys by name rather than ignoring typos."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: expected a mapping, got {type(data).__name__}")
+    known = {f.name: f for f in fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ValueError(f"{where}: unknown setting(s) {', '.join(unknown)}")
+    values: dict[str, Any] = {}
+    for name, value in data.items():
+        default = getattr(cls(), name)
+        values[name] = _build(type(default), value, f"{where}.{name}") if is_dataclass(default) else value
+    return cls(**values)

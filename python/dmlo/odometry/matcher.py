@@ -1,0 +1,125 @@
+"""The matching network at run time: the exported per-frame ONNX graph in onnxruntime.
+
+The odometry calls the `frame` graph once per scan (ONNX-NOTES item 10): it encodes the new scan and
+matches the previous scan's cached features against it in one session, so each scan is encoded once.
+The graph's metadata carries the cylinder configuration it was trained for; the projection is built
+from it, so a model and its input geometry cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+import dmlo_rs
+
+FRAME_GRAPH = "frame.onnx"
+INTERFACE_VERSION = "1"
+_CYLINDER_KEYS = (
+    "fov_up_deg",
+    "fov_down_deg",
+    "vertical_resolution_deg",
+    "horizontal_resolution_deg",
+    "height",
+    "width",
+)
+
+
+class ModelError(ValueError):
+    """A model file that is missing, not a dmlo export, or does not fit the input."""
+
+
+@dataclass(frozen=True)
+class Features:
+    """One scan's cached network features (coarse at stride 4×8, refine at full resolution)."""
+
+    coarse: npt.NDArray[np.float32]
+    refine: npt.NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class FrameOutput:
+    features: Features
+    flow: npt.NDArray[np.float32] | None  # [2, H, W] (Δrow, Δcol) from the previous scan, None first
+    confidence: npt.NDArray[np.float32] | None  # [H, W] Q*
+
+
+class Matcher(Protocol):
+    cylinder: dmlo_rs.CylinderConfig
+
+    def frame(self, image: npt.NDArray[np.float32], previous: Features | None) -> FrameOutput: ...
+
+
+def default_model_path() -> Path:
+    """The bundled default model: a folder with `frame.onnx` inside the installed package."""
+    return Path(__file__).resolve().parent.parent / "models" / "default"
+
+
+class OnnxMatcher:
+    """Runs an exported `frame.onnx` (or a folder holding one) on the CPU, or CUDA when available."""
+
+    def __init__(self, path: Path, threads: int = 0) -> None:
+        import onnxruntime as ort
+
+        graph = path / FRAME_GRAPH if path.is_dir() else path
+        if not graph.is_file():
+            raise ModelError(f"model not found: {graph}")
+        options = ort.SessionOptions()
+        if threads > 0:
+            options.intra_op_num_threads = threads
+        providers = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
+        try:
+            self._session = ort.InferenceSession(str(graph), options, providers=providers)
+        except Exception as err:  # onnxruntime raises its own exception types for unreadable files
+            raise ModelError(f"{graph}: not a readable ONNX model ({err})") from err
+        metadata = self._session.get_modelmeta().custom_metadata_map
+        if metadata.get("dmlo.interface_version") != INTERFACE_VERSION or metadata.get("dmlo.graph") != "frame":
+            raise ModelError(f"{graph}: not a dmlo frame graph (interface {INTERFACE_VERSION} expected)")
+        self.path = graph
+        self.model_config = json.loads(metadata["dmlo.model_config"])
+        self.height, self.width = int(metadata["dmlo.height"]), int(metadata["dmlo.width"])
+        self.cylinder = _cylinder_from_metadata(json.loads(metadata["dmlo.cylinder_config"]), graph)
+        if (self.cylinder.height, self.cylinder.width) != (self.height, self.width):
+            raise ModelError(
+                f"{graph}: network input {self.height}×{self.width} does not match its cylinder image "
+                f"{self.cylinder.height}×{self.cylinder.width}"
+            )
+        shapes = {i.name: i.shape for i in self._session.get_inputs()}
+        self._zeros = Features(
+            coarse=np.zeros(shapes["prev_coarse_features"], np.float32),
+            refine=np.zeros(shapes["prev_refine_features"], np.float32),
+        )
+
+    def frame(self, image: npt.NDArray[np.float32], previous: Features | None) -> FrameOutput:
+        if image.shape != (2, self.height, self.width):
+            raise ModelError(
+                f"scan image {image.shape} does not fit the model's input (2, {self.height}, {self.width})"
+            )
+        prev = previous or self._zeros
+        flow, confidence, coarse, refine = self._session.run(
+            None,
+            {
+                "scan": image[None].astype(np.float32, copy=False),
+                "prev_coarse_features": prev.coarse,
+                "prev_refine_features": prev.refine,
+            },
+        )
+        features = Features(coarse=coarse, refine=refine)
+        if previous is None:  # matched against zeros: only the features mean anything
+            return FrameOutput(features, None, None)
+        return FrameOutput(features, flow[0], confidence[0])
+
+
+def _cylinder_from_metadata(values: dict[str, object], graph: Path) -> dmlo_rs.CylinderConfig:
+    missing = [k for k in _CYLINDER_KEYS if k not in values]
+    if missing:
+        raise ModelError(f"{graph}: cylinder configuration lacks {', '.join(missing)}")
+    try:
+        return dmlo_rs.CylinderConfig(**{k: values[k] for k in _CYLINDER_KEYS})  # type: ignore[arg-type]
+    except (TypeError, ValueError) as err:
+        raise ModelError(f"{graph}: invalid cylinder configuration: {err}") from err

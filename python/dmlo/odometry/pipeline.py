@@ -1,0 +1,290 @@
+"""DMLO odometry (§III): project → encode → match → decode, NMS, RANSAC, SVD → pose.
+
+`Odometry.register` reads like the paper's pipeline: each step is one call into `dmlo_rs` or the
+network, with the paper's section next to it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+import dmlo_rs
+from dmlo.odometry.config import OdometryConfig
+from dmlo.odometry.matcher import Features, FrameOutput, Matcher, OnnxMatcher, default_model_path
+
+Matrix4 = npt.NDArray[np.float64]
+
+
+@dataclass
+class FrameDiagnostics:
+    """What happened to one scan: counts, the fallback taken, and the time of every stage in ms."""
+
+    index: int
+    num_points: int
+    num_matches: int = 0
+    num_candidates: int = 0
+    num_inliers: int = 0
+    inlier_ratio: float = 0.0
+    fallback: str | None = None  # "constant_velocity" when RANSAC found too few inliers
+    ndt_converged: bool | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "index": self.index,
+            "num_points": self.num_points,
+            "num_candidates": self.num_candidates,
+            "num_matches": self.num_matches,
+            "num_inliers": self.num_inliers,
+            "inlier_ratio": round(self.inlier_ratio, 4),
+            "fallback": self.fallback,
+            "ndt_converged": self.ndt_converged,
+            "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
+        }
+
+
+@dataclass
+class PairResult:
+    """The motion between a reference and a target scan: `T_tgt_ref` with `p_tgt = T p_ref` (Eq. 7)."""
+
+    T_tgt_ref: Matrix4
+    num_candidates: int
+    num_matches: int
+    num_inliers: int
+    source_points: npt.NDArray[np.float64]
+    target_points: npt.NDArray[np.float64]
+    inliers: npt.NDArray[np.bool_]
+
+    @property
+    def inlier_ratio(self) -> float:
+        return self.num_inliers / self.num_matches if self.num_matches else 0.0
+
+
+@dataclass
+class _Scan:
+    range: npt.NDArray[np.float32]
+    features: Features
+    pose: Matrix4
+
+
+class _Stopwatch:
+    def __init__(self, timings: dict[str, float]) -> None:
+        self._timings = timings
+        self._last = time.perf_counter()
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self._timings[stage] = (now - self._last) * 1e3
+        self._last = now
+
+
+class Odometry:
+    """Frame-to-frame DMLO odometry with the paper's motion model and optional NDT mapping.
+
+    >>> odometry = Odometry.from_default()
+    >>> for points in scans:               # N×4 float32: x, y, z, reflectance
+    ...     T_world_lidar = odometry.register(points)
+    """
+
+    def __init__(self, model_path: str | Path, config: OdometryConfig | None = None) -> None:
+        self.config = config or OdometryConfig()
+        self.matcher: Matcher = OnnxMatcher(Path(model_path), threads=self.config.threads)
+        self.cylinder = self.matcher.cylinder
+        self.poses: list[Matrix4] = []
+        self.diagnostics: list[FrameDiagnostics] = []
+        self._reference: _Scan | None = None  # the last usable scan, matched against the next one
+        self._reference_index = -1
+        self._velocity = np.eye(4)  # T_tgt_ref per frame, for the constant-velocity model
+        self._map = self._make_map() if self.config.mapping.enabled else None
+
+    @classmethod
+    def from_default(cls, config: OdometryConfig | None = None) -> Odometry:
+        """The bundled model, trained on simulated HDL-64E drives."""
+        return cls(default_model_path(), config)
+
+    # -- one scan -------------------------------------------------------------------------------
+
+    def register(self, points: npt.ArrayLike, moving: npt.ArrayLike | None = None) -> Matrix4:
+        """Adds the next scan and returns its pose `T_world_lidar` (the first scan is the world).
+
+        `moving` is an optional per-point boolean mask of points on moving objects (§III-D-c); they
+        are left out of matching. A scan with fewer than `min_points` finite points is not matched:
+        its pose comes from the motion model and the diagnostics say so.
+        """
+        cloud = _as_scan(points, "points")
+        diagnostics = FrameDiagnostics(index=len(self.poses), num_points=len(cloud))
+        watch = _Stopwatch(diagnostics.timings_ms)
+        if moving is not None:
+            cloud = cloud[~_as_mask(moving, len(cloud))]
+        cloud = cloud[np.isfinite(cloud).all(axis=1)]
+        if len(cloud) < self.config.min_points:
+            return self._skip(diagnostics, "too_few_points")
+
+        image, ranges = self._project(cloud)  # Eq. 1
+        previous = self._reference
+        output = self.matcher.frame(image, previous.features if previous else None)  # §III-C
+        watch.lap("network")
+
+        if previous is None:
+            pose = np.eye(4) if not self.poses else self._predict()
+        else:
+            motion = self._motion_from_flow(previous.range, ranges, output, diagnostics, watch)
+            pose = previous.pose @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
+            if self._map is not None:
+                pose = self._refine_with_map(cloud, pose, diagnostics)
+                watch.lap("ndt")
+            self._update_velocity(previous.pose, pose, diagnostics.index - self._reference_index)
+        if self._map is not None:
+            self._map.insert(_transform(cloud[:, :3], pose))
+            watch.lap("map_update")
+
+        self._reference = _Scan(range=ranges, features=output.features, pose=pose)
+        self._reference_index = diagnostics.index
+        return self._record(pose, diagnostics)
+
+    def predict_skipped(self, reason: str = "unreadable_scan") -> Matrix4:
+        """Records a scan that could not be read: its pose comes from the motion model."""
+        return self._skip(FrameDiagnostics(index=len(self.poses), num_points=0), reason)
+
+    def register_pair(self, reference: npt.ArrayLike, target: npt.ArrayLike) -> PairResult:
+        """The motion `T_tgt_ref` between two scans, with no motion model, map or initial guess."""
+        ref_image, ref_range = self._project(_as_scan(reference, "reference"))
+        tgt_image, tgt_range = self._project(_as_scan(target, "target"))
+        ref_features = self.matcher.frame(ref_image, None).features
+        output = self.matcher.frame(tgt_image, ref_features)
+        assert output.flow is not None and output.confidence is not None
+        return self._match(ref_range, tgt_range, output.flow, output.confidence)
+
+    # -- the paper's steps ----------------------------------------------------------------------
+
+    def _project(self, cloud: npt.NDArray[np.float32]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        projection = dmlo_rs.project(cloud, self.cylinder)
+        return np.stack([projection.range, projection.reflectance]), projection.range
+
+    def _match(
+        self,
+        ref_range: npt.NDArray[np.float32],
+        tgt_range: npt.NDArray[np.float32],
+        flow: npt.NDArray[np.float32],
+        confidence: npt.NDArray[np.float32],
+        watch: _Stopwatch | None = None,
+    ) -> PairResult:
+        m, r = self.config.matching, self.config.ransac
+        # Network output → 3D pairs (p'_r, p̂_t), sampling D_t at the sub-pixel match (§III-D).
+        matches = dmlo_rs.decode_matches(
+            ref_range, tgt_range, flow, confidence, self.cylinder, min_confidence=m.min_confidence
+        )
+        # NMS: the most confident match in every radius-r neighbourhood, top N (§III-D-a).
+        keep = dmlo_rs.nms(matches.cells[:, 0], matches.cells[:, 1], matches.confidence, m.nms_radius, m.max_matches)
+        src, dst = matches.source[keep], matches.target[keep]
+        if watch:
+            watch.lap("decode_nms")
+        transform, inliers, num_inliers = np.eye(4), np.zeros(len(src), dtype=bool), 0
+        if len(src) >= 3:
+            try:
+                # RANSAC around the closed-form SVD solve, Eq. 12–14 (§III-D-b).
+                ransac = dmlo_rs.ransac_rigid(
+                    src, dst, threshold=r.threshold, confidence=r.confidence,
+                    max_iterations=r.max_iterations, seed=r.seed,
+                )
+                transform, inliers, num_inliers = ransac.transform, ransac.inliers, ransac.num_inliers
+            except ValueError:  # degenerate or all-outlier matches: no motion from this pair
+                pass
+        if watch:
+            watch.lap("ransac")
+        return PairResult(
+            T_tgt_ref=np.asarray(transform, dtype=np.float64),
+            num_candidates=len(matches),
+            num_matches=len(src),
+            num_inliers=int(num_inliers),
+            source_points=src,
+            target_points=dst,
+            inliers=np.asarray(inliers, dtype=bool),
+        )
+
+    def _motion_from_flow(
+        self,
+        ref_range: npt.NDArray[np.float32],
+        tgt_range: npt.NDArray[np.float32],
+        output: FrameOutput,
+        diagnostics: FrameDiagnostics,
+        watch: _Stopwatch,
+    ) -> Matrix4:
+        assert output.flow is not None and output.confidence is not None
+        pair = self._match(ref_range, tgt_range, output.flow, output.confidence, watch)
+        diagnostics.num_candidates = pair.num_candidates
+        diagnostics.num_matches = pair.num_matches
+        diagnostics.num_inliers = pair.num_inliers
+        diagnostics.inlier_ratio = pair.inlier_ratio
+        if pair.num_inliers < self.config.motion_model.min_inliers:
+            diagnostics.fallback = "constant_velocity"  # the motion model of §III-D-c
+            gap = diagnostics.index - self._reference_index
+            return np.linalg.matrix_power(self._velocity, gap)
+        return pair.T_tgt_ref
+
+    # -- motion model ---------------------------------------------------------------------------
+
+    def _predict(self) -> Matrix4:
+        return self.poses[-1] @ np.linalg.inv(self._velocity)
+
+    def _update_velocity(self, reference_pose: Matrix4, pose: Matrix4, frames: int) -> None:
+        # Across a gap left by skipped scans the motion spans several frames; the velocity measured
+        # before the gap stays the better per-frame estimate.
+        if frames == 1:
+            self._velocity = np.linalg.inv(pose) @ reference_pose
+
+    def _skip(self, diagnostics: FrameDiagnostics, reason: str) -> Matrix4:
+        diagnostics.fallback = reason
+        pose = self._predict() if self.poses else np.eye(4)
+        return self._record(pose, diagnostics)
+
+    def _record(self, pose: Matrix4, diagnostics: FrameDiagnostics) -> Matrix4:
+        self.poses.append(pose)
+        self.diagnostics.append(diagnostics)
+        return pose.copy()
+
+    # -- mapping --------------------------------------------------------------------------------
+
+    def _make_map(self) -> Any:
+        c = self.config.mapping
+        return dmlo_rs.NdtMap(voxel_size=c.voxel_size, max_scans=c.max_scans)
+
+    def _refine_with_map(
+        self, cloud: npt.NDArray[np.float32], pose: Matrix4, diagnostics: FrameDiagnostics
+    ) -> Matrix4:
+        assert self._map is not None
+        try:
+            result = self._map.align(cloud[:, :3], pose, max_iterations=self.config.mapping.max_iterations)
+        except ValueError:
+            diagnostics.ndt_converged = False
+            return pose
+        diagnostics.ndt_converged = bool(result.converged)
+        return np.asarray(result.transform, dtype=np.float64) if result.converged else pose
+
+
+def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
+    cloud = np.asarray(points)
+    if cloud.ndim != 2 or cloud.shape[1] not in (3, 4):
+        raise ValueError(f"{name}: expected an N×4 (or N×3) array of x, y, z[, reflectance], got shape {cloud.shape}")
+    if not np.issubdtype(cloud.dtype, np.floating):
+        raise TypeError(f"{name}: expected floating-point points, got dtype {cloud.dtype}")
+    if cloud.shape[1] == 3:
+        cloud = np.concatenate([cloud, np.zeros((len(cloud), 1), cloud.dtype)], axis=1)
+    return np.ascontiguousarray(cloud, dtype=np.float32)
+
+
+def _as_mask(mask: npt.ArrayLike, count: int) -> npt.NDArray[np.bool_]:
+    values = np.asarray(mask)
+    if values.shape != (count,):
+        raise ValueError(f"moving: expected a mask of {count} booleans, got shape {values.shape}")
+    return values.astype(bool)
+
+
+def _transform(xyz: npt.NDArray[np.floating], T: Matrix4) -> npt.NDArray[np.float64]:
+    return xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3]

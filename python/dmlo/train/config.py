@@ -1,0 +1,66 @@
+"""Training settings (paper §IV-B defaults), saved as ``train.json`` beside the checkpoints."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    data: list[str] = field(default_factory=list)
+    """Training sequences (folders `dmlo.datasets.open_sequence` reads)."""
+    val: list[str] = field(default_factory=list)
+    """Held-out sequences for the validation pass after every epoch."""
+    out: str = "run"
+    epochs: int = 60
+    batch_size: int = 4
+    """Per process."""
+    optimizer: str = "sgd"
+    """``sgd`` (the paper's) or ``adam`` (for short runs on small compute)."""
+    lr: float = 5e-4
+    momentum: float = 0.9
+    weight_decay: float = 1e-5
+    lr_step_epochs: int = 20
+    lr_gamma: float = 0.1
+    crop_height: int | None = None
+    crop_width: int | None = 448
+    yaw_roll: bool = True
+    max_gap: int = 2
+    """Pairs 1 … max_gap frames apart (2: the paper's triplets)."""
+    val_max_pairs: int = 64
+    val_width: int | None = None
+    """Centred crop for validation; None: full width."""
+    seed: int = 0
+    workers: int = 0
+    device: str = "auto"
+    checkpoint_every: int = 50
+    """Also checkpoint every this many steps inside an epoch (resume loses at most this many)."""
+    max_steps: int | None = None
+    """Stop after this many optimiser steps in total (tests, smoke runs)."""
+
+    def __post_init__(self) -> None:
+        positive = ("epochs", "batch_size", "lr_step_epochs", "checkpoint_every", "max_gap")
+        for name in positive:
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.optimizer not in ("sgd", "adam"):
+            raise ValueError(f"optimizer must be 'sgd' or 'adam', got {self.optimizer!r}")
+        if self.lr <= 0:
+            raise ValueError(f"lr must be > 0, got {self.lr}")
+        if self.val_width is not None and (self.val_width <= 0 or self.val_width % 8):
+            raise ValueError(f"val_width must be a positive multiple of 8, got {self.val_width}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> TrainConfig:
+        known = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{key: value for key, value in values.items() if key in known})
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")

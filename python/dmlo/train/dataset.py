@@ -1,0 +1,226 @@
+"""Training pairs for the matcher: two cylinder images, the ground-truth flow and its validity.
+
+Pairs come from triplets S_{t−1}, S_t, S_{t+1} (§IV-B): [t−1, t], [t, t+1] and [t−1, t+1]. Over a whole
+sequence that is every pair of frames 1 apart and every pair 2 apart, each listed once.
+
+A sample is a dict of numpy arrays: ``ref`` and ``tgt`` float32 (2, H, W) (range in metres, 0 where empty;
+reflectance), ``flow`` float32 (2, H, W) (Δrow, Δcol) in pixels and ``valid`` bool (H, W).
+
+Augmentations keep the geometry honest:
+
+- *yaw roll*: both images rolled by the same number of columns — the same as turning both scans by one
+  yaw angle, so the flow is unchanged; a match that would cross the image's azimuth seam is dropped.
+- *crop*: the same window of rows and columns cut from both images; a match whose target leaves the
+  window is dropped.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+Sample = dict[str, NDArray[Any]]
+
+
+def pair_indices(frames: int, max_gap: int = 2) -> list[tuple[int, int]]:
+    """Every (reference, target) pair of frames 1 … ``max_gap`` apart, ordered by reference frame."""
+    return [(i, i + gap) for i in range(frames) for gap in range(1, max_gap + 1) if i + gap < frames]
+
+
+def _target_inside(flow: NDArray[np.float32], height: int, width: int) -> NDArray[np.bool_]:
+    """Cells whose target location (row + Δrow, col + Δcol) lies within the image."""
+    rows = np.arange(height, dtype=np.float32)[:, None] + flow[0]
+    cols = np.arange(width, dtype=np.float32)[None, :] + flow[1]
+    return (rows >= 0) & (rows <= height - 1) & (cols >= 0) & (cols <= width - 1)
+
+
+def roll_columns(sample: Sample, shift: int) -> Sample:
+    """Both scans turned by ``shift`` columns (yaw); flow unchanged, seam-crossing matches dropped."""
+    rolled = {key: np.roll(value, shift, axis=-1) for key, value in sample.items()}
+    height, width = rolled["valid"].shape
+    rolled["valid"] = rolled["valid"] & _target_inside(rolled["flow"], height, width)
+    return rolled
+
+
+def crop(sample: Sample, top: int, left: int, height: int, width: int) -> Sample:
+    """The same window cut from both scans; matches whose target leaves it are dropped."""
+    full_height, full_width = sample["valid"].shape
+    if not (0 <= top and top + height <= full_height and 0 <= left and left + width <= full_width):
+        raise ValueError(f"crop {height}×{width} at ({top}, {left}) exceeds the image {full_height}×{full_width}")
+    cut = {key: np.ascontiguousarray(value[..., top : top + height, left : left + width]) for key, value in sample.items()}
+    cut["valid"] = cut["valid"] & _target_inside(cut["flow"], height, width)
+    return cut
+
+
+@dataclass(frozen=True)
+class Augmentation:
+    """Random yaw roll and crop; ``crop_height`` / ``crop_width`` None keep the full size."""
+
+    crop_height: int | None = None
+    crop_width: int | None = None
+    yaw_roll: bool = True
+    random: bool = True
+    """False: no roll and a centred crop (validation)."""
+
+    def __post_init__(self) -> None:
+        if self.crop_height is not None and (self.crop_height <= 0 or self.crop_height % 4):
+            raise ValueError(f"crop_height must be a positive multiple of 4, got {self.crop_height}")
+        if self.crop_width is not None and (self.crop_width <= 0 or self.crop_width % 8):
+            raise ValueError(f"crop_width must be a positive multiple of 8, got {self.crop_width}")
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        height, width = sample["valid"].shape
+        if self.random and self.yaw_roll:
+            sample = roll_columns(sample, int(rng.integers(0, width)))
+        crop_height = self.crop_height or height
+        crop_width = self.crop_width or width
+        if crop_height > height or crop_width > width:
+            raise ValueError(f"crop {crop_height}×{crop_width} is larger than the scans ({height}×{width})")
+        if (crop_height, crop_width) == (height, width):
+            return sample
+        if self.random:
+            top = int(rng.integers(0, height - crop_height + 1))
+            left = int(rng.integers(0, width - crop_width + 1))
+        else:
+            top, left = (height - crop_height) // 2, (width - crop_width) // 2
+        return crop(sample, top, left, crop_height, crop_width)
+
+
+class Geometry(Protocol):
+    """Cylinder projection and ground-truth flow (implemented by `dmlo_rs`)."""
+
+    def project(self, points: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]: ...
+
+    def ground_truth(
+        self, ref_range: NDArray[np.float32], tgt_range: NDArray[np.float32], T_tgt_ref: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]: ...
+
+
+class RustGeometry:
+    """`dmlo_rs.project` and `dmlo_rs.ground_truth_flow` (Eq. 4–8) for one cylinder configuration."""
+
+    def __init__(self, config: Any = None, max_range_error: float = 0.1) -> None:
+        import dmlo_rs
+
+        self._rs = dmlo_rs
+        self.config = config if config is not None else dmlo_rs.CylinderConfig.kitti()
+        self.max_range_error = max_range_error
+
+    def project(self, points: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        image = self._rs.project(np.ascontiguousarray(points, dtype=np.float32), self.config)
+        return np.asarray(image.range, dtype=np.float32), np.asarray(image.reflectance, dtype=np.float32)
+
+    def ground_truth(
+        self, ref_range: NDArray[np.float32], tgt_range: NDArray[np.float32], T_tgt_ref: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        flow, valid = self._rs.ground_truth_flow(
+            ref_range, tgt_range, np.ascontiguousarray(T_tgt_ref, dtype=np.float64), self.config,
+            max_range_error=self.max_range_error,
+        )
+        return np.asarray(flow, dtype=np.float32), np.asarray(valid, dtype=bool)
+
+
+class PairDataset:
+    """Map-style dataset of training pairs over sequences of frames with ground-truth poses.
+
+    ``sequences`` are `dmlo.datasets` sequences (frames with ``.points`` N×4 and ``.pose`` T_world_lidar).
+    Randomness is a pure function of ``(seed, epoch, index)``: a resumed run sees the same samples.
+    """
+
+    def __init__(
+        self,
+        sequences: Sequence[Any],
+        geometry: Geometry,
+        augmentation: Augmentation | None = None,
+        max_gap: int = 2,
+        seed: int = 0,
+        cache_frames: int = 64,
+    ) -> None:
+        if max_gap < 1:
+            raise ValueError(f"max_gap must be >= 1, got {max_gap}")
+        self.sequences = list(sequences)
+        self.geometry = geometry
+        self.augmentation = augmentation or Augmentation()
+        self.seed = seed
+        self.epoch = 0
+        self.pairs: list[tuple[int, int, int]] = []
+        for number, sequence in enumerate(self.sequences):
+            poses = getattr(sequence, "poses", None)
+            if poses is None:
+                raise ValueError(f"sequence {getattr(sequence, 'name', number)!r} has no ground-truth poses")
+            self.pairs.extend((number, i, j) for i, j in pair_indices(len(sequence), max_gap))
+        if not self.pairs:
+            raise ValueError("no training pairs: every sequence has fewer than 2 frames")
+        self._cache: OrderedDict[tuple[int, int], tuple[NDArray[np.float32], NDArray[np.float64]]] = OrderedDict()
+        self._cache_frames = cache_frames
+
+    @classmethod
+    def from_paths(cls, paths: Sequence[str | Path], **kwargs: Any) -> PairDataset:
+        from dmlo.datasets import open_sequence
+
+        geometry = kwargs.pop("geometry", None) or RustGeometry(kwargs.pop("cylinder", None))
+        return cls([open_sequence(Path(path)) for path in paths], geometry, **kwargs)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def _scan(self, sequence: int, index: int) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+        key = (sequence, index)
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        frame = self.sequences[sequence][index]
+        range_image, reflectance = self.geometry.project(frame.points)
+        value = (np.stack((range_image, reflectance)).astype(np.float32), np.asarray(frame.pose, dtype=np.float64))
+        self._cache[key] = value
+        if len(self._cache) > self._cache_frames:
+            self._cache.popitem(last=False)
+        return value
+
+    def raw_sample(self, index: int) -> Sample:
+        sequence, ref_index, tgt_index = self.pairs[index]
+        ref, T_world_ref = self._scan(sequence, ref_index)
+        tgt, T_world_tgt = self._scan(sequence, tgt_index)
+        T_tgt_ref = np.linalg.solve(T_world_tgt, T_world_ref)
+        flow, valid = self.geometry.ground_truth(ref[0], tgt[0], T_tgt_ref)
+        return {"ref": ref, "tgt": tgt, "flow": flow.astype(np.float32), "valid": valid.astype(bool)}
+
+    def __getitem__(self, index: int) -> Sample:
+        rng = np.random.default_rng([self.seed, self.epoch, index])
+        return self.augmentation(self.raw_sample(index), rng)
+
+
+class ArrayPairDataset:
+    """Training pairs held in memory (tests, synthetic data): the same augmentation and seeding."""
+
+    def __init__(self, samples: Sequence[Sample], augmentation: Augmentation | None = None, seed: int = 0) -> None:
+        self.samples = list(samples)
+        self.augmentation = augmentation or Augmentation()
+        self.seed = seed
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def __getitem__(self, index: int) -> Sample:
+        rng = np.random.default_rng([self.seed, self.epoch, index])
+        return self.augmentation(dict(self.samples[index]), rng)
+
+
+def collate(samples: Sequence[Sample]) -> dict[str, Any]:
+    """Stacks samples into a batch of torch tensors."""
+    import torch
+
+    return {key: torch.from_numpy(np.stack([sample[key] for sample in samples])) for key in samples[0]}

@@ -1,0 +1,34 @@
+"""The benchmark's peers behave as odometries: on real scans of a car standing still they stay put."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dmlo.bench.peers import PEERS
+
+
+def _static_scans(shared_data: Path, count: int) -> list[np.ndarray]:
+    files = sorted((shared_data / "kitti_raw_static").glob("*.bin"))[:count]
+    return [np.fromfile(f, dtype=np.float32).reshape(-1, 4) for f in files]
+
+
+@pytest.mark.parametrize("name", ["KISS-ICP", "small_gicp GICP"])
+def test_peer_stays_still_on_static_scans(shared_data: Path, name: str) -> None:
+    peer = next(p for p in PEERS if p.name == name)
+    if not peer.available:
+        pytest.skip(f"{peer.package} not installed")
+    odometry = peer.make()
+    poses = [odometry.register(scan) for scan in _static_scans(shared_data, 3)]
+    assert np.allclose(poses[0], np.eye(4))
+    for pose in poses[1:]:
+        assert np.linalg.norm(pose[:3, 3]) < 0.02
+        assert np.allclose(pose[:3, :3], np.eye(3), atol=1e-3)
+
+
+def test_peers_are_optional() -> None:
+    # Listing the peers never imports them: `dmlo` works without any of them installed.
+    assert {p.name for p in PEERS} >= {"KISS-ICP", "small_gicp GICP", "Open3D GICP", "Open3D FPFH+RANSAC"}
+    assert all(isinstance(p.available, bool) for p in PEERS)

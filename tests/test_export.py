@@ -1,0 +1,173 @@
+"""ONNX export: onnxruntime reproduces the PyTorch matcher (float64 reference) on a calibrated network."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+ort = pytest.importorskip("onnxruntime")
+onnx = pytest.importorskip("onnx")
+
+from dmlo.export import export_onnx, read_metadata  # noqa: E402
+from dmlo.model import Matcher, MatcherConfig  # noqa: E402
+from dmlo.model.window import decode_window  # noqa: E402
+
+from test_model import synthetic_pair  # noqa: E402
+
+HEIGHT, WIDTH = 64, 448
+
+
+def calibrated_matcher(config: MatcherConfig) -> Matcher:
+    """Random weights with non-zero deformable offsets and BatchNorm statistics measured on scenes, so
+    features vary and windows are not flat (ONNX-NOTES item 8)."""
+    torch.manual_seed(0)
+    model = Matcher(config)
+    for module in model.modules():
+        if isinstance(module, torch.nn.BatchNorm2d):
+            module.momentum = None  # cumulative average over the calibration batches
+            module.reset_running_stats()
+        if hasattr(module, "offset") and isinstance(module.offset, torch.nn.Conv2d):
+            torch.nn.init.normal_(module.offset.weight, std=0.05)
+    model.train()
+    with torch.no_grad():
+        for seed in range(3):
+            ref, tgt, _, _ = synthetic_pair(HEIGHT, WIDTH, (2, 9), seed=seed)
+            model(ref, tgt)
+    return model.eval()
+
+
+def near_tie(sums: torch.Tensor, tolerance: float = 1e-4) -> torch.Tensor:
+    """Cells whose best two 2×2 windows differ by less than ``tolerance`` (relative): argmax may flip."""
+    top = sums.topk(2, dim=1).values
+    return (top[:, 0] - top[:, 1]) <= tolerance * top[:, 0]
+
+
+def session(path) -> ort.InferenceSession:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 2
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    model = calibrated_matcher(MatcherConfig(refine_channels=8))
+    out_dir = tmp_path_factory.mktemp("onnx")
+    cylinder = {"height": HEIGHT, "width": WIDTH, "azimuth_resolution_deg": 0.2}
+    paths = export_onnx(model, out_dir, HEIGHT, WIDTH, cylinder_config=cylinder)
+    return model, paths
+
+
+def test_frame_graph_matches_pytorch(exported) -> None:
+    model, paths = exported
+    ref, tgt, _, _ = synthetic_pair(HEIGHT, WIDTH, (3, -11), seed=10)
+    reference = Matcher(model.config)
+    reference.load_state_dict(model.state_dict())
+    reference = reference.double().eval()
+    with torch.no_grad():
+        ref_features = model.encode(ref)
+        want = reference.match(reference.encode(ref.double()), reference.encode(tgt.double()))
+    got_flow, got_confidence, got_coarse, got_refine = session(paths["frame"]).run(
+        None,
+        {
+            "scan": tgt.numpy(),
+            "prev_coarse_features": ref_features.coarse.numpy(),
+            "prev_refine_features": ref_features.refine.numpy(),
+        },
+    )
+    config = model.config
+    coarse_sums = decode_window(want.coarse_logits, config.coarse_window).window_sums
+    refine_sums = decode_window(want.refine_logits, config.refine_window).window_sums
+    from dmlo.model.matcher import upsample_coarse_flow
+
+    origin = upsample_coarse_flow(want.coarse_flow, config.coarse_stride)
+    rounding_tie = ((origin - origin.floor() - 0.5).abs() < 1e-3).any(dim=1)
+    coarse_tie = torch.nn.functional.interpolate(near_tie(coarse_sums).unsqueeze(1).double(), scale_factor=(4, 8))
+    ties = (coarse_tie[:, 0] > 0) | near_tie(refine_sums) | rounding_tie
+    assert float(ties.double().mean()) < 0.05
+    keep = (~ties[0]).numpy()
+    flow_error = np.abs(got_flow - want.flow.numpy()).max(axis=1)[0]
+    confidence_error = np.abs(got_confidence - want.confidence.numpy())[0]
+    assert flow_error[keep].max() < 1e-3
+    # float32 itself (PyTorch's too) leaves a few cells of ~1e-4 against float64.
+    assert np.quantile(confidence_error[keep], 0.999) < 1e-4
+    assert confidence_error[keep].max() < 3e-4
+    # The untied cells are a real test: the network gives varied, non-trivial matches.
+    assert np.unique(np.round(got_flow[0, :, keep], 1), axis=0).shape[0] > 20
+    with torch.no_grad():
+        want_tgt = reference.encode(tgt.double())
+    np.testing.assert_allclose(got_coarse, want_tgt.coarse.numpy(), atol=1e-4)
+    np.testing.assert_allclose(got_refine, want_tgt.refine.numpy(), atol=1e-4)
+
+
+def test_encoder_and_match_graphs_agree_with_frame_graph(exported) -> None:
+    _, paths = exported
+    ref, tgt, _, _ = synthetic_pair(HEIGHT, WIDTH, (-1, 6), seed=11)
+    encoder = session(paths["encoder"])
+    ref_coarse, ref_refine = encoder.run(None, {"scan": ref.numpy()})
+    tgt_coarse, tgt_refine = encoder.run(None, {"scan": tgt.numpy()})
+    flow, confidence = session(paths["match"]).run(
+        None,
+        {
+            "ref_coarse_features": ref_coarse,
+            "ref_refine_features": ref_refine,
+            "tgt_coarse_features": tgt_coarse,
+            "tgt_refine_features": tgt_refine,
+        },
+    )
+    frame = session(paths["frame"]).run(
+        None, {"scan": tgt.numpy(), "prev_coarse_features": ref_coarse, "prev_refine_features": ref_refine}
+    )
+    np.testing.assert_allclose(frame[0], flow, atol=1e-5)
+    np.testing.assert_allclose(frame[1], confidence, atol=1e-6)
+    np.testing.assert_allclose(frame[2], tgt_coarse, atol=1e-6)
+    np.testing.assert_allclose(frame[3], tgt_refine, atol=1e-6)
+
+
+def test_graph_interface_and_metadata(exported) -> None:
+    model, paths = exported
+    proto = onnx.load(str(paths["frame"]))
+    assert any(node.op_type == "DeformConv" for node in proto.graph.node)
+    assert not any(node.op_type in ("GridSample", "BatchNormalization") and "coarse" in node.name for node in proto.graph.node)
+    frame = session(paths["frame"])
+    inputs = {i.name: (i.shape, i.type) for i in frame.get_inputs()}
+    outputs = {o.name: (o.shape, o.type) for o in frame.get_outputs()}
+    c, cr = model.config.coarse_channels, model.config.refine_channels
+    assert inputs == {
+        "scan": ([1, 2, HEIGHT, WIDTH], "tensor(float)"),
+        "prev_coarse_features": ([1, c, HEIGHT // 4, WIDTH // 8], "tensor(float)"),
+        "prev_refine_features": ([1, cr, HEIGHT, WIDTH], "tensor(float)"),
+    }
+    assert outputs == {
+        "flow": ([1, 2, HEIGHT, WIDTH], "tensor(float)"),
+        "confidence": ([1, HEIGHT, WIDTH], "tensor(float)"),
+        "coarse_features": ([1, c, HEIGHT // 4, WIDTH // 8], "tensor(float)"),
+        "refine_features": ([1, cr, HEIGHT, WIDTH], "tensor(float)"),
+    }
+    metadata = read_metadata(paths["frame"])
+    assert metadata["dmlo.graph"] == "frame"
+    assert metadata["dmlo.height"] == HEIGHT and metadata["dmlo.width"] == WIDTH
+    assert MatcherConfig.from_dict(metadata["dmlo.model_config"]) == model.config
+    assert metadata["dmlo.cylinder_config"]["azimuth_resolution_deg"] == 0.2
+    assert json.loads(json.dumps(metadata["dmlo.model_config"]))["refine_channels"] == 8
+
+
+def test_plain_refine_exports_without_deformconv(tmp_path) -> None:
+    model = Matcher(MatcherConfig.preset("fast"))
+    paths = export_onnx(model, tmp_path, 32, 64, graphs=("match",))
+    assert model.training  # the caller's mode is restored
+    proto = onnx.load(str(paths["match"]))
+    assert not any(node.op_type == "DeformConv" for node in proto.graph.node)
+
+
+def test_export_rejects_bad_arguments(tmp_path) -> None:
+    model = Matcher(MatcherConfig.preset("fast"))
+    with pytest.raises(ValueError, match="unknown graphs"):
+        export_onnx(model, tmp_path, 32, 64, graphs=("decoder",))
+    with pytest.raises(ValueError, match="divisible"):
+        export_onnx(model, tmp_path, 30, 64)
+    (tmp_path / "other.onnx").write_bytes(b"")
+    with pytest.raises(Exception):
+        read_metadata(tmp_path / "other.onnx")

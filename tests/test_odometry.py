@@ -1,0 +1,124 @@
+"""The odometry pipeline on a short simulated drive through the bundled model: wiring, determinism,
+diagnostics, the motion model, and bad input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dmlo.datasets import open_sequence
+from dmlo.odometry import Odometry, OdometryConfig
+from dmlo.odometry.matcher import ModelError, default_model_path
+from dmlo.simulator import simulate_sequence
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("drive")
+    simulate_sequence(out, frames=5, seed=5, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def scans(drive: Path) -> list[np.ndarray]:
+    sequence = open_sequence(drive)
+    return [sequence[i].points for i in range(len(sequence))]
+
+
+def test_first_pose_is_the_world_and_every_scan_gets_a_pose(scans: list[np.ndarray]) -> None:
+    odometry = Odometry.from_default()
+    poses = [odometry.register(points) for points in scans]
+    assert np.array_equal(poses[0], np.eye(4))
+    assert len(odometry.poses) == len(scans) == len(odometry.diagnostics)
+    for pose in poses:
+        assert pose.shape == (4, 4) and np.isfinite(pose).all()
+        assert np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-6)
+    later = odometry.diagnostics[1]
+    assert later.num_candidates > 0 and later.num_matches <= OdometryConfig().matching.max_matches
+    assert {"network", "decode_nms", "ransac"} <= set(later.timings_ms)
+
+
+def test_same_scans_give_identical_poses(scans: list[np.ndarray]) -> None:
+    runs = []
+    for _ in range(2):
+        odometry = Odometry.from_default()
+        runs.append([odometry.register(p) for p in scans[:3]])
+    assert all(np.array_equal(a, b) for a, b in zip(*runs))
+
+
+def test_too_few_inliers_fall_back_to_constant_velocity(scans: list[np.ndarray]) -> None:
+    config = OdometryConfig()
+    config.motion_model.min_inliers = 10**9  # no pair can satisfy it
+    odometry = Odometry.from_default(config)
+    poses = [odometry.register(p) for p in scans[:3]]
+    assert [d.fallback for d in odometry.diagnostics] == [None, "constant_velocity", "constant_velocity"]
+    # With no motion measured yet the constant-velocity model predicts standing still.
+    assert np.allclose(poses[2], np.eye(4))
+
+
+@pytest.mark.parametrize(
+    "bad_scan",
+    [np.zeros((0, 4), np.float32), np.full((5000, 4), np.nan, np.float32), np.ones((10, 4), np.float32)],
+    ids=["empty", "all-nan", "ten-points"],
+)
+def test_unusable_scan_is_bridged_and_recorded(scans: list[np.ndarray], bad_scan: np.ndarray) -> None:
+    odometry = Odometry.from_default()
+    odometry.register(scans[0])
+    odometry.register(scans[1])
+    pose = odometry.register(bad_scan)
+    assert odometry.diagnostics[-1].fallback == "too_few_points"
+    assert np.isfinite(pose).all()
+    odometry.register(scans[3])  # matched against scan 1, the last usable one
+    assert odometry.diagnostics[-1].fallback in (None, "constant_velocity")
+    assert len(odometry.poses) == 4
+
+
+def test_moving_points_are_removed_before_matching(scans: list[np.ndarray]) -> None:
+    odometry = Odometry.from_default()
+    everything_moving = np.ones(len(scans[0]), dtype=bool)
+    odometry.register(scans[0], moving=everything_moving)
+    assert odometry.diagnostics[-1].fallback == "too_few_points"
+
+
+def test_bad_arguments_name_what_is_wrong(scans: list[np.ndarray]) -> None:
+    odometry = Odometry.from_default()
+    with pytest.raises(ValueError, match="points: expected an N×4"):
+        odometry.register(np.zeros((10, 5), np.float32))
+    with pytest.raises(TypeError, match="points: expected floating-point"):
+        odometry.register(np.zeros((10, 4), np.int32))
+    with pytest.raises(ValueError, match="moving: expected a mask of"):
+        odometry.register(scans[0], moving=np.zeros(3, bool))
+
+
+def test_register_pair_returns_a_rigid_motion(scans: list[np.ndarray]) -> None:
+    result = Odometry.from_default().register_pair(scans[0], scans[1])
+    assert result.T_tgt_ref.shape == (4, 4)
+    assert result.num_matches == len(result.source_points) == len(result.inliers)
+    assert result.num_inliers == int(result.inliers.sum())
+
+
+def test_a_file_that_is_not_a_model_is_refused(tmp_path: Path) -> None:
+    bogus = tmp_path / "frame.onnx"
+    bogus.write_bytes(b"not an onnx file")
+    with pytest.raises(ModelError, match="not a readable ONNX model"):
+        Odometry(bogus)
+    with pytest.raises(ModelError, match="model not found"):
+        Odometry(tmp_path / "missing")
+
+
+def test_a_model_whose_input_does_not_fit_its_cylinder_is_refused(tmp_path: Path) -> None:
+    import json
+
+    import onnx
+
+    model = onnx.load(str(default_model_path() / "frame.onnx"))
+    for entry in model.metadata_props:
+        if entry.key == "dmlo.cylinder_config":
+            cylinder = json.loads(entry.value)
+            cylinder["width"] = 896
+            entry.value = json.dumps(cylinder)
+    onnx.save(model, str(tmp_path / "frame.onnx"))
+    with pytest.raises(ModelError, match=r"network input 64×1792 does not match its cylinder image 64×896"):
+        Odometry(tmp_path)

@@ -1,0 +1,97 @@
+"""`dmlo run` and `run_sequence` end to end on a short simulated drive: the files a user asked for,
+an interrupted run, damaged datasets, and one-line errors for user mistakes."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dmlo.datasets import open_sequence
+from dmlo.odometry import Odometry
+from dmlo.odometry.run import run_sequence
+from dmlo.poses import read_kitti_poses, read_tum_poses
+from dmlo.simulator import simulate_sequence
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("drive")
+    simulate_sequence(out, frames=6, seed=9, progress=False)
+    return out
+
+
+def dmlo(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "dmlo", *args], capture_output=True, text=True)
+
+
+def test_run_command_writes_poses_diagnostics_config_and_metrics(drive: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    result = dmlo("run", str(drive), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    assert "vs ground truth" in result.stdout
+    poses = read_kitti_poses(out / "poses_kitti.txt")
+    timestamps, tum = read_tum_poses(out / "poses_tum.txt")
+    assert poses.shape == (6, 4, 4) and np.allclose(poses, tum, atol=1e-6)
+    assert np.allclose(np.diff(timestamps), 0.1, atol=1e-3)  # the simulator's 10 Hz clock
+    diagnostics = [json.loads(line) for line in (out / "diagnostics.jsonl").read_text().splitlines()]
+    assert [d["index"] for d in diagnostics] == list(range(6))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert {"ate_rmse", "rpe_t_mean", "rpe_r_mean"} <= set(metrics)
+    assert json.loads((out / "config.json").read_text())["ransac"]["threshold"] == 0.1
+    assert (out / "trajectory.png").stat().st_size > 0
+
+
+def test_interrupted_run_leaves_valid_poses_for_the_frames_done(drive: Path, tmp_path: Path) -> None:
+    def stop_after_three(index: int, _pose: np.ndarray) -> None:
+        if index == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_sequence(open_sequence(drive), Odometry.from_default(), tmp_path, progress=False,
+                     on_frame=stop_after_three)
+    assert read_kitti_poses(tmp_path / "poses_kitti.txt").shape == (3, 4, 4)
+    assert read_tum_poses(tmp_path / "poses_tum.txt")[1].shape == (3, 4, 4)
+    assert len((tmp_path / "diagnostics.jsonl").read_text().splitlines()) == 3
+
+
+def test_truncated_scan_is_skipped_and_recorded(drive: Path, tmp_path: Path) -> None:
+    damaged = tmp_path / "damaged"
+    shutil.copytree(drive, damaged)
+    scan = damaged / "velodyne" / "000003.bin"
+    scan.write_bytes(scan.read_bytes()[:1000])  # not a whole number of points
+    summary = run_sequence(open_sequence(damaged), Odometry.from_default(), tmp_path / "out", progress=False)
+    assert summary.skipped == [3]
+    assert read_kitti_poses(tmp_path / "out" / "poses_kitti.txt").shape == (6, 4, 4)
+    record = json.loads((tmp_path / "out" / "diagnostics.jsonl").read_text().splitlines()[3])
+    assert "000003.bin" in record["skipped"]
+
+
+def test_missing_scan_file_is_skipped(drive: Path, tmp_path: Path) -> None:
+    damaged = tmp_path / "damaged"
+    shutil.copytree(drive, damaged)
+    sequence = open_sequence(damaged)
+    (damaged / "velodyne" / "000004.bin").unlink()  # vanished after the folder was listed
+    summary = run_sequence(sequence, Odometry.from_default(), tmp_path / "out", progress=False)
+    assert summary.skipped == [4]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["run", "/nonexistent/drive"], "no such dataset folder: /nonexistent/drive"),
+        (["run", ".", "--model", "/nonexistent/model.onnx"], "model not found: /nonexistent/model.onnx"),
+    ],
+)
+def test_user_mistakes_are_one_line(args: list[str], message: str, drive: Path) -> None:
+    if args[1] == ".":
+        args[1] = str(drive)
+    result = dmlo(*args)
+    assert result.returncode == 2
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
