@@ -264,11 +264,14 @@ def test_bad_input_is_reported(tmp_path: Path, shared_data: Path) -> None:
 
 def test_existing_output_is_refused_or_replaced_without_stale_frames(tmp_path: Path) -> None:
     simulate_sequence(tmp_path, 3, seed=1, progress=False)
-    with pytest.raises(ValueError, match="already holds a sequence"):
-        simulate_sequence(tmp_path, 2, seed=1, progress=False)
-    simulate_sequence(tmp_path, 2, seed=1, progress=False, overwrite=True)
+    simulate_sequence(tmp_path, 2, seed=1, progress=False)  # a previous simulation is simply replaced
     assert sorted(p.name for p in (tmp_path / "velodyne").iterdir()) == ["000000.bin", "000001.bin"]
     assert sorted(p.name for p in (tmp_path / "labels").iterdir()) == ["000000.label", "000001.label"]
+    (tmp_path / "simulation.json").unlink()  # now it looks like somebody's real recording
+    with pytest.raises(ValueError, match="not written by the simulator"):
+        simulate_sequence(tmp_path, 2, seed=1, progress=False)
+    assert (tmp_path / "velodyne" / "000001.bin").is_file()
+    simulate_sequence(tmp_path, 2, seed=1, progress=False, overwrite=True)
     assert len(read_kitti_poses(tmp_path / "poses.txt")) == 2
 
 

@@ -31,7 +31,7 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="the sensor moves while it spins (raw-KITTI-like skew); default: instantaneous sweeps",
     )
-    parser.add_argument("--overwrite", action="store_true", help="replace the scans of an existing OUT")
+    parser.add_argument("--overwrite", action="store_true", help="replace scans in OUT even if the simulator did not write them")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     parser.set_defaults(run=run)
 

@@ -70,8 +70,9 @@ def simulate_sequence(
     With `motion_distortion`, every azimuth column is cast from the pose of the moment it fires (constant
     velocity within a sweep, the frame pose at the forward-looking column) and points stay in the sensor
     frame of their firing time, as in raw KITTI scans; by default a sweep is instantaneous.
-    The same arguments always give byte-identical files. An `out_dir` that already holds scans is refused
-    unless `overwrite`, which first deletes its old `.bin`/`.label` files so no stale frame survives.
+    The same arguments always give byte-identical files. A previous simulation in `out_dir` is replaced
+    (its old `.bin`/`.label` files deleted first, so no stale frame survives); other scans there are refused
+    unless `overwrite`.
     """
     if frames < 1:
         raise ValueError(f"frames: must be at least 1, got {frames}")
@@ -98,8 +99,11 @@ def simulate_sequence(
 
     out = Path(out_dir)
     old_scans = sorted((out / "velodyne").glob("*.bin")) + sorted((out / "labels").glob("*.label"))
-    if old_scans and not overwrite:
-        raise ValueError(f"out: {out} already holds a sequence ({len(old_scans)} files); pass overwrite=True (--overwrite)")
+    if old_scans and not overwrite and not (out / "simulation.json").is_file():
+        raise ValueError(
+            f"out: {out} already holds scans not written by the simulator ({len(old_scans)} files); "
+            "pass overwrite=True (--overwrite) to replace them"
+        )
     for old in old_scans:
         old.unlink()
     (out / "velodyne").mkdir(parents=True, exist_ok=True)
