@@ -16,6 +16,7 @@ any part of the trajectory (loops and crossings included):
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -463,7 +464,7 @@ def _add_furniture(
     layout: StreetLayout,
     side: int,
     rng: np.random.Generator,
-    instances: object,
+    instances: Iterator[int],
 ) -> None:
     """Lamp poles, sign poles, street trees, bushes, standing pedestrians and clutter on the sidewalk."""
     road = layout.road(side)
@@ -523,7 +524,7 @@ def _add_furniture(
         xy, z, _ = path.place(s, side * (road + float(rng.uniform(0.5, max(0.6, walk - 0.3)))))
         if _clear(path, xy, clearance):
             height = float(rng.uniform(1.55, 1.9))
-            person = next(instances)  # type: ignore[call-overload]
+            person = next(instances)
             body_radius = float(rng.uniform(0.17, 0.24))
             prims.add_cylinder([xy[0], xy[1], z + ground_offset], height - 0.22, body_radius, PERSON, person, 0.3)
             prims.add_ellipsoid([xy[0], xy[1], z + ground_offset + height - 0.11], [0.1, 0.1, 0.12], PERSON, person, 0.25)
@@ -559,7 +560,7 @@ def _add_parked_cars(
     layout: StreetLayout,
     side: int,
     rng: np.random.Generator,
-    instances: object,
+    instances: Iterator[int],
 ) -> None:
     occupancy = float(rng.uniform(0.15, 0.6))
     s = float(rng.uniform(0, 10))
@@ -574,12 +575,12 @@ def _add_parked_cars(
                 yaw = heading + float(rng.normal(0, 0.03)) + (np.pi if rng.random() < 0.5 else 0.0)
                 if _clear(path, _footprint(xy, heading, length / 2, width / 2), 2.2):
                     albedo = float(rng.choice([0.08, 0.2, 0.35, 0.6]) + rng.normal(0, 0.03))
-                    _add_car(prims, xy, z, yaw, 0.0, length, width, height, CAR, next(instances), albedo)  # type: ignore[call-overload]
+                    _add_car(prims, xy, z, yaw, 0.0, length, width, height, CAR, next(instances), albedo)
                 t += length + float(rng.uniform(0.6, 3.0))
         s += stretch + float(rng.uniform(5.0, 20.0))
 
 
-def _moving_cars(path: StreetPath, layout: StreetLayout, rng: np.random.Generator, instances: object) -> list[MovingCar]:
+def _moving_cars(path: StreetPath, layout: StreetLayout, rng: np.random.Generator, instances: Iterator[int]) -> list[MovingCar]:
     cars = []
     lanes = [(3.3, -1, 6.0, 15.0), (-3.3, 1, 3.0, 17.0)]  # (offset, direction, speed range)
     for lateral, direction, v_min, v_max in lanes:
@@ -588,7 +589,7 @@ def _moving_cars(path: StreetPath, layout: StreetLayout, rng: np.random.Generato
             length, width, height = _car_size(rng)
             cars.append(
                 MovingCar(
-                    instance=next(instances),  # type: ignore[call-overload]
+                    instance=next(instances),
                     s0=float(rng.uniform(0, path.length)),
                     speed=float(rng.uniform(v_min, v_max)),
                     direction=direction,

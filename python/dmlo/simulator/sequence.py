@@ -11,6 +11,7 @@ import numpy as np
 import numpy.typing as npt
 
 import dmlo_rs
+from dmlo.simulator.primitives import SceneAttributes
 from dmlo.simulator.scene import StreetScene, generate_street
 from dmlo.simulator.sensor import SENSORS, LidarModel, measure
 from dmlo.simulator.trajectory import (
@@ -174,7 +175,7 @@ def simulate_sequence(
 def render_frame(
     street: StreetScene,
     static_scene: dmlo_rs.RayScene,
-    static_attributes: object,
+    static_attributes: SceneAttributes,
     model: LidarModel,
     directions: npt.NDArray[np.float64],
     pose: npt.NDArray[np.float64],
@@ -183,9 +184,6 @@ def render_frame(
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], float]:
     """One scan at `pose` ((4,4), or (W,4,4) per azimuth column) and `time_s`: static scene plus the moving
     cars at that time. Returns points, labels and the seconds spent ray casting."""
-    from dmlo.simulator.primitives import SceneAttributes
-
-    assert isinstance(static_attributes, SceneAttributes)
     elevations = model.elevations()
     began = time.perf_counter()
     ranges, primitive, cosines = static_scene.cast_scan(pose, elevations, model.azimuth_count, model.max_range)
