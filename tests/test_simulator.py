@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from dmlo.simulator import (
     HDL64E,
     KITTI_TR,
@@ -33,7 +32,9 @@ def _read_scan(folder: Path, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _lidar_poses_from_files(folder: Path) -> np.ndarray:
-    return camera_to_lidar_poses(read_kitti_poses(folder / "poses.txt"), read_kitti_calib_tr(folder / "calib.txt"))
+    return camera_to_lidar_poses(
+        read_kitti_poses(folder / "poses.txt"), read_kitti_calib_tr(folder / "calib.txt")
+    )
 
 
 @pytest.fixture(scope="module")
@@ -124,7 +125,12 @@ def test_measurement_model_noise_and_dropouts() -> None:
     ranges, primitive, cosines = scene.cast_scan(np.eye(4), elevations, 4000, 120.0)
     front = (directions[:, 0] > 0.999).reshape(ranges.shape)
     points, labels = measure(
-        HDL64E, directions[front.ravel()], ranges[front], primitive[front], cosines[front], attributes,
+        HDL64E,
+        directions[front.ravel()],
+        ranges[front],
+        primitive[front],
+        cosines[front],
+        attributes,
         np.random.default_rng(0),
     )
     assert (labels == BUILDING).all()
@@ -215,12 +221,30 @@ def test_same_seed_gives_identical_bytes_even_with_one_thread(tmp_path: Path) ->
     simulate_sequence(first, 2, seed=5, progress=False)
     env = dict(os.environ, RAYON_NUM_THREADS="1")
     subprocess.run(
-        [sys.executable, "-m", "dmlo", "simulate", "--frames", "2", "--seed", "5", "--out", str(second), "--quiet"],
+        [
+            sys.executable,
+            "-m",
+            "dmlo",
+            "simulate",
+            "--frames",
+            "2",
+            "--seed",
+            "5",
+            "--out",
+            str(second),
+            "--quiet",
+        ],
         check=True,
         env=env,
     )
     simulate_sequence(other, 2, seed=6, progress=False)
-    for name in ["velodyne/000000.bin", "velodyne/000001.bin", "labels/000001.label", "poses.txt", "calib.txt"]:
+    for name in [
+        "velodyne/000000.bin",
+        "velodyne/000001.bin",
+        "labels/000001.label",
+        "poses.txt",
+        "calib.txt",
+    ]:
         assert (first / name).read_bytes() == (second / name).read_bytes(), name
     assert (first / "velodyne/000001.bin").read_bytes() != (other / "velodyne/000001.bin").read_bytes()
     assert (first / "poses.txt").read_bytes() != (other / "poses.txt").read_bytes()
@@ -230,7 +254,9 @@ def test_generated_drive_is_kitti_like() -> None:
     poses = generate_drive(1200, seed=4)
     np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-12)
     rotations = poses[:, :3, :3]
-    np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.tile(np.eye(3), (1200, 1, 1)), atol=1e-9)
+    np.testing.assert_allclose(
+        rotations @ rotations.transpose(0, 2, 1), np.tile(np.eye(3), (1200, 1, 1)), atol=1e-9
+    )
     speed = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) * 10.0
     assert speed.max() <= 20.5 and speed.mean() > 3.0
     assert (speed < 0.01).any()  # it stops
@@ -248,7 +274,9 @@ def test_bad_input_is_reported(tmp_path: Path, shared_data: Path) -> None:
     with pytest.raises(FileNotFoundError, match="trajectory"):
         simulate_sequence(tmp_path, 2, seed=1, trajectory=tmp_path / "missing.txt", progress=False)
     with pytest.raises(ValueError, match="exceeds"):
-        simulate_sequence(tmp_path, 2, seed=1, trajectory=shared_data / "kitti_gt_poses" / "04.txt", start=270)
+        simulate_sequence(
+            tmp_path, 2, seed=1, trajectory=shared_data / "kitti_gt_poses" / "04.txt", start=270
+        )
     bad = tmp_path / "bad.txt"
     bad.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0 0 1 0 0 0 0 1\n")
     with pytest.raises(ValueError, match="line 2 has 11 values"):
@@ -297,7 +325,9 @@ def test_sweep_column_poses_interpolate_the_frame_motion() -> None:
     yaw = np.unwrap(np.arctan2(columns[:, 1, 0], columns[:, 0, 0]))
     np.testing.assert_allclose(yaw, 0.1 + 0.1 * (np.arange(100) - 50) / 100, atol=1e-12)
     motion = np.linalg.inv(poses[1]) @ poses[2]
-    np.testing.assert_allclose(columns[0, :3, 3], poses[1, :3, 3] - 0.5 * poses[1, :3, :3] @ motion[:3, 3], atol=1e-12)
+    np.testing.assert_allclose(
+        columns[0, :3, 3], poses[1, :3, 3] - 0.5 * poses[1, :3, :3] @ motion[:3, 3], atol=1e-12
+    )
     # The last frame extrapolates with the previous motion.
     np.testing.assert_allclose(sweep_column_poses(poses, 2, 100)[50], poses[2], atol=1e-12)
 
@@ -308,7 +338,13 @@ def test_motion_distortion_skews_the_rear_but_not_the_front(tmp_path: Path, shar
     trajectory = shared_data / "kitti_gt_poses" / "00.txt"
     simulate_sequence(tmp_path / "still", 2, seed=3, trajectory=trajectory, start=300, progress=False)
     simulate_sequence(
-        tmp_path / "skewed", 2, seed=3, trajectory=trajectory, start=300, progress=False, motion_distortion=True
+        tmp_path / "skewed",
+        2,
+        seed=3,
+        trajectory=trajectory,
+        start=300,
+        progress=False,
+        motion_distortion=True,
     )
     still, _ = _read_scan(tmp_path / "still", 0)
     skewed, _ = _read_scan(tmp_path / "skewed", 0)
@@ -332,15 +368,23 @@ def test_facade_windows_return_from_the_room_behind() -> None:
 
     prims = PrimitiveSet()
     # Facade plane x = 10 (box 10..30 deep), 40 m wide, from z = -2 (box bottom) to 30.
-    prims.add_box([20.0, 0, 14.0], [10.0, 20.0, 16.0], yaw_pitch_rotation(0.0), BUILDING, 0, 0.5, (3.0, 3.0, 2.0))
+    prims.add_box(
+        [20.0, 0, 14.0], [10.0, 20.0, 16.0], yaw_pitch_rotation(0.0), BUILDING, 0, 0.5, (3.0, 3.0, 2.0)
+    )
     scene, attributes = prims.build()
     elevations = np.linspace(-10, 30, 200)
     directions = dmlo_rs.lidar_scan_directions(elevations, 2000)
     ranges, primitive, cosines = scene.cast_scan(np.eye(4), elevations, 2000, 120.0)
     front = (directions[:, 0] > 0.95).reshape(ranges.shape)
     points, _ = measure(
-        HDL64E, directions[front.ravel()], ranges[front], primitive[front], cosines[front], attributes,
-        np.random.default_rng(0), np.eye(4),
+        HDL64E,
+        directions[front.ravel()],
+        ranges[front],
+        primitive[front],
+        cosines[front],
+        attributes,
+        np.random.default_rng(0),
+        np.eye(4),
     )
     depth_behind = points[:, 0] - 10.0
     room = depth_behind > 1.0

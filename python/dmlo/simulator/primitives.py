@@ -7,7 +7,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-
 from dmlo_rs import RayScene
 
 # SemanticKITTI class ids used by the simulator.
@@ -72,7 +71,11 @@ class PrimitiveSet:
         return sum(len(v) for v in self._attrs.values())
 
     def add_triangles(
-        self, triangles: npt.NDArray[np.float64], semantic: int, instance: int, albedo: float | npt.NDArray[np.float64]
+        self,
+        triangles: npt.NDArray[np.float64],
+        semantic: int,
+        instance: int,
+        albedo: float | npt.NDArray[np.float64],
     ) -> None:
         """`triangles` (N, 3, 3); `albedo` one value or one per triangle."""
         triangles = np.asarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
@@ -92,7 +95,9 @@ class PrimitiveSet:
         windows: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> None:
         """`windows`: (horizontal spacing, floor height, room depth) of a window grid on the side faces."""
-        row = np.concatenate([np.asarray(center, float), np.asarray(rotation, float).ravel(), np.asarray(half_extents, float)])
+        row = np.concatenate(
+            [np.asarray(center, float), np.asarray(rotation, float).ravel(), np.asarray(half_extents, float)]
+        )
         self._params["boxes"].append(row)
         self._attrs["boxes"].append((semantic, instance, albedo))
         self._windows["boxes"].append(windows)
@@ -107,7 +112,9 @@ class PrimitiveSet:
     def add_ellipsoid(
         self, center: npt.ArrayLike, radii: npt.ArrayLike, semantic: int, instance: int, albedo: float
     ) -> None:
-        self._params["ellipsoids"].append(np.concatenate([np.asarray(center, float), np.asarray(radii, float)]))
+        self._params["ellipsoids"].append(
+            np.concatenate([np.asarray(center, float), np.asarray(radii, float)])
+        )
         self._attrs["ellipsoids"].append((semantic, instance, albedo))
         self._windows["ellipsoids"].append((0.0, 0.0, 0.0))
 
@@ -115,7 +122,11 @@ class PrimitiveSet:
         """Primitive parameter arrays as `RayScene` takes them (None for an empty kind)."""
         shapes = {"triangles": (-1, 3, 3), "boxes": (-1, 15), "cylinders": (-1, 5), "ellipsoids": (-1, 6)}
         return {
-            kind: (np.asarray(self._params[kind], dtype=np.float64).reshape(shapes[kind]) if self._params[kind] else None)
+            kind: (
+                np.asarray(self._params[kind], dtype=np.float64).reshape(shapes[kind])
+                if self._params[kind]
+                else None
+            )
             for kind in _KINDS
         }
 
@@ -126,12 +137,16 @@ class PrimitiveSet:
         counts = {kind: len(self._attrs[kind]) for kind in _KINDS}
         boxes = np.full((len(table), 15), np.nan)
         if counts["boxes"]:
-            boxes[counts["triangles"] : counts["triangles"] + counts["boxes"]] = np.asarray(self._params["boxes"])
+            boxes[counts["triangles"] : counts["triangles"] + counts["boxes"]] = np.asarray(
+                self._params["boxes"]
+            )
         attributes = SceneAttributes(
             semantic=table[:, 0].astype(np.uint32),
             instance=table[:, 1].astype(np.uint32),
             albedo=table[:, 2].astype(np.float32),
-            windows=np.asarray([w for kind in _KINDS for w in self._windows[kind]], dtype=np.float64).reshape(-1, 3),
+            windows=np.asarray([w for kind in _KINDS for w in self._windows[kind]], dtype=np.float64).reshape(
+                -1, 3
+            ),
             boxes=boxes,
         )
         return RayScene(**self.arrays()), attributes

@@ -111,7 +111,9 @@ def measure(
     drop_probability = (
         sensor.dropout_probability + 0.3 * weak + np.where(vegetation, 0.12, 0.0) + np.where(window, 0.5, 0.0)
     )
-    keep = hit & (uniform >= drop_probability) & (measured >= sensor.min_range) & (measured <= sensor.max_range)
+    keep = (
+        hit & (uniform >= drop_probability) & (measured >= sensor.min_range) & (measured <= sensor.max_range)
+    )
 
     points = np.empty((int(keep.sum()), 4), dtype=np.float32)
     points[:, :3] = directions[keep] * measured[keep, None]
@@ -147,7 +149,10 @@ def _window_hits(
     side_face = relative[:, 2] < relative[:, :2].max(1)
     along = np.where(relative[:, 0] >= relative[:, 1], local[:, 1] + half[:, 1], local[:, 0] + half[:, 0])
     height = local[:, 2] + half[:, 2]
-    spacing, floor = attributes.windows[primitive[candidates], 0], attributes.windows[primitive[candidates], 1]
+    spacing, floor = (
+        attributes.windows[primitive[candidates], 0],
+        attributes.windows[primitive[candidates], 1],
+    )
     u = np.mod(along, spacing) / spacing
     v = np.mod(height, floor) / floor
     inside = side_face & (u > 0.25) & (u < 0.75) & (v > 0.4) & (v < 0.85) & (height > floor)

@@ -7,10 +7,10 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import dmlo_rs
 import numpy as np
 import numpy.typing as npt
 
-import dmlo_rs
 from dmlo.simulator.primitives import SceneAttributes
 from dmlo.simulator.scene import StreetScene, generate_street
 from dmlo.simulator.sensor import SENSORS, LidarModel, measure
@@ -28,10 +28,10 @@ from dmlo.simulator.trajectory import (
 
 # Camera matrices of KITTI sequences 00–02, written as placeholders so readers expecting P0..P3 work.
 _KITTI_P = {
-    "P0": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 0.000000000000e+00 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00",
-    "P1": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 -3.861448000000e+02 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00",
-    "P2": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 4.538225000000e+01 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 -1.130887000000e-01 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 3.779761000000e-03",
-    "P3": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 -3.372877000000e+02 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 2.369057000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 4.915215000000e-03",
+    "P0": [718.856, 0.0, 607.1928, 0.0, 0.0, 718.856, 185.2157, 0.0, 0.0, 0.0, 1.0, 0.0],
+    "P1": [718.856, 0.0, 607.1928, -386.1448, 0.0, 718.856, 185.2157, 0.0, 0.0, 0.0, 1.0, 0.0],
+    "P2": [718.856, 0.0, 607.1928, 45.38225, 0.0, 718.856, 185.2157, -0.1130887, 0.0, 0.0, 1.0, 0.003779761],
+    "P3": [718.856, 0.0, 607.1928, -337.2877, 0.0, 718.856, 185.2157, 2.369057, 0.0, 0.0, 1.0, 0.004915215],
 }
 
 
@@ -90,7 +90,8 @@ def simulate_sequence(
         camera_poses = read_kitti_poses(trajectory)
         if start + frames > len(camera_poses):
             raise ValueError(
-                f"trajectory {trajectory} has {len(camera_poses)} poses; start {start} + frames {frames} exceeds it"
+                f"trajectory {trajectory} has {len(camera_poses)} poses; "
+                f"start {start} + frames {frames} exceeds it"
             )
         lidar_poses = orthonormalize(camera_to_lidar_poses(camera_poses[start : start + frames], tr))
     else:
@@ -132,7 +133,13 @@ def simulate_sequence(
             sweep_column_poses(lidar_poses, k, model.azimuth_count) if motion_distortion else lidar_poses[k]
         )
         points, labels, cast_seconds = render_frame(
-            street, static_scene, static_attributes, model, directions, sweep_poses, float(times[k]),
+            street,
+            static_scene,
+            static_attributes,
+            model,
+            directions,
+            sweep_poses,
+            float(times[k]),
             np.random.default_rng([seed, 0x5CA7, k]),
         )
         points.tofile(out / "velodyne" / f"{k:06d}.bin")
@@ -148,7 +155,7 @@ def simulate_sequence(
             f.write(" ".join(f"{v:.12e}" for v in pose[:3, :].ravel()) + "\n")
     with open(out / "calib.txt", "w") as f:
         for name, values in _KITTI_P.items():
-            f.write(f"{name}: {values}\n")
+            f.write(f"{name}: " + " ".join(f"{v:.12e}" for v in values) + "\n")
         f.write("Tr: " + " ".join(f"{v:.12e}" for v in tr[:3, :].ravel()) + "\n")
     with open(out / "times.txt", "w") as f:
         for t in times:
@@ -186,12 +193,16 @@ def render_frame(
     cars at that time. Returns points, labels and the seconds spent ray casting."""
     elevations = model.elevations()
     began = time.perf_counter()
-    ranges, primitive, cosines = static_scene.cast_scan(pose, elevations, model.azimuth_count, model.max_range)
+    ranges, primitive, cosines = static_scene.cast_scan(
+        pose, elevations, model.azimuth_count, model.max_range
+    )
     dynamic = street.dynamic(time_s, pose[..., :2, 3].reshape(-1, 2).mean(0))
     attributes = static_attributes
     if len(dynamic):
         dynamic_scene, dynamic_attributes = dynamic.build()
-        d_ranges, d_primitive, d_cosines = dynamic_scene.cast_scan(pose, elevations, model.azimuth_count, model.max_range)
+        d_ranges, d_primitive, d_cosines = dynamic_scene.cast_scan(
+            pose, elevations, model.azimuth_count, model.max_range
+        )
         closer = d_ranges < ranges
         offset = len(static_scene)
         ranges = np.where(closer, d_ranges, ranges)
