@@ -23,6 +23,9 @@ pub use primitives::{Ellipsoid, OrientedBox, Primitive, Triangle, VerticalCylind
 
 use crate::{Error, Result};
 
+/// Most rays one scan may have (64 × 2083 is 133k).
+pub const MAX_SCAN_RAYS: usize = 20_000_000;
+
 /// The closest surface a ray met.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Hit {
@@ -238,6 +241,16 @@ pub fn scan_directions(elevations_deg: &[f64], azimuth_count: usize) -> Result<V
     }
     if azimuth_count == 0 {
         return Err(Error::invalid("azimuth_count", "must be positive"));
+    }
+    // A guard against typos such as an extra zero or two: a real sensor has well under a million rays.
+    if elevations_deg.len().saturating_mul(azimuth_count) > MAX_SCAN_RAYS {
+        return Err(Error::invalid(
+            "azimuth_count",
+            format!(
+                "{} beams × {azimuth_count} columns exceeds {MAX_SCAN_RAYS} rays",
+                elevations_deg.len()
+            ),
+        ));
     }
     let mut directions = Vec::with_capacity(elevations_deg.len() * azimuth_count);
     for elevation in elevations_deg {

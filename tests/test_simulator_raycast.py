@@ -198,6 +198,10 @@ def test_bad_input_names_the_argument() -> None:
         scene.cast_scan(np.eye(4), np.array([95.0]), 10, 10.0)
     with pytest.raises(ValueError, match="azimuth_count"):
         scene.cast_scan(np.eye(4), np.zeros(3), 0, 10.0)
+    with pytest.raises(ValueError, match="azimuth_count.*exceeds"):
+        scene.cast_scan(np.eye(4), np.zeros(64), 2_000_000, 10.0)
+    with pytest.raises(ValueError, match="pose"):
+        scene.cast_scan(np.tile(np.eye(4), (3, 1, 1)), np.zeros(2), 10, 10.0)  # 3 column poses for 10 columns
     empty = dmlo_rs.RayScene()
     assert len(empty) == 0
     ranges, primitive, _ = empty.cast(np.zeros((1, 3)), np.ones((1, 3)), 10.0)
