@@ -196,13 +196,18 @@ class Odometry:
         watch: _Stopwatch | None = None,
     ) -> PairResult:
         m, r = self.config.matching, self.config.ransac
+        # NMS: the most confident match in every radius-r neighbourhood, top N (§III-D-a). It runs on the
+        # grid before decoding, over the cells that can decode (valid reference range, confidence, target
+        # inside the image on a valid range), so only the N survivors are lifted to 3D.
+        rows, cols = _decodable_cells(ref_range, tgt_range, flow, confidence, m.min_confidence)
+        keep = dmlo_rs.nms(rows, cols, confidence[rows, cols], m.nms_radius, m.max_matches)
+        excluded = np.ones(confidence.shape, dtype=bool)
+        excluded[rows[keep], cols[keep]] = False
         # Network output → 3D pairs (p'_r, p̂_t), sampling D_t at the sub-pixel match (§III-D).
         matches = dmlo_rs.decode_matches(
-            ref_range, tgt_range, flow, confidence, self.cylinder, min_confidence=m.min_confidence
+            ref_range, tgt_range, flow, confidence, self.cylinder, min_confidence=m.min_confidence, mask=excluded
         )
-        # NMS: the most confident match in every radius-r neighbourhood, top N (§III-D-a).
-        keep = dmlo_rs.nms(matches.cells[:, 0], matches.cells[:, 1], matches.confidence, m.nms_radius, m.max_matches)
-        src, dst = matches.source[keep], matches.target[keep]
+        src, dst = matches.source, matches.target
         if watch:
             watch.lap("decode_nms")
         transform, inliers, num_inliers = np.eye(4), np.zeros(len(src), dtype=bool), 0
@@ -220,7 +225,7 @@ class Odometry:
             watch.lap("ransac")
         return PairResult(
             T_tgt_ref=np.asarray(transform, dtype=np.float64),
-            num_candidates=len(matches),
+            num_candidates=len(rows),
             num_matches=len(src),
             num_inliers=int(num_inliers),
             source_points=src,
@@ -289,6 +294,23 @@ class Odometry:
             return pose
         diagnostics.ndt_converged = bool(result.converged)
         return np.asarray(result.transform, dtype=np.float64) if result.converged else pose
+
+
+def _decodable_cells(
+    ref_range: npt.NDArray[np.float32],
+    tgt_range: npt.NDArray[np.float32],
+    flow: npt.NDArray[np.float32],
+    confidence: npt.NDArray[np.float32],
+    min_confidence: float,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    height, width = ref_range.shape
+    rows, cols = np.nonzero((ref_range > 0) & (confidence >= min_confidence) & np.isfinite(flow).all(axis=0))
+    target_rows = np.rint(rows + flow[0, rows, cols]).astype(np.int64)
+    target_cols = np.rint(cols + flow[1, rows, cols]).astype(np.int64)
+    inside = (target_rows >= 0) & (target_rows < height) & (target_cols >= 0) & (target_cols < width)
+    rows, cols = rows[inside], cols[inside]
+    lands_on_range = tgt_range[target_rows[inside], target_cols[inside]] > 0
+    return rows[lands_on_range], cols[lands_on_range]
 
 
 def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
