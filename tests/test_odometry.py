@@ -138,3 +138,17 @@ def test_large_motion_without_a_wide_graph_says_how_to_make_one(scans: list[np.n
     shutil.copy(default_model_path() / "frame.onnx", tmp_path / "frame.onnx")
     with pytest.raises(ModelError, match="no frame_wide.onnx for large motion.*--wide-window 41"):
         Odometry(tmp_path).register_pair(scans[0], scans[1], large_motion=True)
+
+
+def test_real_scans_of_a_standing_car_give_no_motion(shared_data: Path) -> None:
+    from dmlo.datasets import read_bin
+    from dmlo.metrics import registration_errors
+
+    files = sorted((shared_data / "kitti_raw_static").glob("*.bin"))[:4]
+    odometry = Odometry.from_default()
+    poses = np.stack([odometry.register(read_bin(f)) for f in files])
+    assert all(d.fallback is None for d in odometry.diagnostics)
+    motions = np.linalg.inv(poses[1:]) @ poses[:-1]
+    errors = registration_errors(motions, np.broadcast_to(np.eye(4), motions.shape))
+    assert errors.translation_max < 0.02, errors  # the real motion is a few millimetres at most
+    assert errors.angular_max < 0.1, errors
