@@ -23,6 +23,9 @@ pub use primitives::{Ellipsoid, OrientedBox, Primitive, Triangle, VerticalCylind
 
 use crate::{Error, Result};
 
+/// Most rays one scan may have (64 × 2083 is 133k).
+pub const MAX_SCAN_RAYS: usize = 20_000_000;
+
 /// The closest surface a ray met.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Hit {
@@ -166,17 +169,54 @@ impl Scene {
         azimuth_count: usize,
         max_range: f64,
     ) -> Result<Vec<Option<Hit>>> {
+        self.cast_scan_per_column(
+            std::slice::from_ref(pose),
+            elevations_deg,
+            azimuth_count,
+            max_range,
+        )
+    }
+
+    /// [`Scene::cast_scan`] with one pose per azimuth column (`column_poses.len() == azimuth_count`), for a
+    /// sensor that moves while it spins (motion distortion); a single pose is used for every column.
+    pub fn cast_scan_per_column(
+        &self,
+        column_poses: &[Matrix4<f64>],
+        elevations_deg: &[f64],
+        azimuth_count: usize,
+        max_range: f64,
+    ) -> Result<Vec<Option<Hit>>> {
         check_max_range(max_range)?;
-        check_rigid(pose)?;
+        if column_poses.len() != 1 && column_poses.len() != azimuth_count {
+            return Err(Error::invalid(
+                "pose",
+                format!(
+                    "need 1 or azimuth_count = {azimuth_count} poses, got {}",
+                    column_poses.len()
+                ),
+            ));
+        }
+        for pose in column_poses {
+            check_rigid(pose)?;
+        }
         let local = scan_directions(elevations_deg, azimuth_count)?;
-        let rotation = pose.fixed_view::<3, 3>(0, 0).into_owned();
-        let origin = Point3::from(pose.fixed_view::<3, 1>(0, 3).into_owned());
+        let frames: Vec<(nalgebra::Matrix3<f64>, Point3<f64>)> = column_poses
+            .iter()
+            .map(|p| {
+                (
+                    p.fixed_view::<3, 3>(0, 0).into_owned(),
+                    Point3::from(p.fixed_view::<3, 1>(0, 3).into_owned()),
+                )
+            })
+            .collect();
         Ok(local
             .par_iter()
+            .enumerate()
             .with_min_len(256)
-            .map_init(Vec::new, |stack, d| {
+            .map_init(Vec::new, |stack, (i, d)| {
+                let (rotation, origin) = &frames[if frames.len() == 1 { 0 } else { i % azimuth_count }];
                 let world = (rotation * d).normalize();
-                self.cast_ray_with(stack, &origin, &world, max_range)
+                self.cast_ray_with(stack, origin, &world, max_range)
             })
             .collect())
     }
@@ -201,6 +241,16 @@ pub fn scan_directions(elevations_deg: &[f64], azimuth_count: usize) -> Result<V
     }
     if azimuth_count == 0 {
         return Err(Error::invalid("azimuth_count", "must be positive"));
+    }
+    // A guard against typos such as an extra zero or two: a real sensor has well under a million rays.
+    if elevations_deg.len().saturating_mul(azimuth_count) > MAX_SCAN_RAYS {
+        return Err(Error::invalid(
+            "azimuth_count",
+            format!(
+                "{} beams × {azimuth_count} columns exceeds {MAX_SCAN_RAYS} rays",
+                elevations_deg.len()
+            ),
+        ));
     }
     let mut directions = Vec::with_capacity(elevations_deg.len() * azimuth_count);
     for elevation in elevations_deg {

@@ -122,3 +122,33 @@ def test_a_model_whose_input_does_not_fit_its_cylinder_is_refused(tmp_path: Path
     onnx.save(model, str(tmp_path / "frame.onnx"))
     with pytest.raises(ModelError, match=r"network input 64×1792 does not match its cylinder image 64×896"):
         Odometry(tmp_path)
+
+
+def test_large_motion_pair_uses_the_wide_window_graph(scans: list[np.ndarray]) -> None:
+    odometry = Odometry.from_default()
+    result = odometry.register_pair(scans[0], scans[4], large_motion=True)
+    assert result.T_tgt_ref.shape == (4, 4)
+    assert odometry._wide is not None
+    assert odometry._wide.model_config["coarse_window"] > odometry.matcher.model_config["coarse_window"]
+
+
+def test_large_motion_without_a_wide_graph_says_how_to_make_one(scans: list[np.ndarray], tmp_path: Path) -> None:
+    import shutil
+
+    shutil.copy(default_model_path() / "frame.onnx", tmp_path / "frame.onnx")
+    with pytest.raises(ModelError, match="no frame_wide.onnx for large motion.*--wide-window 41"):
+        Odometry(tmp_path).register_pair(scans[0], scans[1], large_motion=True)
+
+
+def test_real_scans_of_a_standing_car_give_no_motion(shared_data: Path) -> None:
+    from dmlo.datasets import read_bin
+    from dmlo.metrics import registration_errors
+
+    files = sorted((shared_data / "kitti_raw_static").glob("*.bin"))[:4]
+    odometry = Odometry.from_default()
+    poses = np.stack([odometry.register(read_bin(f)) for f in files])
+    assert all(d.fallback is None for d in odometry.diagnostics)
+    motions = np.linalg.inv(poses[1:]) @ poses[:-1]
+    errors = registration_errors(motions, np.broadcast_to(np.eye(4), motions.shape))
+    assert errors.translation_max < 0.02, errors  # the real motion is a few millimetres at most
+    assert errors.angular_max < 0.25, errors  # degrees; 0.25° moves a point 10 m away by 4 cm

@@ -95,3 +95,28 @@ def test_user_mistakes_are_one_line(args: list[str], message: str, drive: Path) 
     assert result.returncode == 2
     assert message in result.stderr
     assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_bench_command_compares_with_kiss_icp(drive: Path, tmp_path: Path) -> None:
+    pytest.importorskip("kiss_icp")
+    result = dmlo("bench", str(drive), "--peers", "KISS-ICP", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    table = result.stdout.strip().splitlines()
+    assert table[0].startswith("| method |") and len(table) == 4
+    assert table[2].startswith("| DMLO |") and table[3].startswith("| KISS-ICP |")
+    assert table[3].endswith("| 1.00 | 1.00 |")  # the reference's ratios to itself
+    assert read_kitti_poses(tmp_path / "KISS-ICP.txt").shape == (6, 4, 4)
+
+
+def test_bench_names_an_unknown_peer(drive: Path, tmp_path: Path) -> None:
+    result = dmlo("bench", str(drive), "--peers", "ICP-9000", "--out", str(tmp_path))
+    assert result.returncode == 2
+    assert "unknown peer(s): ICP-9000" in result.stderr
+
+
+def test_demo_simulates_runs_and_reports(tmp_path: Path) -> None:
+    result = dmlo("demo", "--frames", "4", "--seed", "3", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    assert "4 scans in" in result.stdout and "vs ground truth" in result.stdout
+    assert read_kitti_poses(tmp_path / "odometry" / "poses_kitti.txt").shape == (4, 4, 4)
+    assert (tmp_path / "odometry" / "trajectory.png").is_file()

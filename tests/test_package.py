@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import dmlo
 import dmlo_rs
@@ -35,3 +36,14 @@ def test_package_reexports_the_whole_extension() -> None:
 
     assert dmlo_rs.__all__ == _dmlo_rs.__all__
     assert all(getattr(dmlo_rs, name) is getattr(_dmlo_rs, name) for name in dmlo_rs.__all__)
+
+
+def test_the_python_package_type_checks() -> None:
+    # The typed API is part of the product: mypy must accept the whole package as written.
+    package = Path(dmlo.__file__).parent
+    out = subprocess.run(
+        [sys.executable, "-m", "mypy", str(package), "--ignore-missing-imports", "--no-error-summary"],
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 0, out.stdout + out.stderr

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from dmlo.simulator import (
     HDL64E,
     KITTI_TR,
@@ -33,7 +32,9 @@ def _read_scan(folder: Path, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _lidar_poses_from_files(folder: Path) -> np.ndarray:
-    return camera_to_lidar_poses(read_kitti_poses(folder / "poses.txt"), read_kitti_calib_tr(folder / "calib.txt"))
+    return camera_to_lidar_poses(
+        read_kitti_poses(folder / "poses.txt"), read_kitti_calib_tr(folder / "calib.txt")
+    )
 
 
 @pytest.fixture(scope="module")
@@ -124,7 +125,12 @@ def test_measurement_model_noise_and_dropouts() -> None:
     ranges, primitive, cosines = scene.cast_scan(np.eye(4), elevations, 4000, 120.0)
     front = (directions[:, 0] > 0.999).reshape(ranges.shape)
     points, labels = measure(
-        HDL64E, directions[front.ravel()], ranges[front], primitive[front], cosines[front], attributes,
+        HDL64E,
+        directions[front.ravel()],
+        ranges[front],
+        primitive[front],
+        cosines[front],
+        attributes,
         np.random.default_rng(0),
     )
     assert (labels == BUILDING).all()
@@ -215,12 +221,30 @@ def test_same_seed_gives_identical_bytes_even_with_one_thread(tmp_path: Path) ->
     simulate_sequence(first, 2, seed=5, progress=False)
     env = dict(os.environ, RAYON_NUM_THREADS="1")
     subprocess.run(
-        [sys.executable, "-m", "dmlo", "simulate", "--frames", "2", "--seed", "5", "--out", str(second), "--quiet"],
+        [
+            sys.executable,
+            "-m",
+            "dmlo",
+            "simulate",
+            "--frames",
+            "2",
+            "--seed",
+            "5",
+            "--out",
+            str(second),
+            "--quiet",
+        ],
         check=True,
         env=env,
     )
     simulate_sequence(other, 2, seed=6, progress=False)
-    for name in ["velodyne/000000.bin", "velodyne/000001.bin", "labels/000001.label", "poses.txt", "calib.txt"]:
+    for name in [
+        "velodyne/000000.bin",
+        "velodyne/000001.bin",
+        "labels/000001.label",
+        "poses.txt",
+        "calib.txt",
+    ]:
         assert (first / name).read_bytes() == (second / name).read_bytes(), name
     assert (first / "velodyne/000001.bin").read_bytes() != (other / "velodyne/000001.bin").read_bytes()
     assert (first / "poses.txt").read_bytes() != (other / "poses.txt").read_bytes()
@@ -230,7 +254,9 @@ def test_generated_drive_is_kitti_like() -> None:
     poses = generate_drive(1200, seed=4)
     np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-12)
     rotations = poses[:, :3, :3]
-    np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.tile(np.eye(3), (1200, 1, 1)), atol=1e-9)
+    np.testing.assert_allclose(
+        rotations @ rotations.transpose(0, 2, 1), np.tile(np.eye(3), (1200, 1, 1)), atol=1e-9
+    )
     speed = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) * 10.0
     assert speed.max() <= 20.5 and speed.mean() > 3.0
     assert (speed < 0.01).any()  # it stops
@@ -248,7 +274,9 @@ def test_bad_input_is_reported(tmp_path: Path, shared_data: Path) -> None:
     with pytest.raises(FileNotFoundError, match="trajectory"):
         simulate_sequence(tmp_path, 2, seed=1, trajectory=tmp_path / "missing.txt", progress=False)
     with pytest.raises(ValueError, match="exceeds"):
-        simulate_sequence(tmp_path, 2, seed=1, trajectory=shared_data / "kitti_gt_poses" / "04.txt", start=270)
+        simulate_sequence(
+            tmp_path, 2, seed=1, trajectory=shared_data / "kitti_gt_poses" / "04.txt", start=270
+        )
     bad = tmp_path / "bad.txt"
     bad.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0 0 1 0 0 0 0 1\n")
     with pytest.raises(ValueError, match="line 2 has 11 values"):
@@ -258,6 +286,21 @@ def test_bad_input_is_reported(tmp_path: Path, shared_data: Path) -> None:
         read_kitti_poses(bad)
     with pytest.raises(ValueError, match="start"):
         simulate_sequence(tmp_path, 2, seed=1, start=3, progress=False)
+    with pytest.raises(ValueError, match="sensor: unknown preset 'hdl32'"):
+        simulate_sequence(tmp_path, 2, seed=1, sensor="hdl32", progress=False)
+
+
+def test_existing_output_is_refused_or_replaced_without_stale_frames(tmp_path: Path) -> None:
+    simulate_sequence(tmp_path, 3, seed=1, progress=False)
+    simulate_sequence(tmp_path, 2, seed=1, progress=False)  # a previous simulation is simply replaced
+    assert sorted(p.name for p in (tmp_path / "velodyne").iterdir()) == ["000000.bin", "000001.bin"]
+    assert sorted(p.name for p in (tmp_path / "labels").iterdir()) == ["000000.label", "000001.label"]
+    (tmp_path / "simulation.json").unlink()  # now it looks like somebody's real recording
+    with pytest.raises(ValueError, match="not written by the simulator"):
+        simulate_sequence(tmp_path, 2, seed=1, progress=False)
+    assert (tmp_path / "velodyne" / "000001.bin").is_file()
+    simulate_sequence(tmp_path, 2, seed=1, progress=False, overwrite=True)
+    assert len(read_kitti_poses(tmp_path / "poses.txt")) == 2
 
 
 def test_command_line(tmp_path: Path) -> None:
@@ -266,3 +309,87 @@ def test_command_line(tmp_path: Path) -> None:
     assert main(["simulate", "--frames", "1", "--seed", "2", "--out", str(tmp_path / "seq"), "--quiet"]) == 0
     assert (tmp_path / "seq" / "velodyne" / "000000.bin").stat().st_size > 1_000_000
     assert main(["simulate", "--frames", "0", "--out", str(tmp_path / "x"), "--quiet"]) == 2
+
+
+def test_sweep_column_poses_interpolate_the_frame_motion() -> None:
+    from dmlo.simulator.primitives import yaw_pitch_rotation
+    from dmlo.simulator.trajectory import sweep_column_poses
+
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    for k in range(3):
+        poses[k, :3, :3] = yaw_pitch_rotation(0.1 * k)
+        poses[k, :3, 3] = [2.0 * k, 0.3 * k, 0.0]
+    columns = sweep_column_poses(poses, 1, 100)
+    assert columns.shape == (100, 4, 4)
+    np.testing.assert_allclose(columns[50], poses[1], atol=1e-12)
+    yaw = np.unwrap(np.arctan2(columns[:, 1, 0], columns[:, 0, 0]))
+    np.testing.assert_allclose(yaw, 0.1 + 0.1 * (np.arange(100) - 50) / 100, atol=1e-12)
+    motion = np.linalg.inv(poses[1]) @ poses[2]
+    np.testing.assert_allclose(
+        columns[0, :3, 3], poses[1, :3, 3] - 0.5 * poses[1, :3, :3] @ motion[:3, 3], atol=1e-12
+    )
+    # The last frame extrapolates with the previous motion.
+    np.testing.assert_allclose(sweep_column_poses(poses, 2, 100)[50], poses[2], atol=1e-12)
+
+
+def test_motion_distortion_skews_the_rear_but_not_the_front(tmp_path: Path, shared_data: Path) -> None:
+    from scipy.spatial import cKDTree
+
+    trajectory = shared_data / "kitti_gt_poses" / "00.txt"
+    simulate_sequence(tmp_path / "still", 2, seed=3, trajectory=trajectory, start=300, progress=False)
+    simulate_sequence(
+        tmp_path / "skewed",
+        2,
+        seed=3,
+        trajectory=trajectory,
+        start=300,
+        progress=False,
+        motion_distortion=True,
+    )
+    still, _ = _read_scan(tmp_path / "still", 0)
+    skewed, _ = _read_scan(tmp_path / "skewed", 0)
+
+    def sector(points: np.ndarray, center_deg: float) -> np.ndarray:
+        azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+        gap = np.abs((azimuth - center_deg + 180.0) % 360.0 - 180.0)
+        return points[(gap < 3.0) & (points[:, 2] > -1.0), :3]  # above the ground: vertical structure
+
+    front = cKDTree(sector(still, 0.0)).query(sector(skewed, 0.0))[0]
+    rear = cKDTree(sector(still, 180.0)).query(sector(skewed, 180.0))[0]
+    assert np.median(front) < 0.05
+    assert np.median(rear) > 0.15  # ~0.8 m a frame: the rear columns fire half a frame before or after
+
+
+def test_facade_windows_return_from_the_room_behind() -> None:
+    """A facade with a window grid: window rays drop or return `depth` behind the facade, darker."""
+    import dmlo_rs
+    from dmlo.simulator.primitives import BUILDING, PrimitiveSet, yaw_pitch_rotation
+    from dmlo.simulator.sensor import measure
+
+    prims = PrimitiveSet()
+    # Facade plane x = 10 (box 10..30 deep), 40 m wide, from z = -2 (box bottom) to 30.
+    prims.add_box(
+        [20.0, 0, 14.0], [10.0, 20.0, 16.0], yaw_pitch_rotation(0.0), BUILDING, 0, 0.5, (3.0, 3.0, 2.0)
+    )
+    scene, attributes = prims.build()
+    elevations = np.linspace(-10, 30, 200)
+    directions = dmlo_rs.lidar_scan_directions(elevations, 2000)
+    ranges, primitive, cosines = scene.cast_scan(np.eye(4), elevations, 2000, 120.0)
+    front = (directions[:, 0] > 0.95).reshape(ranges.shape)
+    points, _ = measure(
+        HDL64E,
+        directions[front.ravel()],
+        ranges[front],
+        primitive[front],
+        cosines[front],
+        attributes,
+        np.random.default_rng(0),
+        np.eye(4),
+    )
+    depth_behind = points[:, 0] - 10.0
+    room = depth_behind > 1.0
+    assert 0.01 < room.mean() < 0.3
+    np.testing.assert_allclose(np.median(depth_behind[room]), 2.0, atol=0.05)
+    assert np.median(points[room, 3]) < 0.5 * np.median(points[~room, 3])
+    # Windows sit on the grid: none in the lowest floor band (height above the box bottom < 3 m).
+    assert (points[room, 2] + 2.0 > 3.0).all()

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
+import dmlo_rs
 import numpy as np
 import pytest
-
-import dmlo_rs
 
 RNG = np.random.default_rng(1234)
 
@@ -23,9 +22,9 @@ def _random_rays(
 def test_sphere_matches_quadratic_roots() -> None:
     center, radius = np.array([6.0, -1.0, 0.5]), 2.5
     origins, directions = _random_rays(4000, tuple(center))
-    ranges, primitive, cosines = dmlo_rs.RayScene(ellipsoids=np.array([[*center, radius, radius, radius]])).cast(
-        origins, directions, 100.0
-    )
+    ranges, primitive, cosines = dmlo_rs.RayScene(
+        ellipsoids=np.array([[*center, radius, radius, radius]])
+    ).cast(origins, directions, 100.0)
     oc = origins - center
     b = np.einsum("ij,ij->i", oc, directions)
     disc = b**2 - (np.einsum("ij,ij->i", oc, oc) - radius**2)
@@ -37,12 +36,16 @@ def test_sphere_matches_quadratic_roots() -> None:
     np.testing.assert_allclose(ranges[hit], expected[hit], atol=1e-9)
     assert (primitive[hit] == 0).all() and (primitive[~hit] == -1).all()
     normals = (origins[hit] + ranges[hit, None] * directions[hit] - center) / radius
-    np.testing.assert_allclose(cosines[hit], np.abs(np.einsum("ij,ij->i", normals, directions[hit])), atol=1e-6)
+    np.testing.assert_allclose(
+        cosines[hit], np.abs(np.einsum("ij,ij->i", normals, directions[hit])), atol=1e-6
+    )
 
 
 def test_ground_plane_of_two_triangles() -> None:
     z0 = -1.73
-    square = np.array([[[-50, -50, z0], [50, -50, z0], [50, 50, z0]], [[-50, -50, z0], [50, 50, z0], [-50, 50, z0]]], float)
+    square = np.array(
+        [[[-50, -50, z0], [50, -50, z0], [50, 50, z0]], [[-50, -50, z0], [50, 50, z0], [-50, 50, z0]]], float
+    )
     origins, directions = _random_rays(4000)
     ranges, _, cosines = dmlo_rs.RayScene(triangles=square).cast(origins, directions, 200.0)
     t = (z0 - origins[:, 2]) / directions[:, 2]
@@ -56,7 +59,14 @@ def test_ground_plane_of_two_triangles() -> None:
 
 
 def _rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    cz, sz, cy, sy, cx, sx = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    cz, sz, cy, sy, cx, sx = (
+        np.cos(yaw),
+        np.sin(yaw),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(roll),
+        np.sin(roll),
+    )
     rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
     ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
     rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
@@ -85,7 +95,9 @@ def test_oriented_box_matches_slab_method() -> None:
 def test_vertical_cylinder_side_and_caps() -> None:
     base, height, radius = np.array([5.0, 0.0, -2.0]), 4.0, 0.8
     origins, directions = _random_rays(6000, (5.0, 0.0, 0.0))
-    ranges, _, _ = dmlo_rs.RayScene(cylinders=np.array([[*base, height, radius]])).cast(origins, directions, 100.0)
+    ranges, _, _ = dmlo_rs.RayScene(cylinders=np.array([[*base, height, radius]])).cast(
+        origins, directions, 100.0
+    )
     o = origins - base
     a = directions[:, 0] ** 2 + directions[:, 1] ** 2
     b = o[:, 0] * directions[:, 0] + o[:, 1] * directions[:, 1]
@@ -107,7 +119,8 @@ def test_vertical_cylinder_side_and_caps() -> None:
 
 
 def test_closest_of_many_primitives_and_numbering() -> None:
-    # A wall of boxes behind a sphere behind a pole: primitive numbers follow triangles, boxes, cylinders, ellipsoids.
+    # A triangle behind a box behind a sphere behind a pole; primitives are numbered triangles, boxes,
+    # cylinders, ellipsoids.
     triangles = np.array([[[30, -5, -5], [30, 5, -5], [30, 0, 5]]], float)
     boxes = np.concatenate([[20.0, 0, 0], np.eye(3).ravel(), [0.5, 5, 2]])[None]
     cylinders = np.array([[5.0, 0.0, -1.0, 2.0, 0.2]])
@@ -121,7 +134,9 @@ def test_closest_of_many_primitives_and_numbering() -> None:
     np.testing.assert_array_equal(primitive, [2, 1, 0, -1])
     np.testing.assert_allclose(ranges[:3], [4.8, 19.5, 30.0])
     ranges, primitive, _ = scene.cast(np.array([[0, 0.5, 0.0]]), np.array([[1.0, 0, 0]]), 100.0)
-    assert primitive[0] == 3 and ranges[0] == pytest.approx(10.0 - np.sqrt(0.75))  # over the pole, into the sphere
+    assert primitive[0] == 3 and ranges[0] == pytest.approx(
+        10.0 - np.sqrt(0.75)
+    )  # over the pole, into the sphere
     ranges, primitive, _ = scene.cast(np.array([[0, 1.0, 4.5]]), np.array([[1.0, 0, 0]]), 100.0)
     assert primitive[0] == -1  # the triangle is narrower than 4.5 m up there
     ranges, primitive, _ = scene.cast(np.array([[0, 0, 0.0]]), np.array([[1.0, 0, 0]]), 4.0)
@@ -130,7 +145,9 @@ def test_closest_of_many_primitives_and_numbering() -> None:
 
 def test_cast_scan_agrees_with_cast_along_the_scan_directions() -> None:
     rng = np.random.default_rng(5)
-    ellipsoids = np.column_stack([rng.uniform(-30, 30, (200, 3)) * [1, 1, 0.1], rng.uniform(0.3, 2, (200, 3))])
+    ellipsoids = np.column_stack(
+        [rng.uniform(-30, 30, (200, 3)) * [1, 1, 0.1], rng.uniform(0.3, 2, (200, 3))]
+    )
     scene = dmlo_rs.RayScene(ellipsoids=ellipsoids)
     pose = np.eye(4)
     pose[:3, :3] = _rotation(0.7, 0.05, -0.02)
@@ -141,7 +158,9 @@ def test_cast_scan_agrees_with_cast_along_the_scan_directions() -> None:
     local = dmlo_rs.lidar_scan_directions(elevations, 500)
     assert local.shape == (2000, 3)
     np.testing.assert_allclose(np.linalg.norm(local, axis=1), 1.0)
-    np.testing.assert_allclose(np.degrees(np.arcsin(local[:, 2])).reshape(4, 500), np.repeat(elevations[:, None], 500, 1))
+    np.testing.assert_allclose(
+        np.degrees(np.arcsin(local[:, 2])).reshape(4, 500), np.repeat(elevations[:, None], 500, 1)
+    )
     world = local @ pose[:3, :3].T
     expected, expected_primitive, _ = scene.cast(np.tile(pose[:3, 3], (2000, 1)), world, 80.0)
     np.testing.assert_array_equal(primitive.ravel(), expected_primitive)
@@ -179,6 +198,10 @@ def test_bad_input_names_the_argument() -> None:
         scene.cast_scan(np.eye(4), np.array([95.0]), 10, 10.0)
     with pytest.raises(ValueError, match="azimuth_count"):
         scene.cast_scan(np.eye(4), np.zeros(3), 0, 10.0)
+    with pytest.raises(ValueError, match="azimuth_count.*exceeds"):
+        scene.cast_scan(np.eye(4), np.zeros(64), 2_000_000, 10.0)
+    with pytest.raises(ValueError, match="pose"):
+        scene.cast_scan(np.tile(np.eye(4), (3, 1, 1)), np.zeros(2), 10, 10.0)  # 3 column poses for 10 columns
     empty = dmlo_rs.RayScene()
     assert len(empty) == 0
     ranges, primitive, _ = empty.cast(np.zeros((1, 3)), np.ones((1, 3)), 10.0)

@@ -3,7 +3,9 @@
 
 use nalgebra::{Matrix3, Matrix4, Point3, Vector3};
 use numpy::ndarray::{Array1, Array2, ArrayView2};
-use numpy::{IntoPyArray, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3};
+use numpy::{
+    IntoPyArray, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3, PyReadonlyArrayDyn,
+};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
@@ -145,28 +147,35 @@ impl RayScene {
         ))
     }
 
-    /// One LiDAR revolution from `pose` (4×4 float64 `T_world_lidar`): rays of elevation
+    /// One LiDAR revolution from `pose` (4×4 float64 `T_world_lidar`, or (azimuth_count,4,4) with one pose
+    /// per column for a sensor moving during the sweep): rays of elevation
     /// `elevations_deg[i]` (row i) and azimuth `180° − 360°·j/azimuth_count` (column j) in the LiDAR frame.
     /// Returns `(ranges float64 (H,W), primitive int64 (H,W), cos_incidence float32 (H,W))`, misses as in `cast`.
     fn cast_scan<'py>(
         &self,
         py: Python<'py>,
-        pose: PyReadonlyArray2<'py, f64>,
+        pose: PyReadonlyArrayDyn<'py, f64>,
         elevations_deg: PyReadonlyArray1<'py, f64>,
         azimuth_count: usize,
         max_range: f64,
     ) -> PyResult<CastResult<'py, numpy::Ix2>> {
         let p = pose.as_array();
-        if p.shape() != [4, 4] {
-            return Err(value_error(
-                "pose",
-                format!("expected shape (4, 4), got {:?}", p.shape()),
-            ));
-        }
-        let pose = Matrix4::from_fn(|r, c| p[[r, c]]);
+        let poses: Vec<Matrix4<f64>> = match p.shape() {
+            [4, 4] => vec![Matrix4::from_fn(|r, c| p[[r, c]])],
+            [n, 4, 4] => (0..*n).map(|k| Matrix4::from_fn(|r, c| p[[k, r, c]])).collect(),
+            shape => {
+                return Err(value_error(
+                    "pose",
+                    format!("expected shape (4, 4) or (azimuth_count, 4, 4), got {shape:?}"),
+                ));
+            }
+        };
         let elevations: Vec<f64> = elevations_deg.as_array().iter().copied().collect();
         let rows = elevations.len();
-        let hits = py.detach(|| self.scene.cast_scan(&pose, &elevations, azimuth_count, max_range))?;
+        let hits = py.detach(|| {
+            self.scene
+                .cast_scan_per_column(&poses, &elevations, azimuth_count, max_range)
+        })?;
         let (ranges, primitives, cosines) = unzip_hits(&hits);
         let shape = (rows, azimuth_count);
         let reshape = |e: numpy::ndarray::ShapeError| value_error("azimuth_count", e);

@@ -268,3 +268,34 @@ fn bad_input_is_reported() {
         vec![None]
     );
 }
+
+#[test]
+fn per_column_poses_move_each_column() {
+    let wall = Primitive::Box(OrientedBox {
+        center: Point3::new(20.5, 0.0, 0.0),
+        rotation: Matrix3::identity(),
+        half_extents: Vector3::new(0.5, 100.0, 100.0),
+    });
+    let scene = Scene::new(vec![wall]).unwrap();
+    let columns = 8;
+    let poses: Vec<Matrix4<f64>> = (0..columns)
+        .map(|j| {
+            let mut p = Matrix4::identity();
+            p[(0, 3)] = j as f64; // the sensor advances 1 m per column
+            p
+        })
+        .collect();
+    let moving = scene
+        .cast_scan_per_column(&poses, &[0.0], columns, 100.0)
+        .unwrap();
+    // Column 4 looks straight ahead (azimuth 0) from x = 4.
+    assert_relative_eq!(moving[4].unwrap().range, 16.0, epsilon = 1e-9);
+    let still = scene
+        .cast_scan_per_column(&poses[..1], &[0.0], columns, 100.0)
+        .unwrap();
+    assert_eq!(still, scene.cast_scan(&poses[0], &[0.0], columns, 100.0).unwrap());
+    assert_relative_eq!(still[4].unwrap().range, 20.0, epsilon = 1e-9);
+    assert!(scene
+        .cast_scan_per_column(&poses[..3], &[0.0], columns, 100.0)
+        .is_err());
+}

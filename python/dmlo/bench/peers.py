@@ -117,7 +117,7 @@ def fpfh_ransac_align(target: np.ndarray, source: np.ndarray, voxel: float = 0.5
     reg = o3d.pipelines.registration
     clouds = [_open3d_cloud(xyz, voxel, normals=True) for xyz in (source, target)]
     features = [
-        reg.compute_fpfh_feature(c, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
+        reg.compute_fpfh_feature(c, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))  # type: ignore[call-arg]
         for c in clouds
     ]
     result = reg.registration_ransac_based_on_feature_matching(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,23 +18,36 @@ from dmlo.poses import write_kitti_poses
 REFERENCE_PEER = "KISS-ICP"
 
 
+class UnknownPeerError(ValueError):
+    """A peer name that `dmlo bench` does not know."""
+
+
 @dataclass
 class BenchRow:
     method: str
     hz: float
     metrics: dict[str, Any]
-    error: str | None = None
 
 
 def benchmark_sequence(
     sequence: ScanSequence,
-    dmlo_odometry: FrameOdometry,
+    dmlo_variants: Mapping[str, Callable[[], FrameOdometry]],
     out_dir: Path,
     peers: list[str] | None = None,
     max_frames: int | None = None,
 ) -> list[BenchRow]:
-    """Every method sees the same scans (read once, before any timing) and starts from identity."""
+    """Every method sees the same scans (read once, before any timing) and starts from identity.
+
+    `dmlo_variants` maps a row name to a factory of a DMLO odometry (e.g. with and without mapping).
+    """
     from dmlo.metrics import evaluate_trajectory
+
+    methods: list[tuple[str, Callable[[], FrameOdometry]]] = list(dmlo_variants.items())
+    wanted = set(peers) if peers is not None else {p.name for p in PEERS} - {"Open3D FPFH+RANSAC"}
+    unknown = wanted - {p.name for p in PEERS}
+    if unknown:
+        raise UnknownPeerError(f"unknown peer(s): {', '.join(sorted(unknown))}; known: {', '.join(p.name for p in PEERS)}")
+    methods += [(p.name, p.make) for p in PEERS if p.name in wanted and p.available]
 
     total = len(sequence) if max_frames is None else min(max_frames, len(sequence))
     scans = [sequence[i].points for i in tqdm(range(total), desc="reading", unit="scan")]
@@ -42,13 +56,6 @@ def benchmark_sequence(
     ground_truth = np.linalg.inv(ground_truth[0]) @ ground_truth[:total]
     out_dir.mkdir(parents=True, exist_ok=True)
     write_kitti_poses(out_dir / "ground_truth.txt", ground_truth)
-
-    methods: list[tuple[str, Any]] = [("DMLO", lambda: dmlo_odometry)]
-    wanted = set(peers) if peers is not None else {p.name for p in PEERS} - {"Open3D FPFH+RANSAC"}
-    unknown = wanted - {p.name for p in PEERS}
-    if unknown:
-        raise ValueError(f"unknown peer(s): {', '.join(sorted(unknown))}; known: {', '.join(p.name for p in PEERS)}")
-    methods += [(p.name, p.make) for p in PEERS if p.name in wanted and p.available]
 
     rows = []
     for name, make in methods:

@@ -34,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dmlo.bench.runner import benchmark_sequence, format_table
+    from dmlo.bench.runner import UnknownPeerError, benchmark_sequence, format_table
     from dmlo.cli import UserError
     from dmlo.commands.run import build_odometry
     from dmlo.datasets import DatasetError, open_sequence
@@ -45,7 +45,12 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(err)) from err
     if sequence.poses is None:
         raise UserError(f"{args.path} has no ground-truth poses to compare against")
-    rows = benchmark_sequence(sequence, build_odometry(args), args.out, peers=args.peers,
-                              max_frames=args.max_frames)
+    variants = {"DMLO": lambda: build_odometry(args, mapping=False)}
+    if args.mapping:
+        variants["DMLO + mapping"] = lambda: build_odometry(args, mapping=True)
+    try:
+        rows = benchmark_sequence(sequence, variants, args.out, peers=args.peers, max_frames=args.max_frames)
+    except UnknownPeerError as err:
+        raise UserError(str(err)) from err
     print(format_table(rows))
     return 0

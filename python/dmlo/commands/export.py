@@ -9,7 +9,7 @@ from typing import Any
 
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
-        "export", help="export a trained matcher to ONNX", description=__doc__,
+        "export", help="Export a trained matcher to ONNX for onnxruntime.", description=__doc__,
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("checkpoint", help="a checkpoint (.pt) or a run folder (uses best.pt, else last.pt)")
@@ -17,6 +17,11 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--height", type=int, default=None, help="input rows (default: the cylinder config's)")
     parser.add_argument("--width", type=int, default=None, help="input columns (default: the cylinder config's)")
     parser.add_argument("--graphs", nargs="+", default=["frame", "encoder", "match"], choices=["frame", "encoder", "match"])
+    parser.add_argument(
+        "--wide-window", type=int, default=0, metavar="D",
+        help="also write frame_wide.onnx: the same weights with an odd coarse window D for large motion "
+        "(the paper uses D = 40 at inference; 41 here); 0 = none",
+    )
     parser.set_defaults(run=run)
 
 
@@ -44,6 +49,21 @@ def resolve_checkpoint(path: Path) -> Path:
     return path
 
 
+def export_wide_frame(model: Any, out: Path, window: int, size: tuple[int, int], cylinder: Any) -> Path:
+    """`frame_wide.onnx`: the trained weights with a wider coarse window (§IV-D, no fine-tuning)."""
+    import dataclasses
+    import tempfile
+
+    from dmlo.export import export_onnx
+    from dmlo.model import Matcher
+
+    wide = Matcher(dataclasses.replace(model.config, coarse_window=window))
+    wide.load_state_dict(model.state_dict())
+    with tempfile.TemporaryDirectory(dir=out) as scratch:
+        exported = export_onnx(wide, scratch, *size, cylinder, ("frame",))["frame"]
+        return exported.replace(out / "frame_wide.onnx")
+
+
 def run(args: argparse.Namespace) -> int:
     from dmlo.cli import UserError
 
@@ -54,7 +74,10 @@ def run(args: argparse.Namespace) -> int:
         checkpoint = resolve_checkpoint(Path(args.checkpoint))
         cylinder, height, width = default_cylinder()
         model = load_model(checkpoint)
-        paths = export_onnx(model, args.out, args.height or height, args.width or width, cylinder, tuple(args.graphs))
+        size = (args.height or height, args.width or width)
+        paths = export_onnx(model, args.out, *size, cylinder, tuple(args.graphs))
+        if args.wide_window:
+            paths["frame_wide"] = export_wide_frame(model, Path(args.out), args.wide_window, size, cylinder)
     except (ValueError, FileNotFoundError, KeyError) as err:
         raise UserError(str(err)) from err
     for name, path in paths.items():

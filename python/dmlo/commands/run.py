@@ -38,10 +38,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def add_odometry_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", type=Path, default=None, help="ONNX model (default: the bundled model)")
     parser.add_argument("--config", type=Path, default=None, help="odometry config JSON (see config.json of a run)")
-    parser.add_argument("--mapping", action="store_true", help="refine every pose by scan-to-map NDT")
+    parser.add_argument("--mapping", action="store_true",
+                        help="refine every pose by scan-to-map NDT (bench: add a DMLO + mapping row)")
 
 
-def build_odometry(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # type: ignore[no-untyped-def]
+    """The odometry the arguments ask for; `mapping` overrides `--mapping`."""
     from dmlo.odometry import Odometry, OdometryConfig
     from dmlo.odometry.matcher import ModelError, default_model_path
 
@@ -49,7 +51,7 @@ def build_odometry(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         config = OdometryConfig.load(args.config) if args.config else OdometryConfig()
     except (OSError, ValueError) as err:
         raise UserError(f"cannot read config {args.config}: {err}") from err
-    if args.mapping:
+    if args.mapping if mapping is None else mapping:
         config.mapping.enabled = True
     model = args.model or default_model_path()
     try:

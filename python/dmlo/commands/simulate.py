@@ -12,7 +12,8 @@ def register(subparsers: Any) -> None:
         help="simulate a LiDAR drive through a procedural street and write it in KITTI layout",
         description=(
             "Simulates an HDL-64E-like LiDAR driving through a procedural street (buildings, poles, trees, "
-            "parked and moving cars) and writes OUT/velodyne/*.bin, OUT/labels/*.label (SemanticKITTI, moving "
+            "parked and moving cars) and writes OUT/velodyne/*.bin, OUT/labels/*.label (SemanticKITTI, "
+            "moving "
             "cars 252), poses.txt (camera frame), calib.txt, times.txt and simulation.json. The same "
             "arguments always give identical files."
         ),
@@ -25,7 +26,19 @@ def register(subparsers: Any) -> None:
         help="KITTI camera-frame pose file to drive along (12 floats a line); default: a generated drive",
     )
     parser.add_argument("--start", type=int, default=0, help="first pose of --trajectory to use (default 0)")
-    parser.add_argument("--calib", help="KITTI calib.txt whose Tr converts --trajectory (default: KITTI 00-02 Tr)")
+    parser.add_argument(
+        "--calib", help="KITTI calib.txt whose Tr converts --trajectory (default: KITTI 00-02 Tr)"
+    )
+    parser.add_argument(
+        "--motion-distortion",
+        action="store_true",
+        help="the sensor moves while it spins (raw-KITTI-like skew); default: instantaneous sweeps",
+    )
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace scans in OUT even if the simulator did not write them",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     parser.set_defaults(run=run)
 
@@ -43,6 +56,8 @@ def run(args: argparse.Namespace) -> int:
             start=args.start,
             calib=args.calib,
             progress=not args.quiet,
+            motion_distortion=args.motion_distortion,
+            overwrite=args.overwrite,
         )
     except (ValueError, FileNotFoundError) as err:
         raise UserError(str(err)) from None
@@ -53,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
         frame_ms = 1000 * sum(result.frame_seconds) / frames
         print(
             f"wrote {frames} scans to {result.out_dir} ({mean_points:.0f} points a scan; ray casting "
-            f"{cast_ms:.0f} ms, whole frame {frame_ms:.0f} ms; scene of {result.static_primitives} primitives "
+            f"{cast_ms:.0f} ms, whole frame {frame_ms:.0f} ms; "
+            f"scene of {result.static_primitives} primitives "
             f"built in {result.scene_seconds:.2f} s)"
         )
     return 0

@@ -51,3 +51,25 @@ def window_correlation(ref: Tensor, tgt: Tensor, origin: Tensor, window: int) ->
     # A batched MatMul: in onnxruntime ~40 % faster than a broadcast Mul + ReduceSum over channels.
     similarity = torch.matmul(windows, ref_rows).view(batch, height * width, window * window)
     return similarity.permute(0, 2, 1).reshape(batch, window * window, height, width)
+
+
+def local_correlation(ref: Tensor, tgt: Tensor, window: int) -> Tensor:
+    """`window_correlation` with origin 0, computed without any gather (the coarse stage).
+
+    For each of the D row displacements one MatMul gives the similarity of every reference cell with every
+    cell of the displaced target row, (B, H, W, W + 2r); the D column displacements are the band around its
+    diagonal, read by a skew: padding each flattened row by W and viewing it with rows of W + 2r + 1 puts
+    target column j + t − r of reference column j at (j, t). Only reshapes and slices, no gather: ~10× less
+    memory traffic than gathering D² feature rows per cell.
+    """
+    batch, channels, height, width = ref.shape
+    radius = window // 2
+    padded_width = width + 2 * radius
+    ref_rows = ref.permute(0, 2, 3, 1)  # (B, H, W, C)
+    tgt_rows = F.pad(tgt, (radius, radius, radius, radius)).permute(0, 2, 1, 3)  # (B, H + 2r, C, W + 2r)
+    bands = []
+    for row_step in range(window):
+        similarity = torch.matmul(ref_rows, tgt_rows[:, row_step : row_step + height])  # (B, H, W, W + 2r)
+        skewed = F.pad(similarity.reshape(batch, height, width * padded_width), (0, width))
+        bands.append(skewed.view(batch, height, width, padded_width + 1)[..., :window])  # (B, H, W, D)
+    return torch.stack(bands, dim=1).permute(0, 1, 4, 2, 3).reshape(batch, window * window, height, width)

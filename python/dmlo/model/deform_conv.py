@@ -86,9 +86,10 @@ class DeformConv2d(nn.Module):
     def __init__(self, in_channels: int, out_channels: int) -> None:
         super().__init__()
         self.offset = nn.Conv2d(in_channels, 2 * TAPS, KERNEL, padding=1)
+        conv = nn.Conv2d(in_channels, out_channels, KERNEL, padding=1)
+        assert self.offset.bias is not None and conv.bias is not None  # both built with bias=True
         nn.init.zeros_(self.offset.weight)
         nn.init.zeros_(self.offset.bias)
-        conv = nn.Conv2d(in_channels, out_channels, KERNEL, padding=1)
         self.weight = conv.weight
         self.bias = conv.bias
 

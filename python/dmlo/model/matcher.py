@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from dmlo.model.config import MatcherConfig
-from dmlo.model.correlation import clamp_origin, window_correlation
+from dmlo.model.correlation import clamp_origin, local_correlation, window_correlation
 from dmlo.model.features import CoarseEncoder, RefineEncoder
 from dmlo.model.loss import window_cross_entropy
 from dmlo.model.window import decode_window
@@ -92,8 +92,7 @@ class Matcher(nn.Module):
     def match(self, ref: Features, tgt: Features) -> MatchOutput:
         config = self.config
         coarse_window, refine_window = config.coarse_window, config.refine_window
-        coarse_origin = torch.zeros_like(ref.coarse[:, :2])
-        coarse_logits = window_correlation(ref.coarse, tgt.coarse, coarse_origin, coarse_window)
+        coarse_logits = local_correlation(ref.coarse, tgt.coarse, coarse_window)  # origin 0
         coarse_logits = coarse_logits * self.coarse_log_scale.exp()
         coarse = decode_window(coarse_logits, coarse_window)
 

@@ -19,6 +19,7 @@ import numpy.typing as npt
 import dmlo_rs
 
 FRAME_GRAPH = "frame.onnx"
+WIDE_FRAME_GRAPH = "frame_wide.onnx"  # the same weights with the wide coarse window of §IV-D
 INTERFACE_VERSION = "1"
 _CYLINDER_KEYS = (
     "fov_up_deg",
@@ -50,6 +51,7 @@ class FrameOutput:
 
 
 class Matcher(Protocol):
+    path: Path
     cylinder: dmlo_rs.CylinderConfig
 
     def frame(self, image: npt.NDArray[np.float32], previous: Features | None) -> FrameOutput: ...
@@ -58,6 +60,17 @@ class Matcher(Protocol):
 def default_model_path() -> Path:
     """The bundled default model: a folder with `frame.onnx` inside the installed package."""
     return Path(__file__).resolve().parent.parent / "models" / "default"
+
+
+def wide_graph_path(frame_graph: Path) -> Path:
+    """The large-motion graph stored beside a model's `frame.onnx`."""
+    wide = frame_graph.with_name(WIDE_FRAME_GRAPH)
+    if not wide.is_file():
+        raise ModelError(
+            f"{frame_graph.parent} has no {WIDE_FRAME_GRAPH} for large motion; export one from the "
+            "checkpoint with `dmlo export CHECKPOINT --out DIR --wide-window 41`"
+        )
+    return wide
 
 
 class OnnxMatcher:
@@ -70,6 +83,8 @@ class OnnxMatcher:
         if not graph.is_file():
             raise ModelError(f"model not found: {graph}")
         options = ort.SessionOptions()
+        # Idle worker threads would spin between frames and steal the cores from projection and RANSAC.
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         if threads > 0:
             options.intra_op_num_threads = threads
         providers = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]

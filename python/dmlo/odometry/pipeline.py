@@ -16,7 +16,14 @@ import numpy.typing as npt
 
 import dmlo_rs
 from dmlo.odometry.config import OdometryConfig
-from dmlo.odometry.matcher import Features, FrameOutput, Matcher, OnnxMatcher, default_model_path
+from dmlo.odometry.matcher import (
+    Features,
+    FrameOutput,
+    Matcher,
+    OnnxMatcher,
+    default_model_path,
+    wide_graph_path,
+)
 
 Matrix4 = npt.NDArray[np.float64]
 
@@ -102,6 +109,7 @@ class Odometry:
         self._reference_index = -1
         self._velocity = np.eye(4)  # T_tgt_ref per frame, for the constant-velocity model
         self._map = self._make_map() if self.config.mapping.enabled else None
+        self._wide: Matcher | None = None  # loaded on the first large-motion pair
 
     @classmethod
     def from_default(cls, config: OdometryConfig | None = None) -> Odometry:
@@ -152,14 +160,26 @@ class Odometry:
         """Records a scan that could not be read: its pose comes from the motion model."""
         return self._skip(FrameDiagnostics(index=len(self.poses), num_points=0), reason)
 
-    def register_pair(self, reference: npt.ArrayLike, target: npt.ArrayLike) -> PairResult:
-        """The motion `T_tgt_ref` between two scans, with no motion model, map or initial guess."""
+    def register_pair(
+        self, reference: npt.ArrayLike, target: npt.ArrayLike, large_motion: bool = False
+    ) -> PairResult:
+        """The motion `T_tgt_ref` between two scans, with no motion model, map or initial guess.
+
+        `large_motion` matches with the model's wide-window graph (the paper's D = 40 at inference,
+        §IV-D) for scans far apart, e.g. several frames or metres.
+        """
+        matcher = self._wide_matcher() if large_motion else self.matcher
         ref_image, ref_range = self._project(_as_scan(reference, "reference"))
         tgt_image, tgt_range = self._project(_as_scan(target, "target"))
-        ref_features = self.matcher.frame(ref_image, None).features
-        output = self.matcher.frame(tgt_image, ref_features)
+        ref_features = matcher.frame(ref_image, None).features
+        output = matcher.frame(tgt_image, ref_features)
         assert output.flow is not None and output.confidence is not None
         return self._match(ref_range, tgt_range, output.flow, output.confidence)
+
+    def _wide_matcher(self) -> Matcher:
+        if self._wide is None:
+            self._wide = OnnxMatcher(wide_graph_path(self.matcher.path), threads=self.config.threads)
+        return self._wide
 
     # -- the paper's steps ----------------------------------------------------------------------
 
@@ -176,13 +196,18 @@ class Odometry:
         watch: _Stopwatch | None = None,
     ) -> PairResult:
         m, r = self.config.matching, self.config.ransac
+        # NMS: the most confident match in every radius-r neighbourhood, top N (§III-D-a). It runs on the
+        # grid before decoding, over the cells that can decode (valid reference range, confidence, target
+        # inside the image on a valid range), so only the N survivors are lifted to 3D.
+        rows, cols = _decodable_cells(ref_range, tgt_range, flow, confidence, m.min_confidence)
+        keep = dmlo_rs.nms(rows, cols, confidence[rows, cols], m.nms_radius, m.max_matches)
+        excluded = np.ones(confidence.shape, dtype=bool)
+        excluded[rows[keep], cols[keep]] = False
         # Network output → 3D pairs (p'_r, p̂_t), sampling D_t at the sub-pixel match (§III-D).
         matches = dmlo_rs.decode_matches(
-            ref_range, tgt_range, flow, confidence, self.cylinder, min_confidence=m.min_confidence
+            ref_range, tgt_range, flow, confidence, self.cylinder, min_confidence=m.min_confidence, mask=excluded
         )
-        # NMS: the most confident match in every radius-r neighbourhood, top N (§III-D-a).
-        keep = dmlo_rs.nms(matches.cells[:, 0], matches.cells[:, 1], matches.confidence, m.nms_radius, m.max_matches)
-        src, dst = matches.source[keep], matches.target[keep]
+        src, dst = matches.source, matches.target
         if watch:
             watch.lap("decode_nms")
         transform, inliers, num_inliers = np.eye(4), np.zeros(len(src), dtype=bool), 0
@@ -200,7 +225,7 @@ class Odometry:
             watch.lap("ransac")
         return PairResult(
             T_tgt_ref=np.asarray(transform, dtype=np.float64),
-            num_candidates=len(matches),
+            num_candidates=len(rows),
             num_matches=len(src),
             num_inliers=int(num_inliers),
             source_points=src,
@@ -260,12 +285,32 @@ class Odometry:
     ) -> Matrix4:
         assert self._map is not None
         try:
-            result = self._map.align(cloud[:, :3], pose, max_iterations=self.config.mapping.max_iterations)
+            c = self.config.mapping
+            result = self._map.align(
+                cloud[:, :3], pose, max_iterations=c.max_iterations, source_voxel_size=c.downsample
+            )
         except ValueError:
             diagnostics.ndt_converged = False
             return pose
         diagnostics.ndt_converged = bool(result.converged)
         return np.asarray(result.transform, dtype=np.float64) if result.converged else pose
+
+
+def _decodable_cells(
+    ref_range: npt.NDArray[np.float32],
+    tgt_range: npt.NDArray[np.float32],
+    flow: npt.NDArray[np.float32],
+    confidence: npt.NDArray[np.float32],
+    min_confidence: float,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    height, width = ref_range.shape
+    rows, cols = np.nonzero((ref_range > 0) & (confidence >= min_confidence) & np.isfinite(flow).all(axis=0))
+    target_rows = np.rint(rows + flow[0, rows, cols]).astype(np.int64)
+    target_cols = np.rint(cols + flow[1, rows, cols]).astype(np.int64)
+    inside = (target_rows >= 0) & (target_rows < height) & (target_cols >= 0) & (target_cols < width)
+    rows, cols = rows[inside], cols[inside]
+    lands_on_range = tgt_range[target_rows[inside], target_cols[inside]] > 0
+    return rows[lands_on_range], cols[lands_on_range]
 
 
 def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:

@@ -32,11 +32,20 @@ def main() -> None:
         total = time.perf_counter() - began
     cast = np.asarray(result.cast_seconds[1:] or result.cast_seconds) * 1000
     frame = np.asarray(result.frame_seconds[1:] or result.frame_seconds) * 1000
-    print(f"threads (RAYON_NUM_THREADS): {os.environ.get('RAYON_NUM_THREADS', 'all')}, cpus: {os.cpu_count()}")
-    print(f"scene: {result.static_primitives} static primitives, generated + BVH in {result.scene_seconds:.2f} s")
+    print(
+        f"threads (RAYON_NUM_THREADS): {os.environ.get('RAYON_NUM_THREADS', 'all')}, cpus: {os.cpu_count()}"
+    )
+    print(
+        f"scene: {result.static_primitives} static primitives, "
+        f"generated + BVH in {result.scene_seconds:.2f} s"
+    )
     print(f"points per scan: {np.mean(result.points_per_frame):.0f} (of {64 * 2083} rays)")
     print(f"ray casting per scan: median {np.median(cast):.1f} ms (min {cast.min():.1f})")
-    print(f"whole frame incl. noise model and writing: median {np.median(frame):.1f} ms (min {frame.min():.1f})")
+    frame_cpu = np.asarray(result.frame_cpu_seconds[1:] or result.frame_cpu_seconds) * 1000
+    print(
+        f"whole frame incl. moving cars, noise model and writing: wall median {np.median(frame):.1f} ms "
+        f"(min {frame.min():.1f}), CPU median {np.median(frame_cpu):.1f} ms"
+    )
     print(f"total for {args.frames} frames: {total:.2f} s")
     _cast_only(args)
 
@@ -48,7 +57,9 @@ def _cast_only(args: argparse.Namespace) -> None:
     from dmlo.simulator.trajectory import camera_to_lidar_poses, generate_drive, read_kitti_poses
 
     if args.trajectory:
-        poses = camera_to_lidar_poses(read_kitti_poses(args.trajectory)[args.start : args.start + args.frames])
+        poses = camera_to_lidar_poses(
+            read_kitti_poses(args.trajectory)[args.start : args.start + args.frames]
+        )
     else:
         poses = generate_drive(args.frames, args.seed)
     scene, _ = generate_street(poses, args.seed).static.build()
@@ -60,7 +71,8 @@ def _cast_only(args: argparse.Namespace) -> None:
         walls.append(time.perf_counter() - wall)
         cpus.append(time.process_time() - cpu)
     print(
-        f"static-scene cast only: wall median {1000 * np.median(walls):.1f} ms (min {1000 * min(walls):.1f}), "
+        f"static-scene cast only: wall median {1000 * np.median(walls):.1f} ms "
+        f"(min {1000 * min(walls):.1f}), "
         f"CPU median {1000 * np.median(cpus):.1f} ms"
     )
 

@@ -16,6 +16,7 @@ any part of the trajectory (loops and crossings included):
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,7 +60,9 @@ class StreetPath:
         forward_last = lidar_poses[-1, :2, 0] / np.linalg.norm(lidar_poses[-1, :2, 0])
         ground = positions[:, 2] - mount_height
         ext = np.linspace(PATH_EXTENSION, PATH_SPACING, int(PATH_EXTENSION / PATH_SPACING))
-        before = np.column_stack([positions[0, :2] - ext[:, None] * forward_first, np.full(len(ext), ground[0])])
+        before = np.column_stack(
+            [positions[0, :2] - ext[:, None] * forward_first, np.full(len(ext), ground[0])]
+        )
         after = np.column_stack(
             [positions[-1, :2] + ext[::-1, None] * forward_last, np.full(len(ext), ground[-1])]
         )
@@ -67,7 +70,9 @@ class StreetPath:
         arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points[:, :2], axis=0), axis=1))])
         self.length = float(arc[-1])
         self.s = np.arange(0.0, self.length + 1e-9, PATH_SPACING)
-        self.xy = np.column_stack([np.interp(self.s, arc, points[:, 0]), np.interp(self.s, arc, points[:, 1])])
+        self.xy = np.column_stack(
+            [np.interp(self.s, arc, points[:, 0]), np.interp(self.s, arc, points[:, 1])]
+        )
         self.ground_z = _smooth(np.interp(self.s, arc, points[:, 2]), 5)
         tangent = np.gradient(self.xy, axis=0)
         tangent = np.column_stack([_smooth(tangent[:, 0], 2), _smooth(tangent[:, 1], 2)])
@@ -75,7 +80,9 @@ class StreetPath:
         # Arc length of the real trajectory's start (the extension comes first).
         self.start_s = float(arc[len(before)])
 
-    def at(self, s: npt.ArrayLike) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    def at(
+        self, s: npt.ArrayLike
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """(xy (…,2), ground z, heading) at arc lengths `s`."""
         s = np.asarray(s, dtype=np.float64)
         xy = np.stack([np.interp(s, self.s, self.xy[:, 0]), np.interp(s, self.s, self.xy[:, 1])], axis=-1)
@@ -175,7 +182,19 @@ class StreetScene:
                 continue
             pitch = -np.arctan(self.path.grade(s)) * car.direction
             yaw = heading if car.direction > 0 else heading + np.pi
-            _add_car(dynamic, xy, z, yaw, pitch, car.length, car.width, car.height, MOVING_CAR, car.instance, car.albedo)
+            _add_car(
+                dynamic,
+                xy,
+                z,
+                yaw,
+                pitch,
+                car.length,
+                car.width,
+                car.height,
+                MOVING_CAR,
+                car.instance,
+                car.albedo,
+            )
         return dynamic
 
 
@@ -200,15 +219,25 @@ def _add_car(
         prims.add_box(origin + rot @ np.asarray(offset), half, rot, semantic, instance, a)
 
     body_bottom, body_top = 0.3, 0.55 * height + 0.2
-    box((0.0, 0.0, (body_bottom + body_top) / 2), (length / 2, width / 2, (body_top - body_bottom) / 2), albedo)
+    box(
+        (0.0, 0.0, (body_bottom + body_top) / 2),
+        (length / 2, width / 2, (body_top - body_bottom) / 2),
+        albedo,
+    )
     cabin_len = 0.5 * length
-    box((-0.08 * length, 0.0, (body_top + height) / 2), (cabin_len / 2, width / 2 - 0.08, (height - body_top) / 2), 0.08)
+    box(
+        (-0.08 * length, 0.0, (body_top + height) / 2),
+        (cabin_len / 2, width / 2 - 0.08, (height - body_top) / 2),
+        0.08,
+    )
     for fx in (0.32, -0.32):
         for fy in (0.5, -0.5):
             box((fx * length, fy * (width - 0.2), 0.33), (0.33, 0.1, 0.33), 0.05)
 
 
-def generate_street(lidar_poses: npt.NDArray[np.float64], seed: int, mount_height: float = 1.73) -> StreetScene:
+def generate_street(
+    lidar_poses: npt.NDArray[np.float64], seed: int, mount_height: float = 1.73
+) -> StreetScene:
     """A street scene covering the whole trajectory `lidar_poses` ((N,4,4) `T_world_lidar`)."""
     rng = np.random.default_rng([seed, 0x5CE7E])
     path = StreetPath(lidar_poses, mount_height)
@@ -231,7 +260,9 @@ def generate_street(lidar_poses: npt.NDArray[np.float64], seed: int, mount_heigh
     return StreetScene(path=path, layout=layout, static=prims, moving_cars=moving)
 
 
-def _add_corridor(prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, rng: np.random.Generator) -> None:
+def _add_corridor(
+    prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, rng: np.random.Generator
+) -> None:
     """Road, gutters, kerbs and sidewalks as triangle strips between cross-sections along the axis."""
     camber = 0.015
     lr, rr, k = layout.road_left, layout.road_right, layout.kerb
@@ -255,8 +286,8 @@ def _add_corridor(prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, r
     xy = path.xy[:, None, :] + offsets[None, :, None] * normal[:, None, :]
     z = path.ground_z[:, None] + heights[None, :]
     vertices = np.concatenate([xy, z[..., None]], axis=-1)  # (S, P, 3)
-    road_albedo = float(rng.uniform(0.12, 0.22))
-    walk_albedo = float(rng.uniform(0.25, 0.4))
+    road_albedo = float(rng.uniform(0.28, 0.4))
+    walk_albedo = float(rng.uniform(0.3, 0.45))
     for j in range(len(profile) - 1):
         a, b = vertices[:-1, j], vertices[:-1, j + 1]
         c, d = vertices[1:, j], vertices[1:, j + 1]
@@ -279,7 +310,7 @@ def _add_corridor(prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, r
             tris = np.stack([quad[[0, 1, 3]], quad[[0, 3, 2]]])
             tris = tris[_non_degenerate(tris)]
             if len(tris):
-                prims.add_triangles(tris, LANE_MARKING, 0, 0.75)
+                prims.add_triangles(tris, LANE_MARKING, 0, 0.9)
 
 
 def _non_degenerate(tris: npt.NDArray[np.float64]) -> npt.NDArray[np.bool_]:
@@ -287,7 +318,9 @@ def _non_degenerate(tris: npt.NDArray[np.float64]) -> npt.NDArray[np.bool_]:
     return area > 1e-6
 
 
-def _add_terrain(prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, rng: np.random.Generator) -> None:
+def _add_terrain(
+    prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, rng: np.random.Generator
+) -> None:
     """A heightfield of gentle hills around the street, kept below the corridor near the axis."""
     lo = path.xy.min(0) - TERRAIN_REACH
     hi = path.xy.max(0) + TERRAIN_REACH
@@ -299,7 +332,10 @@ def _add_terrain(prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, rn
     heading = path.heading[nearest]
     side = np.where(-np.sin(heading) * rel[..., 0] + np.cos(heading) * rel[..., 1] >= 0, 1, -1)
     outer = np.where(side > 0, layout.outer(1), layout.outer(-1))
-    waves = [(rng.uniform(0.2, 0.6), rng.uniform(40, 120), rng.uniform(0, 2 * np.pi, 2), rng.uniform(0, 2 * np.pi)) for _ in range(4)]
+    waves = [
+        (rng.uniform(0.2, 0.6), rng.uniform(40, 120), rng.uniform(0, 2 * np.pi, 2), rng.uniform(0, 2 * np.pi))
+        for _ in range(4)
+    ]
     hills = sum(
         a * np.sin((grid[..., 0] * np.cos(th[0]) + grid[..., 1] * np.sin(th[0])) * 2 * np.pi / w + ph)
         for a, w, th, ph in waves
@@ -315,7 +351,9 @@ def _add_terrain(prims: PrimitiveSet, path: StreetPath, layout: StreetLayout, rn
     hidden = distance < outer - 1.0
     cell_keep &= ~(hidden[:-1, :-1] & hidden[1:, :-1] & hidden[:-1, 1:] & hidden[1:, 1:])
     tris = np.concatenate([np.stack([a, b, d], -2)[cell_keep], np.stack([a, d, c], -2)[cell_keep]])
-    prims.add_triangles(tris, TERRAIN, 0, np.clip(rng.uniform(0.3, 0.45) + rng.normal(0, 0.04, len(tris)), 0.05, 1))
+    prims.add_triangles(
+        tris, TERRAIN, 0, np.clip(rng.uniform(0.3, 0.45) + rng.normal(0, 0.04, len(tris)), 0.05, 1)
+    )
 
 
 def _clear(path: StreetPath, xy: npt.ArrayLike, clearance: float) -> bool:
@@ -324,7 +362,9 @@ def _clear(path: StreetPath, xy: npt.ArrayLike, clearance: float) -> bool:
     return bool(distance.min() >= clearance)
 
 
-def _footprint(center: npt.NDArray[np.float64], yaw: float, half_long: float, half_lat: float) -> npt.NDArray[np.float64]:
+def _footprint(
+    center: npt.NDArray[np.float64], yaw: float, half_long: float, half_lat: float
+) -> npt.NDArray[np.float64]:
     c, s = np.cos(yaw), np.sin(yaw)
     pts = []
     for fx in np.linspace(-1, 1, 5):
@@ -339,16 +379,26 @@ def _add_roadside(
     """Block by block beside the sidewalk: buildings, walls/fences/hedges, or open ground with trees."""
     clearance = min(layout.road_left, layout.road_right) + 1.5
     s = float(rng.uniform(0, 10))
-    building_albedo = float(rng.uniform(0.25, 0.5))
+    building_albedo = float(rng.uniform(0.1, 0.35))
     while s < path.length:
         kind = rng.choice(["building", "fence", "open"], p=[0.72, 0.14, 0.14])
         length = float(rng.uniform(10.0, 35.0) if kind == "building" else rng.uniform(10.0, 40.0))
-        front = layout.outer(side) + float(rng.uniform(0.3, 3.0))
+        front = layout.outer(side) + float(rng.uniform(0.5, 6.0))
         if kind == "building":
             depth = _add_building(prims, path, side, s, length, front, clearance, building_albedo, rng)
             if rng.random() < 0.5:  # a second row behind: structure at long range
                 back = front + depth + float(rng.uniform(4.0, 30.0))
-                _add_building(prims, path, side, s + float(rng.uniform(-5, 5)), length, back, clearance, building_albedo, rng)
+                _add_building(
+                    prims,
+                    path,
+                    side,
+                    s + float(rng.uniform(-5, 5)),
+                    length,
+                    back,
+                    clearance,
+                    building_albedo,
+                    rng,
+                )
             gap = float(rng.uniform(0.0, 1.5) if rng.random() < 0.6 else rng.uniform(3.0, 14.0))
         elif kind == "fence":
             _add_fence(prims, path, side, s, length, front, clearance, rng)
@@ -380,7 +430,12 @@ def _add_building(
     parts = int(rng.integers(1, 5))
     cuts = np.sort(rng.uniform(0, length, parts - 1))
     edges = np.concatenate([[0.0], cuts, [length]])
-    facade_albedo = float(np.clip(albedo + rng.normal(0, 0.08), 0.08, 0.9))
+    facade_albedo = float(np.clip(albedo + rng.normal(0, 0.08), 0.03, 0.9))
+    windows = (
+        (float(rng.uniform(2.2, 4.5)), float(rng.uniform(2.8, 3.6)), float(rng.uniform(0.3, 4.0)))
+        if rng.random() < 0.8
+        else (0.0, 0.0, 0.0)
+    )
     for a, b in zip(edges[:-1], edges[1:]):
         if b - a < 2.0:
             continue
@@ -393,14 +448,20 @@ def _add_building(
         if not _clear(path, _footprint(xy, heading, half[0], half[1]), clearance):
             continue
         rot = yaw_pitch_rotation(heading)
-        prims.add_box([xy[0], xy[1], z - 1.0 + half[2]], half, rot, BUILDING, 0, facade_albedo)
+        # Boxes reach 1 m below the ground (no gap on slopes); the window grid counts from the box bottom.
+        prims.add_box([xy[0], xy[1], z - 1.0 + half[2]], half, rot, BUILDING, 0, facade_albedo, windows)
         # Balconies / ledges sticking out of the facade on some parts.
         if rng.random() < 0.35 and b - a > 5.0:
             floors = int((height - 3.0) // 3.0)
             for floor in range(1, floors + 1):
                 bxy, _, _ = path.place(mid, side * (front + recess - 0.6))
                 prims.add_box(
-                    [bxy[0], bxy[1], z + 3.0 * floor], [min(2.5, (b - a) / 3), 0.6, 0.08], rot, BUILDING, 0, facade_albedo
+                    [bxy[0], bxy[1], z + 3.0 * floor],
+                    [min(2.5, (b - a) / 3), 0.6, 0.08],
+                    rot,
+                    BUILDING,
+                    0,
+                    facade_albedo,
                 )
     return depth
 
@@ -429,7 +490,9 @@ def _add_fence(
         half = np.array([step / 2, thickness / 2, (height + 0.5) / 2])
         if not _clear(path, _footprint(xy, heading, half[0], half[1]), clearance):
             continue
-        prims.add_box([xy[0], xy[1], z - 0.5 + half[2]], half, yaw_pitch_rotation(heading), semantic, 0, albedo)
+        prims.add_box(
+            [xy[0], xy[1], z - 0.5 + half[2]], half, yaw_pitch_rotation(heading), semantic, 0, albedo
+        )
     if kind == "fence":  # posts
         for k in range(pieces + 1):
             xy, z, _ = path.place(s + k * step, side * front)
@@ -437,17 +500,25 @@ def _add_fence(
                 prims.add_cylinder([xy[0], xy[1], z - 0.3], height + 0.4, 0.05, FENCE, 0, albedo)
 
 
-def _add_tree(prims: PrimitiveSet, xy: npt.NDArray[np.float64], ground: float, rng: np.random.Generator) -> None:
+def _add_tree(
+    prims: PrimitiveSet, xy: npt.NDArray[np.float64], ground: float, rng: np.random.Generator
+) -> None:
     trunk_height = float(rng.uniform(1.8, 3.5))
     radius = float(rng.uniform(0.1, 0.25))
-    prims.add_cylinder([xy[0], xy[1], ground - 0.2], trunk_height + 0.6, radius, TRUNK, 0, float(rng.uniform(0.25, 0.4)))
+    prims.add_cylinder(
+        [xy[0], xy[1], ground - 0.2], trunk_height + 0.6, radius, TRUNK, 0, float(rng.uniform(0.25, 0.4))
+    )
     crown = float(rng.uniform(1.5, 3.5))
     center_z = ground + trunk_height + crown * 0.7
     for _ in range(int(rng.integers(3, 7))):
         offset = rng.normal(0, 0.35 * crown, 3) * np.array([1, 1, 0.6])
         radii = crown * rng.uniform(0.5, 0.9) * np.array([1.0, 1.0, rng.uniform(0.7, 1.0)])
         prims.add_ellipsoid(
-            [xy[0] + offset[0], xy[1] + offset[1], center_z + offset[2]], radii, VEGETATION, 0, float(rng.uniform(0.4, 0.6))
+            [xy[0] + offset[0], xy[1] + offset[1], center_z + offset[2]],
+            radii,
+            VEGETATION,
+            0,
+            float(rng.uniform(0.2, 0.45)),
         )
 
 
@@ -457,7 +528,7 @@ def _add_furniture(
     layout: StreetLayout,
     side: int,
     rng: np.random.Generator,
-    instances: object,
+    instances: Iterator[int],
 ) -> None:
     """Lamp poles, sign poles, street trees, bushes, standing pedestrians and clutter on the sidewalk."""
     road = layout.road(side)
@@ -471,9 +542,18 @@ def _add_furniture(
         if _clear(path, xy, clearance + 0.5):
             height = float(rng.uniform(5.0, 9.0))
             albedo = float(rng.uniform(0.35, 0.55))
-            prims.add_cylinder([xy[0], xy[1], z], height + ground_offset, float(rng.uniform(0.07, 0.14)), POLE, 0, albedo)
+            prims.add_cylinder(
+                [xy[0], xy[1], z], height + ground_offset, float(rng.uniform(0.07, 0.14)), POLE, 0, albedo
+            )
             arm_xy, _, _ = path.place(s, side * (road + 0.6 - 0.9))
-            prims.add_box([arm_xy[0], arm_xy[1], z + height], [0.9, 0.06, 0.06], yaw_pitch_rotation(heading + np.pi / 2), POLE, 0, albedo)
+            prims.add_box(
+                [arm_xy[0], arm_xy[1], z + height],
+                [0.9, 0.06, 0.06],
+                yaw_pitch_rotation(heading + np.pi / 2),
+                POLE,
+                0,
+                albedo,
+            )
         s += float(rng.uniform(18.0, 40.0))
     # Sign poles with a retro-reflective plate.
     s = float(rng.uniform(0, 60))
@@ -481,7 +561,14 @@ def _add_furniture(
         xy, z, heading = path.place(s, side * (road + 0.4))
         if _clear(path, xy, clearance + 0.3):
             prims.add_cylinder([xy[0], xy[1], z], 2.0 + ground_offset, 0.04, POLE, 0, 0.5)
-            prims.add_box([xy[0], xy[1], z + 2.4], [0.03, 0.35, 0.35], yaw_pitch_rotation(heading), TRAFFIC_SIGN, 0, 0.95)
+            prims.add_box(
+                [xy[0], xy[1], z + 2.4],
+                [0.03, 0.35, 0.35],
+                yaw_pitch_rotation(heading),
+                TRAFFIC_SIGN,
+                0,
+                0.95,
+            )
         s += float(rng.uniform(40.0, 120.0))
     # Street trees in tree-lined stretches.
     s = 0.0
@@ -517,10 +604,14 @@ def _add_furniture(
         xy, z, _ = path.place(s, side * (road + float(rng.uniform(0.5, max(0.6, walk - 0.3)))))
         if _clear(path, xy, clearance):
             height = float(rng.uniform(1.55, 1.9))
-            person = next(instances)  # type: ignore[call-overload]
+            person = next(instances)
             body_radius = float(rng.uniform(0.17, 0.24))
-            prims.add_cylinder([xy[0], xy[1], z + ground_offset], height - 0.22, body_radius, PERSON, person, 0.3)
-            prims.add_ellipsoid([xy[0], xy[1], z + ground_offset + height - 0.11], [0.1, 0.1, 0.12], PERSON, person, 0.25)
+            prims.add_cylinder(
+                [xy[0], xy[1], z + ground_offset], height - 0.22, body_radius, PERSON, person, 0.3
+            )
+            prims.add_ellipsoid(
+                [xy[0], xy[1], z + ground_offset + height - 0.11], [0.1, 0.1, 0.12], PERSON, person, 0.25
+            )
         s += float(rng.uniform(15.0, 80.0))
     # Clutter: bins, bollards, benches, boxes.
     s = float(rng.uniform(0, 10))
@@ -531,13 +622,17 @@ def _add_furniture(
             item = rng.choice(["bin", "bollard", "bench", "box"])
             albedo = float(rng.uniform(0.15, 0.6))
             if item == "bin":
-                prims.add_cylinder([xy[0], xy[1], z], float(rng.uniform(0.8, 1.2)), 0.3, OTHER_OBJECT, 0, albedo)
+                prims.add_cylinder(
+                    [xy[0], xy[1], z], float(rng.uniform(0.8, 1.2)), 0.3, OTHER_OBJECT, 0, albedo
+                )
             elif item == "bollard":
                 prims.add_cylinder([xy[0], xy[1], z], 0.9, 0.08, OTHER_OBJECT, 0, albedo)
             else:
                 half = [0.9, 0.3, 0.25] if item == "bench" else list(rng.uniform(0.2, 0.7, 3))
                 yaw = heading if item == "bench" else float(rng.uniform(0, np.pi))
-                prims.add_box([xy[0], xy[1], z + half[2]], half, yaw_pitch_rotation(yaw), OTHER_OBJECT, 0, albedo)
+                prims.add_box(
+                    [xy[0], xy[1], z + half[2]], half, yaw_pitch_rotation(yaw), OTHER_OBJECT, 0, albedo
+                )
         s += float(rng.uniform(6.0, 30.0))
 
 
@@ -553,9 +648,9 @@ def _add_parked_cars(
     layout: StreetLayout,
     side: int,
     rng: np.random.Generator,
-    instances: object,
+    instances: Iterator[int],
 ) -> None:
-    occupancy = float(rng.uniform(0.3, 0.85))
+    occupancy = float(rng.uniform(0.15, 0.6))
     s = float(rng.uniform(0, 10))
     while s < path.length:
         stretch = float(rng.uniform(20.0, 60.0))
@@ -568,12 +663,14 @@ def _add_parked_cars(
                 yaw = heading + float(rng.normal(0, 0.03)) + (np.pi if rng.random() < 0.5 else 0.0)
                 if _clear(path, _footprint(xy, heading, length / 2, width / 2), 2.2):
                     albedo = float(rng.choice([0.08, 0.2, 0.35, 0.6]) + rng.normal(0, 0.03))
-                    _add_car(prims, xy, z, yaw, 0.0, length, width, height, CAR, next(instances), albedo)  # type: ignore[call-overload]
+                    _add_car(prims, xy, z, yaw, 0.0, length, width, height, CAR, next(instances), albedo)
                 t += length + float(rng.uniform(0.6, 3.0))
         s += stretch + float(rng.uniform(5.0, 20.0))
 
 
-def _moving_cars(path: StreetPath, layout: StreetLayout, rng: np.random.Generator, instances: object) -> list[MovingCar]:
+def _moving_cars(
+    path: StreetPath, layout: StreetLayout, rng: np.random.Generator, instances: Iterator[int]
+) -> list[MovingCar]:
     cars = []
     lanes = [(3.3, -1, 6.0, 15.0), (-3.3, 1, 3.0, 17.0)]  # (offset, direction, speed range)
     for lateral, direction, v_min, v_max in lanes:
@@ -582,7 +679,7 @@ def _moving_cars(path: StreetPath, layout: StreetLayout, rng: np.random.Generato
             length, width, height = _car_size(rng)
             cars.append(
                 MovingCar(
-                    instance=next(instances),  # type: ignore[call-overload]
+                    instance=next(instances),
                     s0=float(rng.uniform(0, path.length)),
                     speed=float(rng.uniform(v_min, v_max)),
                     direction=direction,
@@ -590,7 +687,9 @@ def _moving_cars(path: StreetPath, layout: StreetLayout, rng: np.random.Generato
                     length=length,
                     width=width,
                     height=height,
-                    albedo=float(np.clip(rng.choice([0.08, 0.2, 0.35, 0.6]) + rng.normal(0, 0.03), 0.03, 1.0)),
+                    albedo=float(
+                        np.clip(rng.choice([0.08, 0.2, 0.35, 0.6]) + rng.normal(0, 0.03), 0.03, 1.0)
+                    ),
                 )
             )
     return cars

@@ -7,10 +7,11 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import dmlo_rs
 import numpy as np
 import numpy.typing as npt
 
-import dmlo_rs
+from dmlo.simulator.primitives import SceneAttributes
 from dmlo.simulator.scene import StreetScene, generate_street
 from dmlo.simulator.sensor import SENSORS, LidarModel, measure
 from dmlo.simulator.trajectory import (
@@ -22,14 +23,15 @@ from dmlo.simulator.trajectory import (
     orthonormalize,
     read_kitti_calib_tr,
     read_kitti_poses,
+    sweep_column_poses,
 )
 
 # Camera matrices of KITTI sequences 00–02, written as placeholders so readers expecting P0..P3 work.
 _KITTI_P = {
-    "P0": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 0.000000000000e+00 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00",
-    "P1": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 -3.861448000000e+02 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00",
-    "P2": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 4.538225000000e+01 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 -1.130887000000e-01 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 3.779761000000e-03",
-    "P3": "7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 -3.372877000000e+02 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 2.369057000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 4.915215000000e-03",
+    "P0": [718.856, 0.0, 607.1928, 0.0, 0.0, 718.856, 185.2157, 0.0, 0.0, 0.0, 1.0, 0.0],
+    "P1": [718.856, 0.0, 607.1928, -386.1448, 0.0, 718.856, 185.2157, 0.0, 0.0, 0.0, 1.0, 0.0],
+    "P2": [718.856, 0.0, 607.1928, 45.38225, 0.0, 718.856, 185.2157, -0.1130887, 0.0, 0.0, 1.0, 0.003779761],
+    "P3": [718.856, 0.0, 607.1928, -337.2877, 0.0, 718.856, 185.2157, 2.369057, 0.0, 0.0, 1.0, 0.004915215],
 }
 
 
@@ -42,6 +44,7 @@ class SimulationResult:
     points_per_frame: list[int] = field(default_factory=list)
     cast_seconds: list[float] = field(default_factory=list)
     frame_seconds: list[float] = field(default_factory=list)
+    frame_cpu_seconds: list[float] = field(default_factory=list)  # all threads, robust to a busy machine
     scene_seconds: float = 0.0
     static_primitives: int = 0
 
@@ -55,6 +58,8 @@ def simulate_sequence(
     calib: str | Path | None = None,
     sensor: str | LidarModel = "hdl64e",
     progress: bool = True,
+    motion_distortion: bool = False,
+    overwrite: bool = False,
 ) -> SimulationResult:
     """Simulates `frames` scans of a street drive and writes a KITTI-layout sequence into `out_dir`:
     `velodyne/NNNNNN.bin` (float32 x y z reflectance), `labels/NNNNNN.label` (uint32, class | instance << 16,
@@ -63,19 +68,30 @@ def simulate_sequence(
 
     The ego motion is frames `start … start+frames−1` of the KITTI camera-frame pose file `trajectory`
     (converted with `Tr` from `calib`, or the built-in KITTI 00–02 `Tr`), or else a generated drive.
-    The same arguments always give byte-identical files.
+    With `motion_distortion`, every azimuth column is cast from the pose of the moment it fires (constant
+    velocity within a sweep, the frame pose at the forward-looking column) and points stay in the sensor
+    frame of their firing time, as in raw KITTI scans; by default a sweep is instantaneous.
+    The same arguments always give byte-identical files. A previous simulation in `out_dir` is replaced
+    (its old `.bin`/`.label` files deleted first, so no stale frame survives); other scans there are refused
+    unless `overwrite`.
     """
     if frames < 1:
         raise ValueError(f"frames: must be at least 1, got {frames}")
     if start < 0:
         raise ValueError(f"start: must be non-negative, got {start}")
-    model = SENSORS[sensor] if isinstance(sensor, str) else sensor
+    if isinstance(sensor, str):
+        if sensor not in SENSORS:
+            raise ValueError(f"sensor: unknown preset {sensor!r}; known: {', '.join(sorted(SENSORS))}")
+        model = SENSORS[sensor]
+    else:
+        model = sensor
     tr = read_kitti_calib_tr(calib) if calib is not None else KITTI_TR
     if trajectory is not None:
         camera_poses = read_kitti_poses(trajectory)
         if start + frames > len(camera_poses):
             raise ValueError(
-                f"trajectory {trajectory} has {len(camera_poses)} poses; start {start} + frames {frames} exceeds it"
+                f"trajectory {trajectory} has {len(camera_poses)} poses; "
+                f"start {start} + frames {frames} exceeds it"
             )
         lidar_poses = orthonormalize(camera_to_lidar_poses(camera_poses[start : start + frames], tr))
     else:
@@ -84,6 +100,14 @@ def simulate_sequence(
         lidar_poses = generate_drive(frames, seed)
 
     out = Path(out_dir)
+    old_scans = sorted((out / "velodyne").glob("*.bin")) + sorted((out / "labels").glob("*.label"))
+    if old_scans and not overwrite and not (out / "simulation.json").is_file():
+        raise ValueError(
+            f"out: {out} already holds scans not written by the simulator ({len(old_scans)} files); "
+            "pass overwrite=True (--overwrite) to replace them"
+        )
+    for old in old_scans:
+        old.unlink()
     (out / "velodyne").mkdir(parents=True, exist_ok=True)
     (out / "labels").mkdir(parents=True, exist_ok=True)
     result = SimulationResult(out_dir=out, lidar_poses=lidar_poses)
@@ -104,9 +128,18 @@ def simulate_sequence(
 
         indices = tqdm(indices, desc="simulate", unit="scan")
     for k in indices:
-        frame_began = time.perf_counter()
+        frame_began, frame_cpu_began = time.perf_counter(), time.process_time()
+        sweep_poses = (
+            sweep_column_poses(lidar_poses, k, model.azimuth_count) if motion_distortion else lidar_poses[k]
+        )
         points, labels, cast_seconds = render_frame(
-            street, static_scene, static_attributes, model, directions, lidar_poses[k], float(times[k]),
+            street,
+            static_scene,
+            static_attributes,
+            model,
+            directions,
+            sweep_poses,
+            float(times[k]),
             np.random.default_rng([seed, 0x5CA7, k]),
         )
         points.tofile(out / "velodyne" / f"{k:06d}.bin")
@@ -114,6 +147,7 @@ def simulate_sequence(
         result.points_per_frame.append(len(points))
         result.cast_seconds.append(cast_seconds)
         result.frame_seconds.append(time.perf_counter() - frame_began)
+        result.frame_cpu_seconds.append(time.process_time() - frame_cpu_began)
 
     camera_poses_out = lidar_to_camera_poses(lidar_poses, tr)
     with open(out / "poses.txt", "w") as f:
@@ -121,7 +155,7 @@ def simulate_sequence(
             f.write(" ".join(f"{v:.12e}" for v in pose[:3, :].ravel()) + "\n")
     with open(out / "calib.txt", "w") as f:
         for name, values in _KITTI_P.items():
-            f.write(f"{name}: {values}\n")
+            f.write(f"{name}: " + " ".join(f"{v:.12e}" for v in values) + "\n")
         f.write("Tr: " + " ".join(f"{v:.12e}" for v in tr[:3, :].ravel()) + "\n")
     with open(out / "times.txt", "w") as f:
         for t in times:
@@ -139,7 +173,7 @@ def simulate_sequence(
         "street": asdict(street.layout),
         "static_primitives": result.static_primitives,
         "moving_cars": len(street.moving_cars),
-        "motion_distortion": False,
+        "motion_distortion": motion_distortion,
     }
     (out / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
     return result
@@ -148,36 +182,33 @@ def simulate_sequence(
 def render_frame(
     street: StreetScene,
     static_scene: dmlo_rs.RayScene,
-    static_attributes: object,
+    static_attributes: SceneAttributes,
     model: LidarModel,
     directions: npt.NDArray[np.float64],
     pose: npt.NDArray[np.float64],
     time_s: float,
     rng: np.random.Generator,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], float]:
-    """One scan at `pose` and `time_s`: static scene plus the moving cars at that time.
-    Returns points, labels and the seconds spent ray casting."""
-    from dmlo.simulator.primitives import SceneAttributes
-
-    assert isinstance(static_attributes, SceneAttributes)
+    """One scan at `pose` ((4,4), or (W,4,4) per azimuth column) and `time_s`: static scene plus the moving
+    cars at that time. Returns points, labels and the seconds spent ray casting."""
     elevations = model.elevations()
     began = time.perf_counter()
-    ranges, primitive, cosines = static_scene.cast_scan(pose, elevations, model.azimuth_count, model.max_range)
-    dynamic = street.dynamic(time_s, pose[:2, 3])
+    ranges, primitive, cosines = static_scene.cast_scan(
+        pose, elevations, model.azimuth_count, model.max_range
+    )
+    dynamic = street.dynamic(time_s, pose[..., :2, 3].reshape(-1, 2).mean(0))
     attributes = static_attributes
     if len(dynamic):
         dynamic_scene, dynamic_attributes = dynamic.build()
-        d_ranges, d_primitive, d_cosines = dynamic_scene.cast_scan(pose, elevations, model.azimuth_count, model.max_range)
+        d_ranges, d_primitive, d_cosines = dynamic_scene.cast_scan(
+            pose, elevations, model.azimuth_count, model.max_range
+        )
         closer = d_ranges < ranges
         offset = len(static_scene)
         ranges = np.where(closer, d_ranges, ranges)
         primitive = np.where(closer, d_primitive + offset, primitive)
         cosines = np.where(closer, d_cosines, cosines)
-        attributes = SceneAttributes(
-            semantic=np.concatenate([static_attributes.semantic, dynamic_attributes.semantic]),
-            instance=np.concatenate([static_attributes.instance, dynamic_attributes.instance]),
-            albedo=np.concatenate([static_attributes.albedo, dynamic_attributes.albedo]),
-        )
+        attributes = SceneAttributes.concatenate([static_attributes, dynamic_attributes])
     cast_seconds = time.perf_counter() - began
-    points, labels = measure(model, directions, ranges, primitive, cosines, attributes, rng)
+    points, labels = measure(model, directions, ranges, primitive, cosines, attributes, rng, pose)
     return points, labels, cast_seconds

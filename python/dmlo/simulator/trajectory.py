@@ -112,13 +112,17 @@ def generate_drive(frames: int, seed: int, rate_hz: float = FRAME_RATE_HZ) -> np
     speed = float(rng.uniform(4.0, 12.0))
     x = y = z = yaw = 0.0
     distance = 0.0
-    grade_waves = [(rng.uniform(0.005, 0.015), rng.uniform(150.0, 600.0), rng.uniform(0, 2 * np.pi)) for _ in range(2)]
+    grade_waves = [
+        (rng.uniform(0.005, 0.015), rng.uniform(150.0, 600.0), rng.uniform(0, 2 * np.pi)) for _ in range(2)
+    ]
     poses = np.empty((frames, 4, 4))
     manoeuvre_left = 0.0
     target_speed, cruise_yaw_rate, turn_left = speed, 0.0, 0.0
     yaw_rate = 0.0
     for k in range(frames):
-        grade = sum(a * np.sin(2 * np.pi * distance / wavelength + phase) for a, wavelength, phase in grade_waves)
+        grade = sum(
+            a * np.sin(2 * np.pi * distance / wavelength + phase) for a, wavelength, phase in grade_waves
+        )
         pitch = -np.arctan(grade)  # nose up (negative rotation about y) when climbing
         pose = np.eye(4)
         pose[:3, :3] = _rotation_z_y(yaw, pitch)
@@ -145,7 +149,11 @@ def generate_drive(frames: int, seed: int, rate_hz: float = FRAME_RATE_HZ) -> np
         yaw_rate += float(np.clip(desired_yaw_rate - yaw_rate, -0.6 * dt, 0.6 * dt))
         if turn_left != 0.0:
             turned = yaw_rate * dt
-            turn_left = 0.0 if abs(turned) >= abs(turn_left) or turned * turn_left < 0 and abs(turn_left) < 0.01 else turn_left - turned
+            turn_left = (
+                0.0
+                if abs(turned) >= abs(turn_left) or turned * turn_left < 0 and abs(turn_left) < 0.01
+                else turn_left - turned
+            )
             if turn_left == 0.0:
                 target_speed = float(rng.uniform(6.0, 15.0))
                 manoeuvre_left = float(rng.uniform(2.0, 6.0))
@@ -161,3 +169,46 @@ def generate_drive(frames: int, seed: int, rate_hz: float = FRAME_RATE_HZ) -> np
         distance += step
         manoeuvre_left -= dt
     return np.linalg.inv(poses[0]) @ poses
+
+
+def _rotation_log(rotation: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Axis-angle vector of a 3×3 rotation (angle < π)."""
+    angle = np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))
+    axis = np.array(
+        [rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]]
+    )
+    if angle < 1e-12:
+        return axis / 2.0
+    return axis * (angle / (2.0 * np.sin(angle)))
+
+
+def _rotation_exp(vectors: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Rodrigues: (N,3) axis-angle vectors → (N,3,3) rotations."""
+    angle = np.linalg.norm(vectors, axis=1)
+    safe = np.where(angle > 1e-12, angle, 1.0)
+    k = vectors / safe[:, None]
+    kx = np.zeros((len(vectors), 3, 3))
+    kx[:, 0, 1], kx[:, 0, 2], kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    kx = kx - kx.transpose(0, 2, 1)
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * kx + (1.0 - c) * (kx @ kx)
+
+
+def sweep_column_poses(
+    poses: npt.NDArray[np.float64], index: int, azimuth_count: int
+) -> npt.NDArray[np.float64]:
+    """(azimuth_count, 4, 4) sensor poses while frame `index` sweeps, for motion distortion.
+
+    The frame's pose holds when the sensor looks straight ahead (the middle column); column `j` fires
+    `(j − W/2) / W` of a frame period earlier or later, moving at the frame's constant velocity (towards the
+    next frame, or from the previous one for the last frame).
+    """
+    if len(poses) < 2:
+        return np.repeat(poses[index][None], azimuth_count, axis=0)
+    a, b = (index, index + 1) if index + 1 < len(poses) else (index - 1, index)
+    motion = np.linalg.inv(poses[a]) @ poses[b]  # one frame period of motion in the sensor frame
+    fraction = (np.arange(azimuth_count) - azimuth_count / 2) / azimuth_count
+    steps = np.tile(np.eye(4), (azimuth_count, 1, 1))
+    steps[:, :3, :3] = _rotation_exp(fraction[:, None] * _rotation_log(motion[:3, :3])[None])
+    steps[:, :3, 3] = fraction[:, None] * motion[:3, 3][None]
+    return poses[index] @ steps

@@ -105,21 +105,25 @@ class Geometry(Protocol):
 class RustGeometry:
     """`dmlo_rs.project` and `dmlo_rs.ground_truth_flow` (Eq. 4–8) for one cylinder configuration."""
 
+    # Holds only picklable state (no module object), so data-loader workers can receive it.
     def __init__(self, config: Any = None, max_range_error: float = 0.1) -> None:
         import dmlo_rs
 
-        self._rs = dmlo_rs
         self.config = config if config is not None else dmlo_rs.CylinderConfig.kitti()
         self.max_range_error = max_range_error
 
     def project(self, points: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        image = self._rs.project(np.ascontiguousarray(points, dtype=np.float32), self.config)
+        import dmlo_rs
+
+        image = dmlo_rs.project(np.ascontiguousarray(points, dtype=np.float32), self.config)
         return np.asarray(image.range, dtype=np.float32), np.asarray(image.reflectance, dtype=np.float32)
 
     def ground_truth(
         self, ref_range: NDArray[np.float32], tgt_range: NDArray[np.float32], T_tgt_ref: NDArray[np.float64]
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
-        flow, valid = self._rs.ground_truth_flow(
+        import dmlo_rs
+
+        flow, valid = dmlo_rs.ground_truth_flow(
             ref_range, tgt_range, np.ascontiguousarray(T_tgt_ref, dtype=np.float64), self.config,
             max_range_error=self.max_range_error,
         )
@@ -191,7 +195,7 @@ class PairDataset:
         ref, T_world_ref = self._scan(sequence, ref_index)
         tgt, T_world_tgt = self._scan(sequence, tgt_index)
         T_tgt_ref = np.linalg.solve(T_world_tgt, T_world_ref)
-        flow, valid = self.geometry.ground_truth(ref[0], tgt[0], T_tgt_ref)
+        flow, valid = self.geometry.ground_truth(ref[0], tgt[0], T_tgt_ref.astype(np.float64))
         return {"ref": ref, "tgt": tgt, "flow": flow.astype(np.float32), "valid": valid.astype(bool)}
 
     def __getitem__(self, index: int) -> Sample:

@@ -65,7 +65,12 @@ class DistributedBatchNorm2d(nn.BatchNorm2d):
         total = stats[-1]
         mean = stats[:channels] / total
         var = (stats[channels : 2 * channels] / total - mean * mean).clamp(min=0)
-        if self.track_running_stats and self.running_mean is not None and self.running_var is not None:
+        if (
+            self.track_running_stats
+            and self.running_mean is not None
+            and self.running_var is not None
+            and self.num_batches_tracked is not None
+        ):
             with torch.no_grad():
                 momentum = self.momentum if self.momentum is not None else 0.1
                 self.num_batches_tracked.add_(1)

@@ -68,7 +68,7 @@ class Trainer:
             model_config = MatcherConfig.from_dict(state["model_config"])
         torch.manual_seed(config.seed)
         self.model_config = model_config
-        self.model = Matcher(model_config).to(self.device)
+        self.model: torch.nn.Module = Matcher(model_config).to(self.device)
         if self.context.enabled:
             # Before the optimiser: the conversion replaces the BatchNorm modules and their parameters.
             self.model = convert_batchnorm(self.model, self.device)

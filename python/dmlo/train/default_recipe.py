@@ -1,0 +1,66 @@
+"""The recipe of the bundled default model: its simulated drives and its training command, in one place.
+
+    python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR]
+
+simulates the drives (skipping those already written; deterministic per seed) and then trains, resuming
+from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. Afterwards
+`dmlo export RUN_DIR --out python/dmlo/models/default --wide-window 41` refreshes the bundled model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+# (name, KITTI ground-truth trajectory the drive follows, seed, first pose of that trajectory, frames)
+DRIVES = (
+    ("train_00", "00", 11, 0, 150),
+    ("train_02", "02", 12, 500, 150),
+    ("train_05", "05", 13, 200, 150),
+    ("train_08", "08", 14, 1000, 150),
+    ("train_01", "01", 15, 100, 150),
+    ("train_06", "06", 16, 0, 150),
+    ("train_gen", None, 17, 0, 150),
+    ("val_07", "07", 21, 0, 60),
+    ("val_04", "04", 22, 0, 60),
+)
+
+TRAIN_ARGUMENTS = (
+    "--preset fast --coarse-window 15 --optimizer adam --lr 0.001 --lr-step 8 --epochs 24 --batch-size 4 "
+    "--crop-width 448 --val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume"
+).split()
+
+
+def simulate_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Path]]:
+    from dmlo.simulator import simulate_sequence
+
+    train: list[Path] = []
+    val: list[Path] = []
+    for name, sequence, seed, start, frames in DRIVES:
+        out = data / name
+        trajectory = poses / f"{sequence}.txt" if poses is not None and sequence is not None else None
+        if trajectory is not None and not trajectory.is_file():
+            trajectory = None  # without KITTI's poses the simulator drives a generated route instead
+        if not (out / "poses.txt").is_file():
+            simulate_sequence(out, frames=frames, seed=seed, trajectory=trajectory, start=start if trajectory else 0)
+        (val if name.startswith("val") else train).append(out)
+    return train, val
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, required=True, help="folder for the simulated drives")
+    parser.add_argument("--out", type=Path, required=True, help="training run folder")
+    parser.add_argument("--poses", type=Path, default=Path(__file__).resolve().parents[4] / "shared/data/kitti_gt_poses",
+                        help="KITTI ground-truth pose files to drive along (default: ../shared/data/kitti_gt_poses)")
+    args = parser.parse_args(argv)
+    train, val = simulate_drives(args.data, args.poses if args.poses.is_dir() else None)
+
+    from dmlo.train.__main__ import main as train_main
+
+    return train_main(["--data", *map(str, train), "--val", *map(str, val), "--out", str(args.out), *TRAIN_ARGUMENTS])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
