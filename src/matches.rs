@@ -140,82 +140,18 @@ pub fn decode_matches(
     config: &CylinderConfig,
     decode: &DecodeConfig,
 ) -> Result<DecodedMatches> {
-    config.validate()?;
-    check_range_image("ref_range", ref_range, config)?;
-    check_range_image("tgt_range", tgt_range, config)?;
+    let decoder = Decoder::new(
+        ref_range, tgt_range, flow, confidence, exclude, config, decode,
+    )?;
     let (height, width) = (config.height, config.width);
-    let cells = height * width;
-    if flow.len() != 2 * cells {
-        return Err(Error::invalid(
-            "flow",
-            format!("has {} values, need 2 x {height} x {width}", flow.len()),
-        ));
-    }
-    if confidence.len() != cells {
-        return Err(Error::invalid(
-            "confidence",
-            format!("has {} values, need {height} x {width}", confidence.len()),
-        ));
-    }
-    if let Some(mask) = exclude {
-        if mask.len() != cells {
-            return Err(Error::invalid(
-                "mask",
-                format!("has {} values, need {height} x {width}", mask.len()),
-            ));
-        }
-    }
-    if decode.min_confidence.is_nan() {
-        return Err(Error::invalid("min_confidence", "is NaN"));
-    }
-    if !(decode.max_relative_range_spread.is_finite() && decode.max_relative_range_spread >= 0.0) {
-        return Err(Error::invalid(
-            "max_relative_range_spread",
-            "must be finite and >= 0",
-        ));
-    }
-    let wraps = config.wraps_azimuth();
-    let period = config.columns_per_turn();
-    let (d_rows, d_cols) = flow.split_at(cells);
-    let directions = DirectionTable::new(config);
-
     let per_row: Vec<DecodedMatches> = (0..height)
         .into_par_iter()
         .map(|row| {
             let mut out = DecodedMatches::with_capacity(width);
             for col in 0..width {
-                let cell = row * width + col;
-                let (range, score) = (ref_range[cell], confidence[cell]);
-                // NaN confidences fail the comparison and are dropped.
-                let confident = score >= decode.min_confidence;
-                if range <= 0.0 || !confident || exclude.is_some_and(|m| m[cell]) {
-                    continue;
+                if decoder.is_candidate(row * width + col) {
+                    decoder.decode_into(row, col, &mut out);
                 }
-                let (d_row, d_col) = (d_rows[cell], d_cols[cell]);
-                if !(d_row.is_finite() && d_col.is_finite()) {
-                    continue;
-                }
-                let row_t = row as f64 + d_row as f64;
-                let mut col_t = col as f64 + d_col as f64;
-                if wraps {
-                    col_t = (col_t + 0.5).rem_euclid(period) - 0.5;
-                }
-                let Some(range_t) = sample_range(
-                    tgt_range,
-                    row_t,
-                    col_t,
-                    config,
-                    decode.max_relative_range_spread,
-                ) else {
-                    continue;
-                };
-                out.source.push(Point3::from(
-                    directions.at(row as f64, col as f64) * range as f64,
-                ));
-                out.target
-                    .push(Point3::from(directions.at(row_t, col_t) * range_t));
-                out.confidence.push(score);
-                out.cells.push([row, col]);
             }
             out
         })
@@ -228,6 +164,189 @@ pub fn decode_matches(
         all.cells.extend(part.cells);
     }
     Ok(all)
+}
+
+/// [`decode_matches`] followed by [`crate::nms::nms`] with `radius` and `top_n`, fused: candidate
+/// cells are visited in NMS order (confidence descending, then cell index) and only those that
+/// survive suppression are decoded; a cell that cannot be decoded is skipped without suppressing its
+/// neighbours. The result is exactly that of decoding everything and then running NMS on the decoded
+/// matches, best first, at a cost that grows with `top_n` instead of the image size.
+#[allow(clippy::too_many_arguments)]
+pub fn select_matches(
+    ref_range: &[f32],
+    tgt_range: &[f32],
+    flow: &[f32],
+    confidence: &[f32],
+    exclude: Option<&[bool]>,
+    config: &CylinderConfig,
+    decode: &DecodeConfig,
+    radius: usize,
+    top_n: usize,
+) -> Result<DecodedMatches> {
+    let decoder = Decoder::new(
+        ref_range, tgt_range, flow, confidence, exclude, config, decode,
+    )?;
+    let (height, width) = (config.height, config.width);
+    let mut candidates: Vec<u32> = (0..(height * width) as u32)
+        .filter(|&cell| decoder.is_candidate(cell as usize))
+        .collect();
+    let better = |a: &u32, b: &u32| {
+        confidence[*b as usize]
+            .total_cmp(&confidence[*a as usize])
+            .then(a.cmp(b))
+    };
+    let mut out = DecodedMatches::with_capacity(top_n.min(candidates.len()));
+    let mut suppressed = vec![false; height * width];
+    // Sort only as many candidates as are likely needed (each kept match suppresses at most
+    // (2r+1)² − 1 others; undecodable ones need more), then the rest if they run out.
+    let mut sorted = 0;
+    let mut batch = top_n
+        .saturating_mul((2 * radius + 1).pow(2))
+        .saturating_mul(2)
+        .max(64);
+    let mut next = 0;
+    while out.len() < top_n && next < candidates.len() {
+        if next == sorted {
+            let end = sorted.saturating_add(batch).min(candidates.len());
+            if end < candidates.len() {
+                candidates[sorted..].select_nth_unstable_by(end - sorted, better);
+            }
+            candidates[sorted..end].sort_unstable_by(better);
+            sorted = end;
+            batch = batch.saturating_mul(2);
+        }
+        let cell = candidates[next] as usize;
+        next += 1;
+        if suppressed[cell] {
+            continue;
+        }
+        let (row, col) = (cell / width, cell % width);
+        if !decoder.decode_into(row, col, &mut out) {
+            continue;
+        }
+        for r in row.saturating_sub(radius)..=(row + radius).min(height - 1) {
+            let start = r * width + col.saturating_sub(radius);
+            let stop = r * width + (col + radius).min(width - 1);
+            suppressed[start..=stop].fill(true);
+        }
+    }
+    Ok(out)
+}
+
+/// Checked inputs of a decode and the per-cell work shared by [`decode_matches`] and
+/// [`select_matches`].
+struct Decoder<'a> {
+    ref_range: &'a [f32],
+    tgt_range: &'a [f32],
+    d_rows: &'a [f32],
+    d_cols: &'a [f32],
+    confidence: &'a [f32],
+    exclude: Option<&'a [bool]>,
+    config: &'a CylinderConfig,
+    decode: &'a DecodeConfig,
+    directions: DirectionTable,
+}
+
+impl<'a> Decoder<'a> {
+    fn new(
+        ref_range: &'a [f32],
+        tgt_range: &'a [f32],
+        flow: &'a [f32],
+        confidence: &'a [f32],
+        exclude: Option<&'a [bool]>,
+        config: &'a CylinderConfig,
+        decode: &'a DecodeConfig,
+    ) -> Result<Self> {
+        config.validate()?;
+        check_range_image("ref_range", ref_range, config)?;
+        check_range_image("tgt_range", tgt_range, config)?;
+        let (height, width) = (config.height, config.width);
+        let cells = height * width;
+        if flow.len() != 2 * cells {
+            return Err(Error::invalid(
+                "flow",
+                format!("has {} values, need 2 x {height} x {width}", flow.len()),
+            ));
+        }
+        if confidence.len() != cells {
+            return Err(Error::invalid(
+                "confidence",
+                format!("has {} values, need {height} x {width}", confidence.len()),
+            ));
+        }
+        if let Some(mask) = exclude {
+            if mask.len() != cells {
+                return Err(Error::invalid(
+                    "mask",
+                    format!("has {} values, need {height} x {width}", mask.len()),
+                ));
+            }
+        }
+        if decode.min_confidence.is_nan() {
+            return Err(Error::invalid("min_confidence", "is NaN"));
+        }
+        if !(decode.max_relative_range_spread.is_finite()
+            && decode.max_relative_range_spread >= 0.0)
+        {
+            return Err(Error::invalid(
+                "max_relative_range_spread",
+                "must be finite and >= 0",
+            ));
+        }
+        let (d_rows, d_cols) = flow.split_at(cells);
+        Ok(Decoder {
+            ref_range,
+            tgt_range,
+            d_rows,
+            d_cols,
+            confidence,
+            exclude,
+            config,
+            decode,
+            directions: DirectionTable::new(config),
+        })
+    }
+
+    /// A cell with a range, enough confidence (NaN fails), no exclusion mark and a finite flow.
+    #[inline]
+    fn is_candidate(&self, cell: usize) -> bool {
+        let confident = self.confidence[cell] >= self.decode.min_confidence;
+        self.ref_range[cell] > 0.0
+            && confident
+            && !self.exclude.is_some_and(|m| m[cell])
+            && self.d_rows[cell].is_finite()
+            && self.d_cols[cell].is_finite()
+    }
+
+    /// Decodes a candidate cell and appends the match; false when the target range is unavailable.
+    #[inline]
+    fn decode_into(&self, row: usize, col: usize, out: &mut DecodedMatches) -> bool {
+        let cell = row * self.config.width + col;
+        let row_t = row as f64 + self.d_rows[cell] as f64;
+        let mut col_t = col as f64 + self.d_cols[cell] as f64;
+        if self.config.wraps_azimuth() {
+            let period = self.config.columns_per_turn();
+            col_t = (col_t + 0.5).rem_euclid(period) - 0.5;
+        }
+        let Some(range_t) = sample_range(
+            self.tgt_range,
+            row_t,
+            col_t,
+            self.config,
+            self.decode.max_relative_range_spread,
+        ) else {
+            return false;
+        };
+        let range = self.ref_range[cell] as f64;
+        out.source.push(Point3::from(
+            self.directions.at(row as f64, col as f64) * range,
+        ));
+        out.target
+            .push(Point3::from(self.directions.at(row_t, col_t) * range_t));
+        out.confidence.push(self.confidence[cell]);
+        out.cells.push([row, col]);
+        true
+    }
 }
 
 /// Unit directions of Φ⁻¹ without trigonometric calls per point: sines and cosines tabulated at the
@@ -377,6 +496,78 @@ mod tests {
             .cells
             .iter()
             .all(|&[row, col]| row * config.width + col >= n / 2));
+    }
+
+    #[test]
+    fn fused_selection_equals_decoding_then_nms() {
+        let config = CylinderConfig::kitti();
+        let n = config.height * config.width;
+        let mut state = 12345u64;
+        let mut random = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 33) as f32 / (1u64 << 31) as f32
+        };
+        // Holes in both images and flows that leave the image make many cells undecodable.
+        let ref_range: Vec<f32> = (0..n)
+            .map(|_| {
+                if random() < 0.3 {
+                    0.0
+                } else {
+                    5.0 + 20.0 * random()
+                }
+            })
+            .collect();
+        let tgt_range: Vec<f32> = (0..n)
+            .map(|_| {
+                if random() < 0.5 {
+                    0.0
+                } else {
+                    5.0 + 20.0 * random()
+                }
+            })
+            .collect();
+        let flow: Vec<f32> = (0..2 * n).map(|_| (random() - 0.5) * 8.0).collect();
+        // Coarse confidences: many ties.
+        let confidence: Vec<f32> = (0..n).map(|_| (random() * 20.0).floor() / 20.0).collect();
+        let decode = DecodeConfig {
+            min_confidence: 0.2,
+            ..Default::default()
+        };
+        let all = decode_matches(
+            &ref_range,
+            &tgt_range,
+            &flow,
+            &confidence,
+            None,
+            &config,
+            &decode,
+        )
+        .unwrap();
+        for (radius, top_n) in [(1, 1000), (2, 300), (0, 50_000), (1, 10)] {
+            let rows: Vec<i64> = all.cells.iter().map(|c| c[0] as i64).collect();
+            let cols: Vec<i64> = all.cells.iter().map(|c| c[1] as i64).collect();
+            let kept = crate::nms::nms(&rows, &cols, &all.confidence, radius, Some(top_n)).unwrap();
+            let fused = select_matches(
+                &ref_range,
+                &tgt_range,
+                &flow,
+                &confidence,
+                None,
+                &config,
+                &decode,
+                radius,
+                top_n,
+            )
+            .unwrap();
+            assert_eq!(fused.len(), kept.len());
+            for (k, &i) in kept.iter().enumerate() {
+                assert_eq!(fused.cells[k], all.cells[i]);
+                assert_eq!(fused.source[k], all.source[i]);
+                assert_eq!(fused.target[k], all.target[i]);
+            }
+        }
     }
 
     #[test]

@@ -280,15 +280,14 @@ pub(crate) fn floor_fast(x: f64) -> f64 {
 /// tan(π/8), so the first omitted term is below 0.4143¹⁵/15 = 1.3e-7; 1e-6 leaves room for rounding.
 const ATAN_ERROR_BOUND: f64 = 1e-6;
 
-/// `atan(t)` for `0 ≤ t ≤ 1`: reduced to |u| ≤ tan(π/8) by `atan t = π/4 + atan((t−1)/(t+1))`, then
-/// the odd Taylor series.
+/// `atan(num/den)` for `0 ≤ num ≤ den`, `den > 0`: reduced to |u| ≤ tan(π/8) by
+/// `atan t = π/4 + atan((t−1)/(t+1))` (one division either way), then the odd Taylor series.
 #[inline(always)]
-fn atan_unit(t: f64) -> f64 {
-    let (u, offset) = if t > std::f64::consts::SQRT_2 - 1.0 {
-        ((t - 1.0) / (t + 1.0), std::f64::consts::FRAC_PI_4)
-    } else {
-        (t, 0.0)
-    };
+fn atan_octant(num: f64, den: f64) -> f64 {
+    let big = num > (std::f64::consts::SQRT_2 - 1.0) * den;
+    let (top, bottom) = if big { (num - den, num + den) } else { (num, den) };
+    let offset = if big { std::f64::consts::FRAC_PI_4 } else { 0.0 };
+    let u = top / bottom;
     let u2 = u * u;
     let series = 1.0
         - u2 * (1.0 / 3.0
@@ -304,11 +303,9 @@ fn atan2_fast(y: f64, x: f64) -> f64 {
     if ax == 0.0 && ay == 0.0 {
         return y.atan2(x);
     }
-    let mut angle = if ay > ax {
-        std::f64::consts::FRAC_PI_2 - atan_unit(ax / ay)
-    } else {
-        atan_unit(ay / ax)
-    };
+    let steep = ay > ax;
+    let octant = atan_octant(ax.min(ay), ax.max(ay));
+    let mut angle = if steep { std::f64::consts::FRAC_PI_2 - octant } else { octant };
     if x.is_sign_negative() {
         angle = std::f64::consts::PI - angle;
     }

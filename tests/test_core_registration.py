@@ -240,6 +240,21 @@ def test_decoding_ground_truth_flow_gives_matches_consistent_with_the_motion(mov
     assert np.linalg.norm(result.transform[:3, 3] - T[:3, 3]) < 0.03
 
 
+def test_fused_nms_equals_decoding_then_nms(moved_pair) -> None:
+    ref, tgt, T, config = moved_pair
+    flow, valid = dmlo_rs.ground_truth_flow(ref.range, tgt.range, T, config)
+    rng = np.random.default_rng(9)
+    flow += rng.normal(scale=2.0, size=flow.shape).astype(np.float32)  # some land on holes or outside
+    confidence = (rng.integers(0, 10, valid.shape) / 10).astype(np.float32)  # ties on purpose
+    everything = dmlo_rs.decode_matches(ref.range, tgt.range, flow, confidence, config, 0.2)
+    for radius, top_n in [(1, 1000), (2, 200)]:
+        keep = dmlo_rs.nms(everything.cells[:, 0], everything.cells[:, 1], everything.confidence, radius, top_n)
+        fused = dmlo_rs.decode_matches(ref.range, tgt.range, flow, confidence, config, 0.2, top_n=top_n, nms_radius=radius)
+        np.testing.assert_array_equal(fused.cells, everything.cells[keep])
+        np.testing.assert_array_equal(fused.source, everything.source[keep])
+        np.testing.assert_array_equal(fused.target, everything.target[keep])
+
+
 def test_decoding_honours_confidence_and_the_exclusion_mask(moved_pair) -> None:
     ref, tgt, _, config = moved_pair
     flow = np.zeros((2, 64, 1792), np.float32)

@@ -184,9 +184,12 @@ def decode_matches(
     mask: npt.NDArray[np.bool_] | None = None,
     *,
     max_relative_range_spread: float = 0.1,
+    top_n: int | None = None,
+    nms_radius: int = 1,
     num_threads: int | None = None,
 ) -> Matches:
-    """Network output (flow[2, H, W], confidence[H, W]) → 3D matches; mask True = exclude the cell."""
+    """Network output (flow[2, H, W], confidence[H, W]) → 3D matches; mask True = exclude the cell.
+    With top_n, NMS (nms_radius) is fused in: only the kept matches are decoded, best first."""
 
 
 

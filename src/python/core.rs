@@ -663,10 +663,11 @@ impl PyMatches {
 
 /// Network output → 3D matches: `flow[2, H, W]` (Δrow, Δcol) and `confidence[H, W]` with both range
 /// images; cells below `min_confidence`, without range, or where `mask` (H×W bool, True = exclude, e.g.
-/// moving objects) is set are dropped.
+/// moving objects) is set are dropped. With `top_n`, NMS (`nms_radius`) is fused in: only the kept
+/// matches are decoded, best first — the same result as `nms` on the full output, much faster.
 #[pyfunction]
 #[pyo3(signature = (ref_range, tgt_range, flow, confidence, config, min_confidence = 0.0, mask = None, *,
-                    max_relative_range_spread = 0.1, num_threads = None))]
+                    max_relative_range_spread = 0.1, top_n = None, nms_radius = 1, num_threads = None))]
 #[allow(clippy::too_many_arguments)]
 fn decode_matches(
     py: Python<'_>,
@@ -678,6 +679,8 @@ fn decode_matches(
     min_confidence: f32,
     mask: Option<&Bound<'_, PyAny>>,
     max_relative_range_spread: f32,
+    top_n: Option<usize>,
+    nms_radius: usize,
     num_threads: Option<usize>,
 ) -> PyResult<PyMatches> {
     let cylinder = config.inner;
@@ -718,16 +721,14 @@ fn decode_matches(
         min_confidence,
         max_relative_range_spread,
     };
-    let decoded = run(py, num_threads, || {
-        matches::decode_matches(
-            reference,
-            target,
-            flow,
-            confidence,
-            mask.as_deref(),
-            &cylinder,
-            &decode,
-        )
+    let mask = mask.as_deref();
+    let decoded = run(py, num_threads, || match top_n {
+        None => matches::decode_matches(
+            reference, target, flow, confidence, mask, &cylinder, &decode,
+        ),
+        Some(top_n) => matches::select_matches(
+            reference, target, flow, confidence, mask, &cylinder, &decode, nms_radius, top_n,
+        ),
     })?;
     let cells = Array2::from_shape_fn((decoded.cells.len(), 2), |(i, j)| {
         decoded.cells[i][j] as i64
