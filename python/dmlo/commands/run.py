@@ -78,9 +78,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def format_summary(summary) -> str:  # type: ignore[no-untyped-def]
+    fallbacks = ", ".join(f"{count} {reason.replace('_', ' ')}" for reason, count in summary.fallbacks.items())
     lines = [
-        f"{summary.frames} scans in {summary.seconds:.1f} s ({summary.hz:.1f} Hz), "
-        f"{summary.fallbacks} constant-velocity fallbacks, {len(summary.skipped)} skipped",
+        f"{summary.frames} scans in {summary.seconds:.1f} s ({summary.hz:.1f} Hz); "
+        f"motion model used for: {fallbacks or 'none'}",
         f"results in {summary.out_dir}/",
     ]
     if summary.metrics:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +27,7 @@ from dmlo.poses import PoseWriter, write_kitti_poses
 class RunSummary:
     frames: int
     skipped: list[int]
-    fallbacks: int
+    fallbacks: dict[str, int]  # reason (constant_velocity, too_few_points, unreadable_scan) → frames
     seconds: float
     metrics: dict[str, Any] | None
     out_dir: Path
@@ -95,8 +96,8 @@ def run_sequence(
     ground_truth = sequence.poses
     if ground_truth is not None:
         metrics = _evaluate(ground_truth[:total], np.stack(odometry.poses), out_dir, sequence.name)
-    fallbacks = sum(d.fallback is not None for d in odometry.diagnostics)
-    return RunSummary(total, skipped, fallbacks, seconds, metrics, out_dir)
+    fallbacks = Counter(d.fallback for d in odometry.diagnostics if d.fallback is not None)
+    return RunSummary(total, skipped, dict(fallbacks), seconds, metrics, out_dir)
 
 
 def _evaluate(ground_truth: np.ndarray, estimate: np.ndarray, out_dir: Path, name: str) -> dict[str, Any]:
