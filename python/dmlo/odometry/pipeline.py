@@ -35,7 +35,6 @@ class FrameDiagnostics:
     index: int
     num_points: int
     num_matches: int = 0
-    num_candidates: int = 0
     num_inliers: int = 0
     inlier_ratio: float = 0.0
     fallback: str | None = None  # "constant_velocity" when RANSAC found too few inliers
@@ -46,7 +45,6 @@ class FrameDiagnostics:
         return {
             "index": self.index,
             "num_points": self.num_points,
-            "num_candidates": self.num_candidates,
             "num_matches": self.num_matches,
             "num_inliers": self.num_inliers,
             "inlier_ratio": round(self.inlier_ratio, 4),
@@ -61,7 +59,6 @@ class PairResult:
     """The motion between a reference and a target scan: `T_tgt_ref` with `p_tgt = T p_ref` (Eq. 7)."""
 
     T_tgt_ref: Matrix4
-    num_candidates: int
     num_matches: int
     num_inliers: int
     source_points: npt.NDArray[np.float64]
@@ -196,16 +193,12 @@ class Odometry:
         watch: _Stopwatch | None = None,
     ) -> PairResult:
         m, r = self.config.matching, self.config.ransac
-        # NMS: the most confident match in every radius-r neighbourhood, top N (§III-D-a). It runs on the
-        # grid before decoding, over the cells that can decode (valid reference range, confidence, target
-        # inside the image on a valid range), so only the N survivors are lifted to 3D.
-        rows, cols = _decodable_cells(ref_range, tgt_range, flow, confidence, m.min_confidence)
-        keep = dmlo_rs.nms(rows, cols, confidence[rows, cols], m.nms_radius, m.max_matches)
-        excluded = np.ones(confidence.shape, dtype=bool)
-        excluded[rows[keep], cols[keep]] = False
-        # Network output → 3D pairs (p'_r, p̂_t), sampling D_t at the sub-pixel match (§III-D).
+        # Network output → 3D pairs (p'_r, p̂_t), sampling D_t at the sub-pixel match (§III-D), with NMS
+        # fused in: the most confident match of every radius-r neighbourhood, top N (§III-D-a); only
+        # those are lifted to 3D.
         matches = dmlo_rs.decode_matches(
-            ref_range, tgt_range, flow, confidence, self.cylinder, min_confidence=m.min_confidence, mask=excluded
+            ref_range, tgt_range, flow, confidence, self.cylinder, min_confidence=m.min_confidence,
+            top_n=m.max_matches, nms_radius=m.nms_radius,
         )
         src, dst = matches.source, matches.target
         if watch:
@@ -225,7 +218,6 @@ class Odometry:
             watch.lap("ransac")
         return PairResult(
             T_tgt_ref=np.asarray(transform, dtype=np.float64),
-            num_candidates=len(rows),
             num_matches=len(src),
             num_inliers=int(num_inliers),
             source_points=src,
@@ -243,7 +235,6 @@ class Odometry:
     ) -> Matrix4:
         assert output.flow is not None and output.confidence is not None
         pair = self._match(ref_range, tgt_range, output.flow, output.confidence, watch)
-        diagnostics.num_candidates = pair.num_candidates
         diagnostics.num_matches = pair.num_matches
         diagnostics.num_inliers = pair.num_inliers
         diagnostics.inlier_ratio = pair.inlier_ratio
@@ -294,23 +285,6 @@ class Odometry:
             return pose
         diagnostics.ndt_converged = bool(result.converged)
         return np.asarray(result.transform, dtype=np.float64) if result.converged else pose
-
-
-def _decodable_cells(
-    ref_range: npt.NDArray[np.float32],
-    tgt_range: npt.NDArray[np.float32],
-    flow: npt.NDArray[np.float32],
-    confidence: npt.NDArray[np.float32],
-    min_confidence: float,
-) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-    height, width = ref_range.shape
-    rows, cols = np.nonzero((ref_range > 0) & (confidence >= min_confidence) & np.isfinite(flow).all(axis=0))
-    target_rows = np.rint(rows + flow[0, rows, cols]).astype(np.int64)
-    target_cols = np.rint(cols + flow[1, rows, cols]).astype(np.int64)
-    inside = (target_rows >= 0) & (target_rows < height) & (target_cols >= 0) & (target_cols < width)
-    rows, cols = rows[inside], cols[inside]
-    lands_on_range = tgt_range[target_rows[inside], target_cols[inside]] > 0
-    return rows[lands_on_range], cols[lands_on_range]
 
 
 def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
