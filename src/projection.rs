@@ -276,69 +276,78 @@ pub(crate) fn floor_fast(x: f64) -> f64 {
     }
 }
 
-/// Bound on the error of [`atan2_fast`], radians: the series is cut after the u¹³ term for |u| ≤
+/// Bound on the error of [`atan2_lanes`], radians: the series is cut after the u¹³ term for |u| ≤
 /// tan(π/8), so the first omitted term is below 0.4143¹⁵/15 = 1.3e-7; 1e-6 leaves room for rounding.
 const ATAN_ERROR_BOUND: f64 = 1e-6;
 
-/// `atan(num/den)` for `0 ≤ num ≤ den`, `den > 0`: reduced to |u| ≤ tan(π/8) by
-/// `atan t = π/4 + atan((t−1)/(t+1))` (one division either way), then the odd Taylor series.
-#[inline(always)]
-fn atan_octant(num: f64, den: f64) -> f64 {
-    let big = num > (std::f64::consts::SQRT_2 - 1.0) * den;
-    let (top, bottom) = if big { (num - den, num + den) } else { (num, den) };
-    let offset = if big { std::f64::consts::FRAC_PI_4 } else { 0.0 };
-    let u = top / bottom;
-    let u2 = u * u;
-    let series = 1.0
-        - u2 * (1.0 / 3.0
-            - u2 * (1.0 / 5.0
-                - u2 * (1.0 / 7.0 - u2 * (1.0 / 9.0 - u2 * (1.0 / 11.0 - u2 * (1.0 / 13.0))))));
-    offset + u * series
-}
+/// Points per lane group of the vectorised arctangent.
+const LANES: usize = 8;
 
-/// `atan2(y, x)` within [`ATAN_ERROR_BOUND`], with libm's signs (also of zeros) and quadrants.
+/// `atan2(y, x)` within [`ATAN_ERROR_BOUND`] for a group of points, with libm's quadrants and signs
+/// (also of −0): the octant reduced to |u| ≤ tan(π/8) by `atan t = π/4 + atan((t−1)/(t+1))` (one
+/// division either way), then the odd Taylor series; written branch-free.
 #[inline(always)]
-fn atan2_fast(y: f64, x: f64) -> f64 {
-    let (ax, ay) = (x.abs(), y.abs());
-    if ax == 0.0 && ay == 0.0 {
-        return y.atan2(x);
+fn atan2_lanes(y: &[f64; LANES], x: &[f64; LANES]) -> [f64; LANES] {
+    let mut out = [0.0; LANES];
+    for l in 0..LANES {
+        let (ax, ay) = (x[l].abs(), y[l].abs());
+        let steep = ay > ax;
+        let (num, den) = if steep { (ax, ay) } else { (ay, ax) };
+        let big = num > (std::f64::consts::SQRT_2 - 1.0) * den;
+        let top = if big { num - den } else { num };
+        let bottom = if big { num + den } else { den };
+        // 0/0 at the origin gives NaN, which `cell_index` hands to libm.
+        let u = top / bottom;
+        let u2 = u * u;
+        let series = 1.0
+            - u2 * (1.0 / 3.0
+                - u2 * (1.0 / 5.0
+                    - u2 * (1.0 / 7.0 - u2 * (1.0 / 9.0 - u2 * (1.0 / 11.0 - u2 * (1.0 / 13.0))))));
+        let octant = if big {
+            std::f64::consts::FRAC_PI_4
+        } else {
+            0.0
+        } + u * series;
+        let angle = if steep {
+            std::f64::consts::FRAC_PI_2 - octant
+        } else {
+            octant
+        };
+        // x = −0 only matters together with y = ±0 (the origin, handled by libm).
+        let angle = if x[l] < 0.0 {
+            std::f64::consts::PI - angle
+        } else {
+            angle
+        };
+        // The angle is ≥ 0 here; y's sign (also of −0, as libm) decides the half-plane.
+        out[l] = angle.copysign(y[l]);
     }
-    let steep = ay > ax;
-    let octant = atan_octant(ax.min(ay), ax.max(ay));
-    let mut angle = if steep { std::f64::consts::FRAC_PI_2 - octant } else { octant };
-    if x.is_sign_negative() {
-        angle = std::f64::consts::PI - angle;
-    }
-    if y.is_sign_negative() {
-        -angle
-    } else {
-        angle
-    }
+    out
 }
 
 /// `⌊origin − atan2(y, x)·cells_per_radian + ½⌋`, exactly as with libm's `atan2`: the fast arctangent
-/// decides the cell unless it lies too close to a cell boundary to be sure, when libm decides.
-/// Negative results (outside the image anyway) all come back as −1.
+/// `fast` (within [`ATAN_ERROR_BOUND`]) decides the cell unless it lies too close to a cell boundary to
+/// be sure (or is NaN), when libm decides. Negative results (outside the image anyway) come back as −1.
 #[inline(always)]
-fn cell_index(origin: f64, y: f64, x: f64, cells_per_radian: f64) -> f64 {
-    let shifted = origin - atan2_fast(y, x) * cells_per_radian + 0.5;
-    if shifted < 0.0 {
+fn cell_index(origin: f64, fast: f64, y: f64, x: f64, cells_per_radian: f64) -> f64 {
+    let shifted = origin - fast * cells_per_radian + 0.5;
+    let margin = ATAN_ERROR_BOUND * cells_per_radian + 1e-9;
+    if shifted >= margin {
+        // Truncation is floor for non-negative values and, unlike `floor`, needs no libm call on
+        // baseline x86-64.
+        let cell = (shifted as i64) as f64;
+        let fraction = shifted - cell;
+        if fraction > margin && fraction < 1.0 - margin {
+            return cell;
+        }
+    } else if shifted < -margin {
         return -1.0;
     }
-    // Truncation is floor for non-negative values and, unlike `floor`, needs no libm call on
-    // baseline x86-64.
-    let cell = (shifted as i64) as f64;
-    let margin = ATAN_ERROR_BOUND * cells_per_radian + 1e-9;
-    let fraction = shifted - cell;
-    if fraction > margin && fraction < 1.0 - margin {
-        cell
+    let exact = origin - y.atan2(x) * cells_per_radian + 0.5;
+    if exact < 0.0 {
+        -1.0
     } else {
-        let exact = origin - y.atan2(x) * cells_per_radian + 0.5;
-        if exact < 0.0 {
-            -1.0
-        } else {
-            exact.floor()
-        }
+        exact.floor()
     }
 }
 
@@ -375,28 +384,46 @@ pub fn project_flat(
     let cols_per_radian = 1.0 / config.horizontal_resolution_deg.to_radians();
 
     // Pass 1 (parallel): every point's cell and range. Pass 2 (serial, cheap): closest point per cell.
-    let located: Vec<(u32, f32)> = points
-        .par_chunks_exact(channels)
-        .with_min_len(4096)
-        .map(|p| {
-            if !p.iter().all(|v| v.is_finite()) {
-                return (NON_FINITE, 0.0);
+    let locate_point = |p: &[f32], elevation: f64, azimuth: f64| -> (u32, f32) {
+        if !p.iter().all(|v| v.is_finite()) {
+            return (NON_FINITE, 0.0);
+        }
+        let (x, y, z) = (p[0] as f64, p[1] as f64, p[2] as f64);
+        let horizontal_sq = x * x + y * y;
+        let range = (horizontal_sq + z * z).sqrt();
+        if range == 0.0 {
+            return (NO_CELL, 0.0);
+        }
+        let row = cell_index(row0, elevation, z, horizontal_sq.sqrt(), rows_per_radian);
+        let col = cell_index(col0, azimuth, y, x, cols_per_radian);
+        if row < 0.0 || col < 0.0 || row >= height as f64 || col >= width as f64 {
+            return (NO_CELL, 0.0);
+        }
+        ((row as usize * width + col as usize) as u32, range as f32)
+    };
+    // Lanes of points: the arctangents of a lane are branch-free and vectorise; the cell logic
+    // (and the rare exact fallback) stays scalar.
+    let mut located = vec![(NO_CELL, 0.0f32); points.len() / channels];
+    located
+        .par_chunks_mut(LANES)
+        .zip(points.par_chunks(LANES * channels))
+        .with_min_len(512)
+        .for_each(|(out, chunk)| {
+            let mut xs = [1.0f64; LANES];
+            let mut ys = [0.0f64; LANES];
+            let mut zs = [0.0f64; LANES];
+            let mut horizontal = [1.0f64; LANES];
+            for (l, p) in chunk.chunks_exact(channels).enumerate() {
+                let (x, y, z) = (p[0] as f64, p[1] as f64, p[2] as f64);
+                (xs[l], ys[l], zs[l]) = (x, y, z);
+                horizontal[l] = (x * x + y * y).sqrt();
             }
-            let (x, y, z) = (p[0] as f64, p[1] as f64, p[2] as f64);
-            let horizontal_sq = x * x + y * y;
-            let range = (horizontal_sq + z * z).sqrt();
-            if range == 0.0 {
-                return (NO_CELL, 0.0);
+            let elevation = atan2_lanes(&zs, &horizontal);
+            let azimuth = atan2_lanes(&ys, &xs);
+            for (l, p) in chunk.chunks_exact(channels).enumerate() {
+                out[l] = locate_point(p, elevation[l], azimuth[l]);
             }
-            let horizontal = horizontal_sq.sqrt();
-            let row = cell_index(row0, z, horizontal, rows_per_radian);
-            let col = cell_index(col0, y, x, cols_per_radian);
-            if row < 0.0 || col < 0.0 || row >= height as f64 || col >= width as f64 {
-                return (NO_CELL, 0.0);
-            }
-            ((row as usize * width + col as usize) as u32, range as f32)
-        })
-        .collect();
+        });
 
     let mut projection = Projection {
         height,
@@ -481,12 +508,13 @@ mod tests {
     #[test]
     fn fast_arctangent_stays_within_its_bound_and_keeps_libm_signs() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let fast = |y: f64, x: f64| atan2_lanes(&[y; LANES], &[x; LANES])[LANES - 1];
         for _ in 0..200_000 {
             let (y, x) = (
                 rng.random_range(-100.0..100.0),
                 rng.random_range(-100.0..100.0),
             );
-            assert!((atan2_fast(y, x) - f64::atan2(y, x)).abs() < ATAN_ERROR_BOUND / 4.0);
+            assert!((fast(y, x) - f64::atan2(y, x)).abs() < ATAN_ERROR_BOUND / 4.0);
         }
         for (y, x) in [
             (0.0, -1.0),
@@ -495,17 +523,16 @@ mod tests {
             (-0.0, 1.0),
             (1.0, 0.0),
             (-1.0, -0.0),
-            (0.0, 0.0),
         ] {
-            assert!(
-                (atan2_fast(y, x) - f64::atan2(y, x)).abs() < 1e-12,
-                "({y}, {x})"
-            );
+            assert!((fast(y, x) - f64::atan2(y, x)).abs() < 1e-12, "({y}, {x})");
             assert_eq!(
-                atan2_fast(y, x).is_sign_negative(),
+                fast(y, x).is_sign_negative(),
                 f64::atan2(y, x).is_sign_negative()
             );
         }
+        // The origin has no direction: NaN, which `cell_index` hands to libm.
+        assert!(fast(0.0, 0.0).is_nan());
+        assert_eq!(cell_index(3.0, f64::NAN, 0.0, 0.0, 143.0), 3.0);
     }
 
     #[test]

@@ -32,7 +32,9 @@ pub struct RansacConfig {
     pub seed: u64,
     /// Hypotheses drawn per parallel batch (≥ 1); changes speed only, never the result.
     pub batch_size: usize,
-    /// Refits on all inliers after the search, repeated while the inlier set changes (0 = no refit).
+    /// Least-squares refits after the search: the first on all inliers of the best hypothesis is always
+    /// kept, later ones (on the refit's inliers) while the inlier set changes and the consensus does not
+    /// shrink. 0 returns the best minimal-sample hypothesis itself.
     pub refine_iterations: usize,
 }
 
@@ -336,9 +338,10 @@ pub fn ransac_rigid(
         )));
     };
 
-    // Refit on all inliers while that keeps (or grows) the consensus.
+    // The least-squares refit on all inliers of the best hypothesis is the answer (a 3-match sample
+    // carries its noise); further refits on the new inlier set follow while they keep the consensus.
     let mut inliers = matches.inlier_mask(&transform, threshold_sq);
-    for _ in 0..config.refine_iterations {
+    for round in 0..config.refine_iterations {
         let (inlier_src, inlier_dst): (Vec<Point3<f64>>, Vec<Point3<f64>>) = inliers
             .iter()
             .enumerate()
@@ -349,7 +352,7 @@ pub fn ransac_rigid(
             break;
         };
         let (refit_count, refit_error) = matches.score(&refit, threshold_sq);
-        if refit_count < count {
+        if round > 0 && refit_count < count {
             break;
         }
         let refit_inliers = matches.inlier_mask(&refit, threshold_sq);
@@ -459,6 +462,18 @@ mod tests {
         assert_eq!(
             result.num_inliers,
             result.inliers.iter().filter(|&&v| v).count()
+        );
+        // The answer is the least-squares fit on its inliers, not a noisy 3-match sample.
+        let (inlier_src, inlier_dst): (Vec<_>, Vec<_>) = (0..src.len())
+            .filter(|&i| result.inliers[i])
+            .map(|i| (src[i], dst[i]))
+            .unzip();
+        let refit = rigid_transform(&inlier_src, &inlier_dst, None).unwrap();
+        assert!(
+            (refit.to_homogeneous() - result.transform.to_homogeneous())
+                .abs()
+                .max()
+                < 1e-9
         );
         assert!(result.iterations <= 1000 && result.iterations > 0);
     }
