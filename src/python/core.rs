@@ -6,8 +6,6 @@
 //! and turns any panic into a `RuntimeError`.
 
 use std::borrow::Cow;
-use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::{Arc, Mutex};
 
 use nalgebra::{Isometry3, Matrix4, Point3};
 use numpy::ndarray::{Array1, Array2, Array3};
@@ -25,70 +23,9 @@ use crate::projection::{self, CylinderConfig};
 use crate::ransac::{self, RansacConfig};
 use crate::rigid;
 
+use super::pool::run;
+
 // ---- plumbing --------------------------------------------------------------------------------------
-
-/// Rayon pools of this process, keyed by thread count; the owning pid detects a `fork()` (the child
-/// has no worker threads, so it must build its own pools; the parent's are leaked, never joined).
-static POOLS: Mutex<Option<ProcessPools>> = Mutex::new(None);
-
-/// The owning process id and its pools by thread count.
-type ProcessPools = (u32, Vec<(usize, Arc<rayon::ThreadPool>)>);
-
-fn thread_pool(num_threads: Option<usize>) -> PyResult<Arc<rayon::ThreadPool>> {
-    let threads = match num_threads {
-        Some(0) => {
-            return Err(PyValueError::new_err(
-                "num_threads: must be >= 1 (or None for all cores)",
-            ))
-        }
-        Some(n) => n,
-        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
-    };
-    let mut guard = POOLS
-        .lock()
-        .unwrap_or_else(|poisoned| poisoned.into_inner());
-    let pid = std::process::id();
-    if guard.as_ref().is_some_and(|(owner, _)| *owner != pid) {
-        if let Some((_, pools)) = guard.take() {
-            std::mem::forget(pools);
-        }
-    }
-    let (_, pools) = guard.get_or_insert_with(|| (pid, Vec::new()));
-    if let Some((_, pool)) = pools.iter().find(|(n, _)| *n == threads) {
-        return Ok(pool.clone());
-    }
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .thread_name(|i| format!("dmlo_rs-{i}"))
-        .build()
-        .map_err(|e| PyRuntimeError::new_err(format!("cannot start {threads} threads: {e}")))?;
-    let pool = Arc::new(pool);
-    pools.push((threads, pool.clone()));
-    Ok(pool)
-}
-
-/// Runs `work` without the GIL inside a pool of `num_threads`, mapping crate errors and panics.
-fn run<T: Send>(
-    py: Python<'_>,
-    num_threads: Option<usize>,
-    work: impl FnOnce() -> crate::Result<T> + Send,
-) -> PyResult<T> {
-    let pool = thread_pool(num_threads)?;
-    let outcome = py.detach(|| catch_unwind(AssertUnwindSafe(|| pool.install(work))));
-    match outcome {
-        Ok(result) => result.map_err(PyErr::from),
-        Err(panic) => {
-            let message = panic
-                .downcast_ref::<String>()
-                .cloned()
-                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
-                .unwrap_or_else(|| "unknown panic".into());
-            Err(PyRuntimeError::new_err(format!(
-                "internal error in dmlo_rs (please report): {message}"
-            )))
-        }
-    }
-}
 
 /// A numpy array of floats, whichever width it came in.
 enum Floats<'py> {

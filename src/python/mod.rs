@@ -3,9 +3,10 @@
 
 mod core;
 mod ndt;
+mod pool;
 mod sim;
 
-use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use crate::Error;
@@ -18,12 +19,6 @@ impl From<Error> for PyErr {
             }
         }
     }
-}
-
-/// Keeps `PyRuntimeError` available to the binding modules for internal failures.
-#[allow(dead_code)]
-pub(crate) fn runtime_error(message: impl Into<String>) -> PyErr {
-    PyRuntimeError::new_err(message.into())
 }
 
 #[pymodule]

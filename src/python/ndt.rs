@@ -4,16 +4,15 @@
 //! transforms as 4×4 arrays. Work runs without the GIL in a rayon pool owned by this module and
 //! rebuilt after `fork()`; crate errors become `ValueError`, panics `RuntimeError`.
 
-use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::{Arc, Mutex};
-
 use nalgebra::{Matrix4, Point3};
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyArray2, PyReadonlyArray2, PyUntypedArray, PyUntypedArrayMethods};
-use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
+use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
 use crate::ndt::{NdtAlignConfig, NdtMap, NdtMapConfig, NdtResult, NeighbourSearch};
+
+use super::pool::run;
 
 pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyNdtMap>()?;
@@ -22,61 +21,6 @@ pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
 }
 
 // ---- plumbing --------------------------------------------------------------------------------------
-
-/// This module's rayon pools by thread count, with the pid that built them: a forked child (PyTorch
-/// DataLoader workers) has none of the parent's worker threads and builds its own (the parent's are
-/// leaked, never joined).
-static POOLS: Mutex<Option<(u32, Vec<PoolEntry>)>> = Mutex::new(None);
-
-/// A pool and its thread count.
-type PoolEntry = (usize, Arc<rayon::ThreadPool>);
-
-fn thread_pool(num_threads: Option<usize>) -> PyResult<Arc<rayon::ThreadPool>> {
-    let threads = match num_threads {
-        Some(0) => return Err(PyValueError::new_err("num_threads: must be >= 1 (or None for all cores)")),
-        Some(n) => n,
-        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
-    };
-    let mut guard = POOLS.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-    let pid = std::process::id();
-    if guard.as_ref().is_some_and(|(owner, _)| *owner != pid) {
-        if let Some((_, pools)) = guard.take() {
-            std::mem::forget(pools);
-        }
-    }
-    let (_, pools) = guard.get_or_insert_with(|| (pid, Vec::new()));
-    if let Some((_, pool)) = pools.iter().find(|(n, _)| *n == threads) {
-        return Ok(pool.clone());
-    }
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .thread_name(|i| format!("dmlo_rs-ndt-{i}"))
-        .build()
-        .map_err(|e| PyRuntimeError::new_err(format!("cannot start {threads} threads: {e}")))?;
-    let pool = Arc::new(pool);
-    pools.push((threads, pool.clone()));
-    Ok(pool)
-}
-
-/// Runs `work` without the GIL inside a pool of `num_threads`, mapping crate errors and panics.
-fn run<T: Send>(
-    py: Python<'_>,
-    num_threads: Option<usize>,
-    work: impl FnOnce() -> crate::Result<T> + Send,
-) -> PyResult<T> {
-    let pool = thread_pool(num_threads)?;
-    match py.detach(|| catch_unwind(AssertUnwindSafe(|| pool.install(work)))) {
-        Ok(result) => result.map_err(PyErr::from),
-        Err(panic) => {
-            let message = panic
-                .downcast_ref::<String>()
-                .cloned()
-                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
-                .unwrap_or_else(|| "unknown panic".into());
-            Err(PyRuntimeError::new_err(format!("internal error in dmlo_rs NDT (please report): {message}")))
-        }
-    }
-}
 
 /// Describes what was passed, for error messages.
 fn describe(value: &Bound<'_, PyAny>) -> String {

@@ -11,6 +11,8 @@ use pyo3::prelude::*;
 
 use crate::raycast::{Ellipsoid, Hit, OrientedBox, Primitive, Scene, Triangle, VerticalCylinder};
 
+use super::pool::run;
+
 type CastResult<'py, D> = (
     Bound<'py, numpy::PyArray<f64, D>>,
     Bound<'py, numpy::PyArray<i64, D>>,
@@ -113,7 +115,7 @@ impl RayScene {
                 }));
             }
         }
-        let scene = py.detach(|| Scene::new(primitives))?;
+        let scene = run(py, None, || Scene::new(primitives))?;
         Ok(Self { scene })
     }
 
@@ -138,7 +140,7 @@ impl RayScene {
         check_columns("directions", &d, 3, "x y z")?;
         let origins: Vec<Point3<f64>> = o.outer_iter().map(|r| Point3::new(r[0], r[1], r[2])).collect();
         let directions: Vec<Vector3<f64>> = d.outer_iter().map(|r| Vector3::new(r[0], r[1], r[2])).collect();
-        let hits = py.detach(|| self.scene.cast(&origins, &directions, max_range))?;
+        let hits = run(py, None, || self.scene.cast(&origins, &directions, max_range))?;
         let (ranges, primitives, cosines) = unzip_hits(&hits);
         Ok((
             Array1::from(ranges).into_pyarray(py),
@@ -172,7 +174,7 @@ impl RayScene {
         };
         let elevations: Vec<f64> = elevations_deg.as_array().iter().copied().collect();
         let rows = elevations.len();
-        let hits = py.detach(|| {
+        let hits = run(py, None, || {
             self.scene
                 .cast_scan_per_column(&poses, &elevations, azimuth_count, max_range)
         })?;
