@@ -109,5 +109,6 @@ def _evaluate(ground_truth: np.ndarray, estimate: np.ndarray, out_dir: Path, nam
     write_kitti_poses(out_dir / "ground_truth_kitti.txt", ground_truth)
     metrics = evaluate_trajectory(ground_truth, estimate)
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
-    plot_trajectories(ground_truth, estimate, out_dir / "trajectory.png", title=name)
+    # LiDAR frame, z up: the top view is the x–y plane.
+    plot_trajectories(ground_truth, estimate, out_dir / "trajectory.png", title=name, axes=(0, 1))
     return metrics
