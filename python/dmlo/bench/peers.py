@@ -61,7 +61,7 @@ class KissIcpOdometry:
         return np.asarray(self._kiss.last_pose, dtype=np.float64).copy()
 
 
-def _small_gicp_align(registration_type: str) -> Callable[[np.ndarray, np.ndarray, Matrix4], Matrix4]:
+def small_gicp_align(registration_type: str) -> Callable[[np.ndarray, np.ndarray, Matrix4], Matrix4]:
     import small_gicp
 
     def align(target: np.ndarray, source: np.ndarray, initial: Matrix4) -> Matrix4:
@@ -88,7 +88,7 @@ def _open3d_cloud(xyz: np.ndarray, voxel: float, normals: bool):  # type: ignore
     return cloud
 
 
-def _open3d_icp_align(kind: str) -> Callable[[np.ndarray, np.ndarray, Matrix4], Matrix4]:
+def open3d_icp_align(kind: str) -> Callable[[np.ndarray, np.ndarray, Matrix4], Matrix4]:
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -148,10 +148,10 @@ class Peer:
 
 PEERS: tuple[Peer, ...] = (
     Peer("KISS-ICP", "kiss_icp", KissIcpOdometry),
-    Peer("small_gicp GICP", "small_gicp", lambda: ScanToScanOdometry(_small_gicp_align("GICP"))),
-    Peer("Open3D ICP p2p", "open3d", lambda: ScanToScanOdometry(_open3d_icp_align("point_to_point"))),
-    Peer("Open3D ICP p2pl", "open3d", lambda: ScanToScanOdometry(_open3d_icp_align("point_to_plane"))),
-    Peer("Open3D GICP", "open3d", lambda: ScanToScanOdometry(_open3d_icp_align("gicp"))),
+    Peer("small_gicp GICP", "small_gicp", lambda: ScanToScanOdometry(small_gicp_align("GICP"))),
+    Peer("Open3D ICP p2p", "open3d", lambda: ScanToScanOdometry(open3d_icp_align("point_to_point"))),
+    Peer("Open3D ICP p2pl", "open3d", lambda: ScanToScanOdometry(open3d_icp_align("point_to_plane"))),
+    Peer("Open3D GICP", "open3d", lambda: ScanToScanOdometry(open3d_icp_align("gicp"))),
     Peer(
         "Open3D FPFH+RANSAC",
         "open3d",

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dmlo.bench.peers import PEERS, fpfh_ransac_align
+from dmlo.bench.peers import PEERS, fpfh_ransac_align, open3d_icp_align, small_gicp_align
 from dmlo.datasets import open_sequence
 from dmlo.metrics import registration_errors
 
@@ -26,15 +26,14 @@ SUCCESS_ROTATION_DEG = 5.0
 SUCCESS_TRANSLATION_M = 2.0
 
 
-def _icp_from_identity(kind: str) -> Align | None:
-    from dmlo.bench import peers
+# Local methods started from identity, by the peer whose package they need.
+ICP_FROM_IDENTITY = {
+    "small_gicp GICP": lambda: small_gicp_align("GICP"),
+    "Open3D ICP p2pl": lambda: open3d_icp_align("point_to_plane"),
+}
 
-    if kind == "small_gicp GICP" and peers.importlib.util.find_spec("small_gicp"):
-        align = peers._small_gicp_align("GICP")
-    elif kind == "Open3D ICP p2pl" and peers.importlib.util.find_spec("open3d"):
-        align = peers._open3d_icp_align("point_to_plane")
-    else:
-        return None
+
+def _from_identity(align: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]) -> Align:
     # ICP aligns source (reference) onto target: T_target_source = T_tgt_ref.
     return lambda ref, tgt: align(tgt[:, :3].astype(np.float64), ref[:, :3].astype(np.float64), np.eye(4))
 
@@ -44,11 +43,11 @@ def methods(model: Path | None) -> dict[str, Align]:
 
     odometry = Odometry(model) if model else Odometry.from_default()
     found: dict[str, Align] = {"DMLO (wide window)": lambda ref, tgt: odometry.register_pair(ref, tgt, large_motion=True).T_tgt_ref}
-    for name in ("small_gicp GICP", "Open3D ICP p2pl"):
-        align = _icp_from_identity(name)
-        if align is not None:
-            found[f"{name} from identity"] = align
-    if any(p.name == "Open3D FPFH+RANSAC" and p.available for p in PEERS):
+    available = {p.name for p in PEERS if p.available}
+    for name, make_align in ICP_FROM_IDENTITY.items():
+        if name in available:
+            found[f"{name} from identity"] = _from_identity(make_align())
+    if "Open3D FPFH+RANSAC" in available:
         found["Open3D FPFH+RANSAC"] = lambda ref, tgt: fpfh_ransac_align(
             tgt[:, :3].astype(np.float64), ref[:, :3].astype(np.float64)
         )
