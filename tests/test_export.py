@@ -171,3 +171,21 @@ def test_export_rejects_bad_arguments(tmp_path) -> None:
     (tmp_path / "other.onnx").write_bytes(b"")
     with pytest.raises(Exception):
         read_metadata(tmp_path / "other.onnx")
+
+
+def test_wide_window_graph_keeps_the_weights_and_widens_the_coarse_window(tmp_path) -> None:
+    from dmlo.commands.export import export_wide_frame
+
+    model = Matcher(MatcherConfig.preset("fast")).eval()
+    export_onnx(model, tmp_path, 32, 64, graphs=("frame",))
+    wide = export_wide_frame(model, tmp_path, 21, (32, 64), None)
+    assert wide == tmp_path / "frame_wide.onnx"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frame.onnx", "frame_wide.onnx"]  # no scratch left
+    config = read_metadata(wide)["dmlo.model_config"]
+    assert config["coarse_window"] == 21
+    assert MatcherConfig.from_dict({**config, "coarse_window": model.config.coarse_window}) == model.config
+    # Same weights: the initialisers of the two graphs hold the same tensors (the window adds constants only).
+    def weights(path):
+        return {tuple(np.asarray(onnx.numpy_helper.to_array(t)).ravel()[:8]) for t in onnx.load(str(path)).graph.initializer
+                if onnx.numpy_helper.to_array(t).size > 16}
+    assert weights(tmp_path / "frame.onnx") <= weights(wide)
