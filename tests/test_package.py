@@ -47,3 +47,13 @@ def test_the_python_package_type_checks() -> None:
         text=True,
     )
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_every_command_has_help_with_examples() -> None:
+    from dmlo.cli import _COMMANDS
+
+    for command in _COMMANDS:
+        out = subprocess.run(
+            [sys.executable, "-m", "dmlo", command, "--help"], capture_output=True, text=True, check=True
+        )
+        assert "\nexamples:\n  " in out.stdout, command

@@ -10,6 +10,10 @@ from collections.abc import Sequence
 import dmlo
 
 
+class DefaultsAndExamplesFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Shows each option's default and keeps the examples in the epilog as written."""
+
+
 class UserError(Exception):
     """A mistake in what the user asked for: printed as one line, no traceback."""
 

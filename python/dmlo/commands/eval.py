@@ -25,7 +25,10 @@ alignment, and the relative pose error between consecutive frames.
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     parser = subparsers.add_parser(
-        "eval", help=HELP, description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+        "eval", help=HELP, description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n"
+        "  dmlo eval runs/sim/ground_truth_kitti.txt runs/sim/poses_kitti.txt --plot trajectory.png\n"
+        "  dmlo eval poses/07.txt est_07.txt --calib sequences/07/calib.txt --json\n",
     )
     parser.add_argument("ground_truth", metavar="GT", type=Path, help="ground-truth pose file")
     parser.add_argument("estimate", metavar="EST", type=Path, help="estimated pose file")

@@ -6,11 +6,16 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from dmlo.cli import DefaultsAndExamplesFormatter
+
 
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "export", help="Export a trained matcher to ONNX for onnxruntime.", description=__doc__,
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=DefaultsAndExamplesFormatter,
+        epilog="examples:\n"
+        "  dmlo export runs/paper --out my_model/ --wide-window 41\n"
+        "  dmlo run kitti/sequences/07 --model my_model/\n",
     )
     parser.add_argument("checkpoint", help="a checkpoint (.pt) or a run folder (uses best.pt, else last.pt)")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder for the .onnx files")

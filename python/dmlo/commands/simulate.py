@@ -17,6 +17,11 @@ def register(subparsers: Any) -> None:
             "cars 252), poses.txt (camera frame), calib.txt, times.txt and simulation.json. The same "
             "arguments always give identical files."
         ),
+        epilog="examples:\n"
+        "  dmlo simulate --frames 50 --seed 1 --out runs/sim01\n"
+        "  dmlo simulate --frames 200 --seed 2 --out runs/sim00 "
+        "--trajectory ../shared/data/kitti_gt_poses/00.txt --start 300\n",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--frames", type=int, default=50, help="number of scans (default 50)")
     parser.add_argument("--seed", type=int, default=0, help="scene and noise seed (default 0)")

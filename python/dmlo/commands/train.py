@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from dmlo.cli import DefaultsAndExamplesFormatter
+
 PRESETS = ("paper", "fast", "light")
 
 
@@ -52,7 +54,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "train", help="Train the matching network (DDP: torchrun -m dmlo.train).", description=__doc__,
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=DefaultsAndExamplesFormatter,
+        epilog="examples:\n"
+        "  dmlo train --data sim/00 sim/01 --val sim/09 --out runs/paper --resume\n"
+        "  dmlo train --data kitti/sequences/0[0-6] --val kitti/sequences/07 --out runs/kitti --device cuda\n"
+        "  torchrun --nproc_per_node 2 -m dmlo.train --data sim/00 sim/01 --out runs/ddp\n",
     )
     add_arguments(parser)
     parser.set_defaults(run=run)
