@@ -120,3 +120,10 @@ def test_demo_simulates_runs_and_reports(tmp_path: Path) -> None:
     assert "4 scans in" in result.stdout and "vs ground truth" in result.stdout
     assert read_kitti_poses(tmp_path / "odometry" / "poses_kitti.txt").shape == (4, 4, 4)
     assert (tmp_path / "odometry" / "trajectory.png").is_file()
+
+
+def test_command_dataset_formats_are_the_reader_registry() -> None:
+    from dmlo.commands.run import DATASET_FORMATS
+    from dmlo.datasets import FORMATS
+
+    assert set(DATASET_FORMATS) == set(FORMATS)

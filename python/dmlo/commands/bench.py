@@ -12,7 +12,7 @@ EXAMPLES = """examples:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from dmlo.commands.run import add_odometry_arguments
+    from dmlo.commands.run import add_dataset_arguments, add_odometry_arguments
 
     parser = subparsers.add_parser(
         "bench",
@@ -23,9 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("path", type=Path, help="dataset folder with ground-truth poses")
-    parser.add_argument("--format", choices=["kitti", "argoverse", "argoverse2", "folder"], default=None)
-    parser.add_argument("--sequence", default=None)
-    parser.add_argument("--max-frames", type=int, default=None)
+    add_dataset_arguments(parser)
     parser.add_argument("--peers", nargs="*", default=None,
                         help="peer names to run (default: every installed peer except FPFH+RANSAC)")
     parser.add_argument("--out", type=Path, default=Path("runs/bench"))

@@ -25,14 +25,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("path", type=Path, help="dataset folder (KITTI, Argoverse 1/2, or plain scans)")
     add_odometry_arguments(parser)
-    parser.add_argument("--format", choices=["kitti", "argoverse", "argoverse2", "folder"], default=None,
-                        help="dataset layout (default: detected from the folder)")
-    parser.add_argument("--sequence", default=None, help="sequence or log name inside the dataset, e.g. 07")
-    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many scans")
+    add_dataset_arguments(parser)
     parser.add_argument("--out", type=Path, default=Path("runs/dmlo"), help="output folder (default: runs/dmlo)")
     parser.add_argument("--keep-moving", action="store_true",
                         help="keep points labelled as moving objects (default: removed when labels exist)")
     parser.set_defaults(run=run)
+
+
+# The keys of `dmlo.datasets.FORMATS` (a test keeps them equal), spelled out so that building the parser
+# does not import the readers and numpy.
+DATASET_FORMATS = ("kitti", "argoverse", "argoverse2", "folder")
+
+
+def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--format", choices=DATASET_FORMATS, default=None,
+                        help="dataset layout (default: detected from the folder)")
+    parser.add_argument("--sequence", default=None, help="sequence or log name inside the dataset, e.g. 07")
+    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many scans")
 
 
 def add_odometry_arguments(parser: argparse.ArgumentParser) -> None:
