@@ -137,7 +137,7 @@ class Odometry:
         watch.lap("network")
 
         if previous is None:
-            pose = np.eye(4) if not self.poses else self._predict()
+            pose = self._predict()
         else:
             motion = self._motion_from_flow(previous.range, ranges, output, diagnostics, watch)
             pose = previous.pose @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
@@ -247,7 +247,8 @@ class Odometry:
     # -- motion model ---------------------------------------------------------------------------
 
     def _predict(self) -> Matrix4:
-        return self.poses[-1] @ np.linalg.inv(self._velocity)
+        """The constant-velocity pose of the next scan; the first scan defines the world."""
+        return self.poses[-1] @ np.linalg.inv(self._velocity) if self.poses else np.eye(4)
 
     def _update_velocity(self, reference_pose: Matrix4, pose: Matrix4, frames: int) -> None:
         # Across a gap left by skipped scans the motion spans several frames; the velocity measured
@@ -257,8 +258,7 @@ class Odometry:
 
     def _skip(self, diagnostics: FrameDiagnostics, reason: str) -> Matrix4:
         diagnostics.fallback = reason
-        pose = self._predict() if self.poses else np.eye(4)
-        return self._record(pose, diagnostics)
+        return self._record(self._predict(), diagnostics)
 
     def _record(self, pose: Matrix4, diagnostics: FrameDiagnostics) -> Matrix4:
         self.poses.append(pose)
