@@ -1,4 +1,4 @@
-"""`dmlo simulate`: write a simulated drive as a KITTI odometry sequence."""
+"""`dmlo simulate`: write a simulated drive as a KITTI odometry sequence or an Argoverse 1 log."""
 
 from __future__ import annotations
 
@@ -9,18 +9,21 @@ from typing import Any
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "simulate",
-        help="simulate a LiDAR drive through a procedural street and write it in KITTI layout",
+        help="simulate a LiDAR drive through a procedural street (KITTI or Argoverse 1 layout)",
         description=(
-            "Simulates an HDL-64E-like LiDAR driving through a procedural street (buildings, poles, trees, "
-            "parked and moving cars) and writes OUT/velodyne/*.bin, OUT/labels/*.label (SemanticKITTI, "
-            "moving "
-            "cars 252), poses.txt (camera frame), calib.txt, times.txt and simulation.json. The same "
-            "arguments always give identical files."
+            "Simulates a LiDAR driving through a procedural street (buildings, poles, trees, parked and "
+            "moving cars). --sensor hdl64e (KITTI's HDL-64E) writes KITTI layout: OUT/velodyne/*.bin, "
+            "OUT/labels/*.label (SemanticKITTI, moving cars 252), poses.txt (camera frame), calib.txt, "
+            "times.txt. --sensor argoverse (Argoverse 1's two stacked VLP-32C, sweeps in the ego frame) "
+            "writes an Argoverse 1 log: OUT/lidar/PC_<ns>.ply (x y z intensity laser_number), "
+            "OUT/poses/city_SE3_egovehicle_<ns>.json, vehicle_calibration_info.json and labels/PC_<ns>.label. "
+            "Both also write simulation.json. The same arguments always give identical files."
         ),
         epilog="examples:\n"
         "  dmlo simulate --frames 50 --seed 1 --out runs/sim01\n"
         "  dmlo simulate --frames 200 --seed 2 --out runs/sim00 "
-        "--trajectory ../shared/data/kitti_gt_poses/00.txt --start 300\n",
+        "--trajectory ../shared/data/kitti_gt_poses/00.txt --start 300\n"
+        "  dmlo simulate --frames 100 --seed 3 --sensor argoverse --traffic mixed --out runs/av_sim03\n",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--frames", type=int, default=50, help="number of scans (default 50)")
@@ -33,6 +36,24 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--start", type=int, default=0, help="first pose of --trajectory to use (default 0)")
     parser.add_argument(
         "--calib", help="KITTI calib.txt whose Tr converts --trajectory (default: KITTI 00-02 Tr)"
+    )
+    parser.add_argument(
+        "--sensor",
+        choices=("hdl64e", "argoverse"),
+        default="hdl64e",
+        help="hdl64e: KITTI's Velodyne HDL-64E; argoverse: Argoverse 1's two VLP-32C (default hdl64e)",
+    )
+    parser.add_argument(
+        "--layout",
+        choices=("kitti", "argoverse"),
+        help="output layout (default: the sensor's own, kitti for hdl64e, argoverse for argoverse)",
+    )
+    parser.add_argument(
+        "--traffic",
+        choices=("lanes", "mixed"),
+        default="lanes",
+        help="lanes: moving cars only in the lanes along the ego's street (as earlier versions); mixed: "
+        "also cross streets with cars crossing and turning on their own paths (default lanes)",
     )
     parser.add_argument(
         "--motion-distortion",
@@ -61,6 +82,9 @@ def run(args: argparse.Namespace) -> int:
             start=args.start,
             calib=args.calib,
             progress=not args.quiet,
+            sensor=args.sensor,
+            layout=args.layout,
+            traffic=args.traffic,
             motion_distortion=args.motion_distortion,
             overwrite=args.overwrite,
         )

@@ -6,6 +6,8 @@ sensor's 8-bit intensity divided by 255.
 
 - Argoverse 1: ``LOG/lidar/PC_<ts>.ply`` (x y z intensity laser_number), poses
   ``LOG/poses/city_SE3_egovehicle_<ts>.json`` (``rotation`` quaternion ``w x y z``, ``translation``).
+  Per-point labels are read from ``LOG/labels/PC_<ts>.label`` (SemanticKITTI uint32) when that folder
+  exists: AV1 has none, ``dmlo simulate --sensor argoverse`` writes them.
 - Argoverse 2: ``LOG/sensors/lidar/<ts>.feather`` (float16 x y z, uint8 intensity, laser_number,
   offset_ns), poses ``LOG/city_SE3_egovehicle.feather`` (timestamp_ns, qw qx qy qz, tx_m ty_m tz_m). Needs
   pyarrow (the ``argoverse2`` extra).
@@ -25,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dmlo.datasets.base import DatasetError, SequenceBase
-from dmlo.datasets.scan_files import read_ply
+from dmlo.datasets.scan_files import read_labels, read_ply
 from dmlo.poses import quaternion_to_matrix
 
 __all__ = ["Argoverse1Sequence", "Argoverse2Sequence"]
@@ -92,6 +94,12 @@ class Argoverse1Sequence(SequenceBase):
 
     def _read_points(self, index: int) -> NDArray[np.float32]:
         return read_ply(self._paths[index])
+
+    def _read_labels(self, index: int) -> NDArray[np.uint32] | None:
+        label_dir = self.directory / "labels"
+        if not label_dir.is_dir():
+            return None
+        return read_labels(label_dir / f"{self._paths[index].stem}.label")
 
 
 def _import_feather() -> Any:

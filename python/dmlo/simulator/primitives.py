@@ -118,12 +118,27 @@ class PrimitiveSet:
         self._attrs["ellipsoids"].append((semantic, instance, albedo))
         self._windows["ellipsoids"].append((0.0, 0.0, 0.0))
 
+    def parameters(self, kind: str) -> npt.NDArray[np.float64]:
+        """Parameters of one kind (`triangles`, `boxes`, `cylinders`, `ellipsoids`) as `arrays` gives them,
+        empty with the right trailing shape when there are none."""
+        if not self._params[kind]:
+            return np.zeros((0, *_SHAPES[kind][1:]))
+        return np.asarray(self._params[kind], dtype=np.float64).reshape(_SHAPES[kind])
+
+    def drop(self, kind: str, remove: npt.NDArray[np.bool_]) -> None:
+        """Removes the primitives of `kind` where `remove` (one flag per primitive of that kind) is set."""
+        if len(remove) != len(self._params[kind]):
+            raise ValueError(f"remove: {len(remove)} flags for {len(self._params[kind])} {kind}")
+        keep = [i for i, flag in enumerate(remove) if not flag]
+        self._params[kind] = [self._params[kind][i] for i in keep]
+        self._attrs[kind] = [self._attrs[kind][i] for i in keep]
+        self._windows[kind] = [self._windows[kind][i] for i in keep]
+
     def arrays(self) -> dict[str, npt.NDArray[np.float64] | None]:
         """Primitive parameter arrays as `RayScene` takes them (None for an empty kind)."""
-        shapes = {"triangles": (-1, 3, 3), "boxes": (-1, 15), "cylinders": (-1, 5), "ellipsoids": (-1, 6)}
         return {
             kind: (
-                np.asarray(self._params[kind], dtype=np.float64).reshape(shapes[kind])
+                np.asarray(self._params[kind], dtype=np.float64).reshape(_SHAPES[kind])
                 if self._params[kind]
                 else None
             )
@@ -153,3 +168,4 @@ class PrimitiveSet:
 
 
 _KINDS = ("triangles", "boxes", "cylinders", "ellipsoids")
+_SHAPES = {"triangles": (-1, 3, 3), "boxes": (-1, 15), "cylinders": (-1, 5), "ellipsoids": (-1, 6)}

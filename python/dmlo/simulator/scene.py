@@ -11,7 +11,8 @@ any part of the trajectory (loops and crossings included):
   balconies, gaps between buildings; or walls, fences and hedges; or open ground with trees;
 - street furniture: lamp poles with arms, sign poles, street trees (trunk + a cluster of ellipsoids as a
   noisy canopy), bushes, standing pedestrians, clutter (bins, benches, bollards, boxes);
-- parked cars along the kerbs and moving cars in the lanes beside the ego lane with their own speeds.
+- parked cars along the kerbs and moving cars in the lanes beside the ego lane with their own speeds;
+- with `traffic="mixed"`, cross streets with cars crossing and turning (`dmlo.simulator.traffic`).
 """
 
 from __future__ import annotations
@@ -41,6 +42,10 @@ from dmlo.simulator.primitives import (
     PrimitiveSet,
     yaw_pitch_rotation,
 )
+from dmlo.simulator.traffic import TRAFFIC, PathCar, Traffic, add_cross_traffic
+from dmlo.simulator.trajectory import FRAME_RATE_HZ
+
+__all__ = ["TRAFFIC", "MovingCar", "PathCar", "StreetLayout", "StreetPath", "StreetScene", "generate_street"]
 
 PATH_SPACING = 2.0
 PATH_EXTENSION = 150.0
@@ -157,12 +162,18 @@ class MovingCar:
 
 @dataclass
 class StreetScene:
-    """A generated street: static primitives, moving cars and the axis they follow."""
+    """A generated street: static primitives, moving cars in the lanes along the axis, and (mixed traffic)
+    cross streets with cars on their own paths."""
 
     path: StreetPath
     layout: StreetLayout
     static: PrimitiveSet
     moving_cars: list[MovingCar] = field(default_factory=list)
+    traffic: Traffic | None = None
+
+    @property
+    def path_cars(self) -> list[PathCar]:
+        return [] if self.traffic is None else self.traffic.cars
 
     def dynamic(self, time: float, ego_xy: npt.NDArray[np.float64], reach: float = 150.0) -> PrimitiveSet:
         """Primitives of the moving cars at `time` seconds within `reach` metres of the ego (cars that
@@ -195,7 +206,40 @@ class StreetScene:
                 car.instance,
                 car.albedo,
             )
+        for path_car in self.path_cars:
+            assert self.traffic is not None
+            car_path = self.traffic.paths[path_car.path]
+            s = path_car.s0 + path_car.speed * time
+            if not (0.0 <= s <= car_path.length):
+                continue
+            xy, z, heading, pitch = car_path.at(s)
+            if float(np.linalg.norm(xy - ego_xy)) > reach or _overlaps_ego(
+                xy, heading, path_car.length, path_car.width, ego_xy
+            ):
+                continue
+            _add_car(
+                dynamic,
+                xy,
+                z,
+                heading,
+                pitch,
+                path_car.length,
+                path_car.width,
+                path_car.height,
+                MOVING_CAR,
+                path_car.instance,
+                path_car.albedo,
+            )
         return dynamic
+
+
+def _overlaps_ego(
+    xy: npt.NDArray[np.float64], heading: float, length: float, width: float, ego_xy: npt.NDArray[np.float64]
+) -> bool:
+    """Whether a car at `xy` heading `heading` could overlap the ego car around `ego_xy`."""
+    along = abs(np.cos(heading) * (ego_xy[0] - xy[0]) + np.sin(heading) * (ego_xy[1] - xy[1]))
+    across = abs(-np.sin(heading) * (ego_xy[0] - xy[0]) + np.cos(heading) * (ego_xy[1] - xy[1]))
+    return bool(along < length / 2 + 2.5 and across < width / 2 + 1.5)
 
 
 def _add_car(
@@ -236,9 +280,12 @@ def _add_car(
 
 
 def generate_street(
-    lidar_poses: npt.NDArray[np.float64], seed: int, mount_height: float = 1.73
+    lidar_poses: npt.NDArray[np.float64], seed: int, mount_height: float = 1.73, traffic: str = "lanes"
 ) -> StreetScene:
-    """A street scene covering the whole trajectory `lidar_poses` ((N,4,4) `T_world_lidar`)."""
+    """A street scene covering the whole trajectory `lidar_poses` ((N,4,4) `T_world_lidar`, one a frame at
+    10 Hz), `mount_height` above the ground. `traffic`: `"lanes"` or `"mixed"` (see `simulate_sequence`)."""
+    if traffic not in TRAFFIC:
+        raise ValueError(f"traffic: unknown {traffic!r}; known: {', '.join(TRAFFIC)}")
     rng = np.random.default_rng([seed, 0x5CE7E])
     path = StreetPath(lidar_poses, mount_height)
     layout = StreetLayout(
@@ -257,7 +304,10 @@ def generate_street(
         _add_furniture(prims, path, layout, side, rng, instances)
         _add_parked_cars(prims, path, layout, side, rng, instances)
     moving = _moving_cars(path, layout, rng, instances)
-    return StreetScene(path=path, layout=layout, static=prims, moving_cars=moving)
+    cross = None
+    if traffic == "mixed":
+        cross = add_cross_traffic(prims, path, layout, lidar_poses, FRAME_RATE_HZ, seed, instances, _car_size)
+    return StreetScene(path=path, layout=layout, static=prims, moving_cars=moving, traffic=cross)
 
 
 def _add_corridor(

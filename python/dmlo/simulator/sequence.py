@@ -1,4 +1,5 @@
-"""Simulates a drive and writes it as a KITTI odometry sequence (plus SemanticKITTI labels)."""
+"""Simulates a drive and writes it as a KITTI odometry sequence (plus SemanticKITTI labels) or an Argoverse 1
+log (see `dmlo.simulator.layouts`)."""
 
 from __future__ import annotations
 
@@ -11,28 +12,20 @@ import dmlo_rs
 import numpy as np
 import numpy.typing as npt
 
+from dmlo.simulator.layouts import LAYOUTS, make_layout
 from dmlo.simulator.primitives import SceneAttributes
-from dmlo.simulator.scene import StreetScene, generate_street
-from dmlo.simulator.sensor import SENSORS, LidarModel, measure
+from dmlo.simulator.scene import TRAFFIC, StreetScene, generate_street
+from dmlo.simulator.sensor import SENSORS, LidarModel, measure_rays
 from dmlo.simulator.trajectory import (
     FRAME_RATE_HZ,
     KITTI_TR,
     camera_to_lidar_poses,
     generate_drive,
-    lidar_to_camera_poses,
     orthonormalize,
     read_kitti_calib_tr,
     read_kitti_poses,
     sweep_column_poses,
 )
-
-# Camera matrices of KITTI sequences 00–02, written as placeholders so readers expecting P0..P3 work.
-_KITTI_P = {
-    "P0": [718.856, 0.0, 607.1928, 0.0, 0.0, 718.856, 185.2157, 0.0, 0.0, 0.0, 1.0, 0.0],
-    "P1": [718.856, 0.0, 607.1928, -386.1448, 0.0, 718.856, 185.2157, 0.0, 0.0, 0.0, 1.0, 0.0],
-    "P2": [718.856, 0.0, 607.1928, 45.38225, 0.0, 718.856, 185.2157, -0.1130887, 0.0, 0.0, 1.0, 0.003779761],
-    "P3": [718.856, 0.0, 607.1928, -337.2877, 0.0, 718.856, 185.2157, 2.369057, 0.0, 0.0, 1.0, 0.004915215],
-}
 
 
 @dataclass
@@ -60,11 +53,20 @@ def simulate_sequence(
     progress: bool = True,
     motion_distortion: bool = False,
     overwrite: bool = False,
+    layout: str | None = None,
+    traffic: str = "lanes",
 ) -> SimulationResult:
-    """Simulates `frames` scans of a street drive and writes a KITTI-layout sequence into `out_dir`:
-    `velodyne/NNNNNN.bin` (float32 x y z reflectance), `labels/NNNNNN.label` (uint32, class | instance << 16,
-    moving cars class 252), `poses.txt` (camera frame, `Tr · T_world_lidar · Tr⁻¹`, frame 0 identity),
-    `calib.txt` (`Tr:` and placeholder P0..P3), `times.txt` and `simulation.json` (seed and parameters).
+    """Simulates `frames` scans of a street drive with the `sensor` preset (`"hdl64e"`: KITTI's HDL-64E;
+    `"argoverse"`: Argoverse 1's two stacked VLP-32C, sweeps in the ego frame) and writes them into
+    `out_dir` in `layout` (`"kitti"` or `"argoverse"`, by default the sensor's own; see
+    `dmlo.simulator.layouts`) with per-point SemanticKITTI labels (class | instance << 16, moving cars class
+    252) and `simulation.json` (seed and parameters). KITTI layout: `velodyne/NNNNNN.bin`,
+    `labels/NNNNNN.label`, `poses.txt` (camera frame, `Tr · T_world_lidar · Tr⁻¹`, frame 0 identity),
+    `calib.txt`, `times.txt`.
+
+    `traffic`: `"lanes"` (moving cars only in the lanes beside the ego's, along its path: what earlier
+    versions simulated, byte for byte) or `"mixed"` (also cross streets with cars crossing the ego's path
+    and cars turning into and out of it, each on its own path; see `dmlo.simulator.traffic`).
 
     The ego motion is frames `start … start+frames−1` of the KITTI camera-frame pose file `trajectory`
     (converted with `Tr` from `calib`, or the built-in KITTI 00–02 `Tr`), or else a generated drive.
@@ -85,6 +87,11 @@ def simulate_sequence(
         model = SENSORS[sensor]
     else:
         model = sensor
+    layout_name = model.default_layout if layout is None else layout
+    if layout_name not in LAYOUTS:
+        raise ValueError(f"layout: unknown {layout_name!r}; known: {', '.join(LAYOUTS)}")
+    if traffic not in TRAFFIC:
+        raise ValueError(f"traffic: unknown {traffic!r}; known: {', '.join(TRAFFIC)}")
     tr = read_kitti_calib_tr(calib) if calib is not None else KITTI_TR
     if trajectory is not None:
         camera_poses = read_kitti_poses(trajectory)
@@ -100,7 +107,8 @@ def simulate_sequence(
         lidar_poses = generate_drive(frames, seed)
 
     out = Path(out_dir)
-    old_scans = sorted((out / "velodyne").glob("*.bin")) + sorted((out / "labels").glob("*.label"))
+    writer = make_layout(layout_name, model, tr)
+    old_scans = [path for name in LAYOUTS for path in make_layout(name, model, tr).existing_scans(out)]
     if old_scans and not overwrite and not (out / "simulation.json").is_file():
         raise ValueError(
             f"out: {out} already holds scans not written by the simulator ({len(old_scans)} files); "
@@ -108,12 +116,14 @@ def simulate_sequence(
         )
     for old in old_scans:
         old.unlink()
-    (out / "velodyne").mkdir(parents=True, exist_ok=True)
-    (out / "labels").mkdir(parents=True, exist_ok=True)
+    if old_scans or (out / "simulation.json").is_file():
+        for name in LAYOUTS:
+            make_layout(name, model, tr).remove_leftovers(out)
+    writer.prepare(out)
     result = SimulationResult(out_dir=out, lidar_poses=lidar_poses)
 
     began = time.perf_counter()
-    street = generate_street(lidar_poses, seed, model.mount_height)
+    street = generate_street(lidar_poses, seed, model.mount_height, traffic=traffic)
     static_scene, static_attributes = street.static.build()
     result.scene_seconds = time.perf_counter() - began
     result.static_primitives = len(static_scene)
@@ -132,7 +142,7 @@ def simulate_sequence(
         sweep_poses = (
             sweep_column_poses(lidar_poses, k, model.azimuth_count) if motion_distortion else lidar_poses[k]
         )
-        points, labels, cast_seconds = render_frame(
+        points, labels, lasers, cast_seconds = render_frame(
             street,
             static_scene,
             static_attributes,
@@ -142,24 +152,13 @@ def simulate_sequence(
             float(times[k]),
             np.random.default_rng([seed, 0x5CA7, k]),
         )
-        points.tofile(out / "velodyne" / f"{k:06d}.bin")
-        labels.tofile(out / "labels" / f"{k:06d}.label")
+        writer.write_frame(out, k, points, labels, lasers)
         result.points_per_frame.append(len(points))
         result.cast_seconds.append(cast_seconds)
         result.frame_seconds.append(time.perf_counter() - frame_began)
         result.frame_cpu_seconds.append(time.process_time() - frame_cpu_began)
 
-    camera_poses_out = lidar_to_camera_poses(lidar_poses, tr)
-    with open(out / "poses.txt", "w") as f:
-        for pose in camera_poses_out:
-            f.write(" ".join(f"{v:.12e}" for v in pose[:3, :].ravel()) + "\n")
-    with open(out / "calib.txt", "w") as f:
-        for name, values in _KITTI_P.items():
-            f.write(f"{name}: " + " ".join(f"{v:.12e}" for v in values) + "\n")
-        f.write("Tr: " + " ".join(f"{v:.12e}" for v in tr[:3, :].ravel()) + "\n")
-    with open(out / "times.txt", "w") as f:
-        for t in times:
-            f.write(f"{t:.6e}\n")
+    writer.finish(out, lidar_poses, times)
     meta = {
         "generator": "dmlo simulate",
         "dmlo_version": dmlo_rs.__version__,
@@ -172,7 +171,9 @@ def simulate_sequence(
         "sensor": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(model).items()},
         "street": asdict(street.layout),
         "static_primitives": result.static_primitives,
-        "moving_cars": len(street.moving_cars),
+        "layout": layout_name,
+        "traffic": traffic,
+        "moving_cars": len(street.moving_cars) + len(street.path_cars),
         "motion_distortion": motion_distortion,
     }
     (out / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
@@ -188,27 +189,45 @@ def render_frame(
     pose: npt.NDArray[np.float64],
     time_s: float,
     rng: np.random.Generator,
-) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], float]:
-    """One scan at `pose` ((4,4), or (W,4,4) per azimuth column) and `time_s`: static scene plus the moving
-    cars at that time. Returns points, labels and the seconds spent ray casting."""
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], npt.NDArray[np.uint16], float]:
+    """One scan at `pose` ((4,4), or (W,4,4) per azimuth column; the rig's pose for a multi-unit sensor) and
+    `time_s`: static scene plus the moving cars at that time, every unit of the sensor in turn. Returns
+    points (in the pose frame), labels, each point's laser number within its unit (the beam row) and the
+    seconds spent ray casting."""
     elevations = model.elevations()
     began = time.perf_counter()
-    ranges, primitive, cosines = static_scene.cast_scan(
-        pose, elevations, model.azimuth_count, model.max_range
-    )
     dynamic = street.dynamic(time_s, pose[..., :2, 3].reshape(-1, 2).mean(0))
+    dynamic_scene = None
     attributes = static_attributes
     if len(dynamic):
         dynamic_scene, dynamic_attributes = dynamic.build()
-        d_ranges, d_primitive, d_cosines = dynamic_scene.cast_scan(
-            pose, elevations, model.azimuth_count, model.max_range
-        )
-        closer = d_ranges < ranges
-        offset = len(static_scene)
-        ranges = np.where(closer, d_ranges, ranges)
-        primitive = np.where(closer, d_primitive + offset, primitive)
-        cosines = np.where(closer, d_cosines, cosines)
         attributes = SceneAttributes.concatenate([static_attributes, dynamic_attributes])
     cast_seconds = time.perf_counter() - began
-    points, labels = measure(model, directions, ranges, primitive, cosines, attributes, rng, pose)
-    return points, labels, cast_seconds
+    parts = []
+    for mount in model.unit_mounts():
+        unit_pose = pose if mount is None else pose @ mount
+        began = time.perf_counter()
+        ranges, primitive, cosines = static_scene.cast_scan(
+            unit_pose, elevations, model.azimuth_count, model.max_range
+        )
+        if dynamic_scene is not None:
+            d_ranges, d_primitive, d_cosines = dynamic_scene.cast_scan(
+                unit_pose, elevations, model.azimuth_count, model.max_range
+            )
+            closer = d_ranges < ranges
+            ranges = np.where(closer, d_ranges, ranges)
+            primitive = np.where(closer, d_primitive + len(static_scene), primitive)
+            cosines = np.where(closer, d_cosines, cosines)
+        cast_seconds += time.perf_counter() - began
+        xyz, reflectance, labels, rays = measure_rays(
+            model, directions, ranges, primitive, cosines, attributes, rng, unit_pose
+        )
+        if mount is not None:
+            xyz = xyz @ mount[:3, :3].T + mount[:3, 3]
+        parts.append((xyz, reflectance, labels, (rays // model.azimuth_count).astype(np.uint16)))
+    points = np.empty((sum(len(p[0]) for p in parts), 4), dtype=np.float32)
+    points[:, :3] = np.concatenate([p[0] for p in parts])
+    points[:, 3] = np.concatenate([p[1] for p in parts])
+    labels = np.concatenate([p[2] for p in parts])
+    lasers = np.concatenate([p[3] for p in parts])
+    return points, labels, lasers, cast_seconds
