@@ -125,6 +125,10 @@ class PrimitiveSet:
             return np.zeros((0, *_SHAPES[kind][1:]))
         return np.asarray(self._params[kind], dtype=np.float64).reshape(_SHAPES[kind])
 
+    def semantics(self, kind: str) -> npt.NDArray[np.uint32]:
+        """The class of every primitive of `kind`."""
+        return np.asarray([a[0] for a in self._attrs[kind]], dtype=np.uint32)
+
     def drop(self, kind: str, remove: npt.NDArray[np.bool_]) -> None:
         """Removes the primitives of `kind` where `remove` (one flag per primitive of that kind) is set."""
         if len(remove) != len(self._params[kind]):

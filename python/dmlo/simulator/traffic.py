@@ -2,8 +2,9 @@
 
 With `traffic="mixed"` a street gets cross streets at roughly every 60–160 m of straight-enough axis. Each
 is a straight road through the main street at 70–110° to it, up to 110 m to either side: the static
-objects standing on it (buildings, trees, poles, parked cars, …) are removed and a road surface is draped
-over the terrain. Its cars drive their own paths:
+objects standing on it (buildings, trees, poles, parked cars, …) and the main street's kerbs and
+sidewalks across its mouth are removed, and a road surface ramps from the main road's edge to the
+terrain and then drapes it. Its cars drive their own paths:
 
 - crossing cars go straight across, in the right-hand lane of their direction;
 - turning cars come out of the cross street and turn into a lane of the main street, or leave the main
@@ -26,14 +27,15 @@ import numpy as np
 import numpy.typing as npt
 from dmlo_rs import RayScene
 
-from dmlo.simulator.primitives import ROAD, PrimitiveSet
+from dmlo.simulator.primitives import ROAD, SIDEWALK, PrimitiveSet
 
 if TYPE_CHECKING:
     from dmlo.simulator.scene import StreetLayout, StreetPath
 
 TRAFFIC = ("lanes", "mixed")
 _SAMPLE = 1.0  # metres between the samples of a car path
-_EGO_CLEARANCE = 4.0  # metres between a car's body and the ego's pose origin, at every frame
+_EGO_CLEARANCE = 4.0
+_RAMP = 6.0  # metres beyond the main street's sidewalk where a cross street reaches the terrain  # metres between a car's body and the ego's pose origin, at every frame
 
 
 @dataclass(frozen=True)
@@ -124,10 +126,12 @@ def add_cross_traffic(
     rng = np.random.default_rng([seed, 0x7AFF1C])
     ground = RayScene(triangles=prims.parameters("triangles"))
     streets = _place_cross_streets(path, layout, rng)
+    for street in streets:  # heights first: the ground scene still has the sidewalks
+        _add_road(prims, street, layout, ground, path, rng)
     for street in streets:
         _clear_strip(prims, street)
-    for street in streets:
-        _add_road(prims, street, layout, ground, path, rng)
+    # Cars drive on the new roads where there are some: cast their heights onto everything on the ground.
+    ground = RayScene(triangles=prims.parameters("triangles"))
     ego_xy = ego_poses[:, :2, 3]
     ego_times = np.arange(len(ego_poses)) / frame_rate_hz
     paths: list[CarPath] = []
@@ -207,7 +211,8 @@ def _free_reach(path: StreetPath, street: CrossStreet, sign: float, main_half: f
 
 
 def _clear_strip(prims: PrimitiveSet, street: CrossStreet) -> None:
-    """Removes every box, cylinder and ellipsoid whose footprint reaches onto the street (plus 1.5 m)."""
+    """Removes every box, cylinder and ellipsoid whose footprint reaches onto the street (plus 1.5 m), and
+    the main street's sidewalk and kerb triangles across the street's mouth."""
     d = np.asarray(street.direction)
     n = np.array([-d[1], d[0]])
     c = np.asarray(street.center)
@@ -224,6 +229,11 @@ def _clear_strip(prims: PrimitiveSet, street: CrossStreet) -> None:
             & (along.min(1) < street.reach[1])
         )
 
+    triangles = prims.parameters("triangles")
+    if len(triangles):
+        centroid = triangles.mean(axis=1)[:, :2]
+        in_mouth = np.abs((centroid - c) @ n) < street.half_width
+        prims.drop("triangles", in_mouth & (prims.semantics("triangles") == SIDEWALK))
     boxes = prims.parameters("boxes")
     if len(boxes):
         rotation = boxes[:, 3:12].reshape(-1, 3, 3)
@@ -248,21 +258,33 @@ def _add_road(
     path: StreetPath,
     rng: np.random.Generator,
 ) -> None:
-    """The cross street's asphalt beyond the main street's sidewalks, 3 cm above the ground it drapes."""
+    """The cross street's asphalt from the main road's edge outwards, 3 cm above the ground it drapes.
+    Under the main street's sidewalks the terrain dips below its mesh, so up to `_RAMP` metres beyond
+    them the road runs straight from the main road's height to the terrain's."""
     albedo = float(rng.uniform(0.28, 0.4))
     lateral = np.linspace(-street.half_width, street.half_width, 5)
     top = float(path.ground_z.max()) + 200.0
-    for sign, reach, inner in ((-1.0, street.reach[0], layout.outer(-1)), (1.0, street.reach[1], layout.outer(1))):
-        along = sign * np.arange(inner, reach + 1e-9, 2.0)
-        if len(along) < 2:
+    # The street meets the main road askew: start far enough in that its whole first row is on the road.
+    _, nearest = path.distance(np.asarray(street.center))
+    heading = path.heading[int(nearest)]
+    cos_skew = abs(float(np.dot(street.direction, (-np.sin(heading), np.cos(heading)))))
+    inset = 0.5 + street.half_width * np.sqrt(max(0.0, 1.0 - cos_skew**2)) / max(cos_skew, 0.1)
+    for sign, reach, side in ((-1.0, street.reach[0], -1), (1.0, street.reach[1], 1)):
+        distance = np.arange(max(layout.road(side) - inset, 1.0), reach + 1e-9, 2.0)
+        if len(distance) < 2:
             continue
-        grid = street.point(along[:, None], lateral[None, :])  # (A, L, 2)
+        grid = street.point(sign * distance[:, None], lateral[None, :])  # (A, L, 2)
         flat = grid.reshape(-1, 2)
         ranges, _, _ = ground.cast(
             np.column_stack([flat, np.full(len(flat), top)]), np.tile([0.0, 0.0, -1.0], (len(flat), 1)), 400.0
         )
-        z = np.where(np.isfinite(ranges), top - ranges, np.nan).reshape(grid.shape[:2]) + 0.03
-        vertices = np.concatenate([grid, z[..., None]], axis=-1)
+        z = np.where(np.isfinite(ranges), top - ranges, np.nan).reshape(grid.shape[:2])
+        ramp = distance < layout.outer(side) + _RAMP
+        if ramp.any() and not ramp.all():
+            end = int(np.argmin(ramp))  # first sample beyond the ramp
+            fraction = (distance[ramp] - distance[0]) / (distance[end] - distance[0])
+            z[ramp] = z[0] + fraction[:, None] * (z[end] - z[0])
+        vertices = np.concatenate([grid, z[..., None] + 0.03], axis=-1)
         a, b, c, d = vertices[:-1, :-1], vertices[:-1, 1:], vertices[1:, :-1], vertices[1:, 1:]
         tris = np.concatenate([np.stack([a, b, d], -2), np.stack([a, d, c], -2)]).reshape(-1, 3, 3)
         tris = tris[np.isfinite(tris).all(axis=(1, 2))]
