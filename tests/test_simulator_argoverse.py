@@ -16,6 +16,7 @@ import pytest
 from dmlo.datasets import detect_format, moving_mask, open_sequence
 from dmlo.simulator import (
     ARGOVERSE_VLP32C_PAIR,
+    SimulationResult,
     reflectance_to_intensity,
     simulate_sequence,
     vlp32c_elevations,
@@ -28,7 +29,7 @@ _PLY_RECORD = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", 
 
 
 def _read_av1_ply(path: Path) -> np.ndarray:
-    """The records of an AV1 sweep (x y z float, intensity uchar, laser_number ushort), parsed on their own."""
+    """The records of an AV1 sweep (float x y z, uchar intensity, ushort laser_number), parsed here."""
     data = path.read_bytes()
     header_end = data.index(b"end_header\n") + len(b"end_header\n")
     header = data[:header_end].decode("ascii").splitlines()
@@ -70,7 +71,7 @@ def _beam_errors(records: np.ndarray) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def av1_drive(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> tuple[Path, object]:
+def av1_drive(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> tuple[Path, SimulationResult]:
     """Four frames along KITTI 00 from frame 300 (straight, ~10 m/s), Argoverse rig, mixed traffic."""
     out = tmp_path_factory.mktemp("sim_av1")
     result = simulate_sequence(
@@ -96,19 +97,21 @@ def test_vlp32c_table_and_mounts_match_a_real_argoverse_sweep(shared_data: Path)
     # table's elevation (the lower unit is mounted upside down, so it looks at −table from the upper one).
     real = _read_av1_ply(shared_data / REAL_SWEEP)
     errors = _beam_errors(real)
-    assert np.isfinite(errors).sum() >= 60  # +15° of the upper unit / −25° of the lower see little beyond 10 m
+    assert (
+        np.isfinite(errors).sum() >= 60
+    )  # +15° of the upper unit / −25° of the lower see little beyond 10 m
     assert np.nanmax(np.abs(errors)) < 0.3, np.round(errors, 2)
     assert ARGOVERSE_VLP32C_PAIR.units == 2 and ARGOVERSE_VLP32C_PAIR.azimuth_count == 1800
 
 
-def test_round_trip_through_the_argoverse_reader(av1_drive: tuple[Path, object]) -> None:
+def test_round_trip_through_the_argoverse_reader(av1_drive: tuple[Path, SimulationResult]) -> None:
     out, result = av1_drive
     assert detect_format(out) == "argoverse"
     sequence = open_sequence(out)
     assert len(sequence) == FRAMES
     poses = sequence.poses
     assert poses is not None
-    np.testing.assert_allclose(poses, result.lidar_poses, atol=1e-12)  # type: ignore[attr-defined]
+    np.testing.assert_allclose(poses, result.lidar_poses, atol=1e-12)
     assert np.linalg.norm(poses[-1, :3, 3] - poses[0, :3, 3]) > 2.0
     np.testing.assert_allclose(sequence.timestamps, np.arange(FRAMES) * 0.1, atol=1e-12)
     calibration = json.loads((out / "vehicle_calibration_info.json").read_text())
@@ -116,7 +119,7 @@ def test_round_trip_through_the_argoverse_reader(av1_drive: tuple[Path, object])
     for k in range(FRAMES):
         frame = sequence[k]
         records = _read_av1_ply(out / "lidar" / f"PC_{k * 100_000_000}.ply")
-        assert len(frame.points) == len(records) == result.points_per_frame[k]  # type: ignore[attr-defined]
+        assert len(frame.points) == len(records) == result.points_per_frame[k]
         np.testing.assert_array_equal(frame.points[:, 0], records["x"])
         np.testing.assert_array_equal(frame.points[:, 3], records["intensity"] / np.float32(255.0))
         assert frame.labels is not None and len(frame.labels) == len(frame.points)
@@ -133,7 +136,9 @@ def street_sweeps(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -
     for seed in (1, 4, 9):
         out = tmp_path_factory.mktemp(f"sim_av1_street{seed}")
         trajectory = shared_data / "kitti_gt_poses" / "00.txt"
-        simulate_sequence(out, 1, seed=seed, trajectory=trajectory, start=300, sensor="argoverse", progress=False)
+        simulate_sequence(
+            out, 1, seed=seed, trajectory=trajectory, start=300, sensor="argoverse", progress=False
+        )
         sweeps.append(open_sequence(out)[0].points)
     return sweeps
 
@@ -161,7 +166,7 @@ def test_point_count_elevations_and_projection_are_like_the_real_sweep(
         image = np.asarray(projection.range)
         filled = np.isfinite(image) & (image > 0)
         fills.append(filled.mean(axis=1).reshape(8, 8).mean(1))  # bands of 8 rows
-        assert projection.num_out_of_view < 0.1 * len(points)  # most of the sweep is in the −5°…+15° band
+        assert projection.num_out_of_view < 0.1 * len(points)  # most of it is in the −5°…+15° band
     # Band by band the image fills alike: densest just above the horizon, sparse at the top. (The band
     # just below the horizon, the far ground, is emptier in the simulated streets: 0.47 against 0.63.)
     simulated_fill = np.mean(fills[1:], axis=0)
@@ -178,7 +183,7 @@ def _points_of(records: np.ndarray) -> np.ndarray:
     return points
 
 
-def test_ground_truth_aligns_the_static_points(av1_drive: tuple[Path, object]) -> None:
+def test_ground_truth_aligns_the_static_points(av1_drive: tuple[Path, SimulationResult]) -> None:
     """GICP started at the written ground truth between consecutive ego-frame sweeps stays within 1 cm /
     0.05° on the static points (mixed traffic removed by the moving-class labels)."""
     import small_gicp
@@ -211,7 +216,7 @@ def test_ground_truth_aligns_the_static_points(av1_drive: tuple[Path, object]) -
         assert angle < 0.05, (k, angle)
 
 
-def test_ground_lies_below_the_ego_origin_at_the_mount_height(av1_drive: tuple[Path, object]) -> None:
+def test_ground_lies_below_the_ego_origin_at_the_mount_height(av1_drive: tuple[Path, SimulationResult]) -> None:
     out, _ = av1_drive
     frame = open_sequence(out)[1]
     assert frame.labels is not None
@@ -225,10 +230,25 @@ def test_same_seed_same_bytes_and_one_thread(tmp_path: Path) -> None:
     first, second, other = tmp_path / "a", tmp_path / "b", tmp_path / "c"
     simulate_sequence(first, 2, seed=5, sensor="argoverse", traffic="mixed", progress=False)
     env = dict(os.environ, RAYON_NUM_THREADS="1")
-    command = [sys.executable, "-m", "dmlo", "simulate", "--frames", "2", "--seed", "5", "--sensor", "argoverse"]
+    command = [
+        sys.executable,
+        "-m",
+        "dmlo",
+        "simulate",
+        "--frames",
+        "2",
+        "--seed",
+        "5",
+        "--sensor",
+        "argoverse",
+    ]
     subprocess.run([*command, "--traffic", "mixed", "--out", str(second), "--quiet"], check=True, env=env)
     simulate_sequence(other, 2, seed=6, sensor="argoverse", traffic="mixed", progress=False)
-    names = ["lidar/PC_100000000.ply", "labels/PC_100000000.label", "poses/city_SE3_egovehicle_100000000.json"]
+    names = [
+        "lidar/PC_100000000.ply",
+        "labels/PC_100000000.label",
+        "poses/city_SE3_egovehicle_100000000.json",
+    ]
     for name in [*names, "vehicle_calibration_info.json"]:
         assert (first / name).read_bytes() == (second / name).read_bytes(), name
     assert (first / names[0]).read_bytes() != (other / names[0]).read_bytes()

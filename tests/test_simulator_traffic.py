@@ -11,6 +11,7 @@ import pytest
 from dmlo.datasets import moving_mask, open_sequence
 from dmlo.simulator import generate_drive, generate_street, simulate_sequence
 from dmlo.simulator.scene import StreetScene
+from dmlo.simulator.traffic import CrossStreet
 
 MOVING_CAR = 252
 FRAMES = 5
@@ -44,17 +45,17 @@ def test_mixed_traffic_leaves_the_lane_traffic_of_a_seed_alone(
     assert len(mixed.static.parameters("triangles")) > len(lanes.static.parameters("triangles"))
 
 
-def _in_strip(points_xy: np.ndarray, street: object, margin: float) -> np.ndarray:
-    center = np.asarray(street.center)  # type: ignore[attr-defined]
-    d = np.asarray(street.direction)  # type: ignore[attr-defined]
-    n = np.array([-d[1], d[0]])
-    along = (points_xy - center) @ d
-    across = (points_xy - center) @ n
-    reach = street.reach  # type: ignore[attr-defined]
-    return (np.abs(across) < street.half_width + margin) & (along > -reach[0]) & (along < reach[1])  # type: ignore[attr-defined]
+def _in_strip(points_xy: np.ndarray, street: CrossStreet, margin: float) -> np.ndarray:
+    d = np.asarray(street.direction)
+    along = (points_xy - street.center) @ d
+    across = (points_xy - street.center) @ np.array([-d[1], d[0]])
+    inside = np.abs(across) < street.half_width + margin
+    return inside & (along > -street.reach[0]) & (along < street.reach[1])
 
 
-def test_cross_streets_are_clear_of_static_objects(streets: tuple[np.ndarray, StreetScene, StreetScene]) -> None:
+def test_cross_streets_are_clear_of_static_objects(
+    streets: tuple[np.ndarray, StreetScene, StreetScene],
+) -> None:
     _, lanes, mixed = streets
     assert mixed.traffic is not None
     for street in mixed.traffic.cross_streets:
@@ -68,7 +69,7 @@ def test_cross_streets_are_clear_of_static_objects(streets: tuple[np.ndarray, St
 
 
 def test_cars_cross_and_turn_on_their_own_paths(streets: tuple[np.ndarray, StreetScene, StreetScene]) -> None:
-    poses, _, mixed = streets
+    _, _, mixed = streets
     assert mixed.traffic is not None
     cars = mixed.path_cars
     assert len(cars) >= 4 and len({car.instance for car in cars}) == len(cars)
@@ -82,13 +83,20 @@ def test_cars_cross_and_turn_on_their_own_paths(streets: tuple[np.ndarray, Stree
         # Relative to the street axis where the car's path is closest to it: across or along.
         middle = path.xy[len(path.xy) // 2]
         _, nearest = mixed.path.distance(middle)
-        relative = np.degrees(abs(((path.heading[len(path.xy) // 2] - mixed.path.heading[nearest]) + np.pi / 2) % np.pi - np.pi / 2))
+        relative = np.degrees(
+            abs(
+                ((path.heading[len(path.xy) // 2] - mixed.path.heading[nearest]) + np.pi / 2) % np.pi
+                - np.pi / 2
+            )
+        )
         crossing += int(turn < np.radians(5) and relative > 60)
         turning += int(np.radians(60) < turn < np.radians(120))
         # Cars follow the ground without kerb steps where they cross into the main street; further out
         # the terrain's hills reach grades of up to ~35 %.
         steps = np.abs(np.diff(path.ground_z))
-        near_main_street = mixed.path.distance(path.xy[1:])[0] < max(mixed.layout.outer(1), mixed.layout.outer(-1)) + 10
+        near_main_street = (
+            mixed.path.distance(path.xy[1:])[0] < max(mixed.layout.outer(1), mixed.layout.outer(-1)) + 10
+        )
         assert steps[near_main_street].max() < 0.12
         assert steps.max() < 0.4
     assert crossing >= 2 and turning >= 1, (crossing, turning)
@@ -135,7 +143,8 @@ def test_independent_motion_is_labelled_and_the_ground_truth_stays_exact(crossin
             mask = things == instance
             classes.setdefault(int(instance), set()).update((frame.labels[mask] & 0xFFFF).tolist())
             if moving_mask(frame.labels[mask]).all():
-                world = frame.points[mask, :3] @ frame.pose[:3, :3].T + frame.pose[:3, 3]  # type: ignore[index]
+                pose = poses[k]
+                world = frame.points[mask, :3] @ pose[:3, :3].T + pose[:3, 3]
                 tracks.setdefault(int(instance), []).append((k, world.mean(0), int(mask.sum())))
     # One class per object across every frame and point.
     assert all(len(found) == 1 for found in classes.values()), classes
@@ -176,7 +185,10 @@ def test_traffic_option_on_the_command_line(tmp_path: Path) -> None:
     from dmlo.cli import main
 
     out = tmp_path / "seq"
-    assert main(["simulate", "--frames", "1", "--seed", "2", "--traffic", "mixed", "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(["simulate", "--frames", "1", "--seed", "2", "--traffic", "mixed", "--out", str(out), "--quiet"])
+        == 0
+    )
     assert '"traffic": "mixed"' in (out / "simulation.json").read_text()
     with pytest.raises(SystemExit):
         main(["simulate", "--traffic", "chaos", "--out", str(tmp_path / "x")])

@@ -16,7 +16,8 @@ def register(subparsers: Any) -> None:
             "OUT/labels/*.label (SemanticKITTI, moving cars 252), poses.txt (camera frame), calib.txt, "
             "times.txt. --sensor argoverse (Argoverse 1's two stacked VLP-32C, sweeps in the ego frame) "
             "writes an Argoverse 1 log: OUT/lidar/PC_<ns>.ply (x y z intensity laser_number), "
-            "OUT/poses/city_SE3_egovehicle_<ns>.json, vehicle_calibration_info.json and labels/PC_<ns>.label. "
+            "OUT/poses/city_SE3_egovehicle_<ns>.json, vehicle_calibration_info.json and "
+            "labels/PC_<ns>.label. "
             "Both also write simulation.json. The same arguments always give identical files."
         ),
         epilog="examples:\n"

@@ -1,5 +1,5 @@
-"""The LiDAR simulator: procedural street scenes along a drive (with mixed traffic on request), an HDL-64E-like
-sensor or Argoverse 1's pair of VLP-32C, KITTI-layout or Argoverse-1-layout output.
+"""The LiDAR simulator: procedural street scenes along a drive (with mixed traffic on request), an
+HDL-64E-like sensor or Argoverse 1's pair of VLP-32C, KITTI-layout or Argoverse-1-layout output.
 
 `simulate_sequence` is the entry point (also `dmlo simulate`). Ray casting runs in `dmlo_rs.RayScene`.
 """

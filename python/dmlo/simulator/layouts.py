@@ -94,14 +94,15 @@ class KittiLayout:
         points.tofile(out / "velodyne" / f"{index:06d}.bin")
         labels.tofile(out / "labels" / f"{index:06d}.label")
 
-    def finish(
-        self, out: Path, lidar_poses: npt.NDArray[np.float64], times: npt.NDArray[np.float64]
-    ) -> None:
+    def finish(self, out: Path, lidar_poses: npt.NDArray[np.float64], times: npt.NDArray[np.float64]) -> None:
         camera_poses = lidar_to_camera_poses(lidar_poses, self.tr)
         with open(out / "poses.txt", "w") as f:
             f.writelines(" ".join(f"{v:.12e}" for v in pose[:3, :].ravel()) + "\n" for pose in camera_poses)
         with open(out / "calib.txt", "w") as f:
-            f.writelines(f"{name}: " + " ".join(f"{v:.12e}" for v in values) + "\n" for name, values in _KITTI_P.items())
+            f.writelines(
+                f"{name}: " + " ".join(f"{v:.12e}" for v in values) + "\n"
+                for name, values in _KITTI_P.items()
+            )
             f.write("Tr: " + " ".join(f"{v:.12e}" for v in self.tr[:3, :].ravel()) + "\n")
         with open(out / "times.txt", "w") as f:
             f.writelines(f"{t:.6e}\n" for t in times)
@@ -118,7 +119,10 @@ def reflectance_to_intensity(reflectance: npt.NDArray[np.floating]) -> npt.NDArr
 
 def _pose_record(pose: npt.NDArray[np.float64]) -> dict[str, list[float]]:
     x, y, z, w = matrix_to_quaternion(pose[:3, :3])[0]
-    return {"rotation": [float(w), float(x), float(y), float(z)], "translation": [float(v) for v in pose[:3, 3]]}
+    return {
+        "rotation": [float(w), float(x), float(y), float(z)],
+        "translation": [float(v) for v in pose[:3, 3]],
+    }
 
 
 class Argoverse1Layout:
@@ -128,7 +132,9 @@ class Argoverse1Layout:
         "ply\nformat binary_little_endian 1.0\nelement vertex {count}\nproperty float x\nproperty float y\n"
         "property float z\nproperty uchar intensity\nproperty ushort laser_number\nend_header\n"
     )
-    _RECORD = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"), ("laser_number", "<u2")])
+    _RECORD = np.dtype(
+        [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"), ("laser_number", "<u2")]
+    )
     _UNIT_KEYS = ("vehicle_SE3_up_lidar_", "vehicle_SE3_down_lidar_")
 
     def __init__(self, model: LidarModel) -> None:
@@ -170,9 +176,7 @@ class Argoverse1Layout:
             f.write(records.tobytes())
         labels.astype("<u4").tofile(out / "labels" / f"PC_{stamp}.label")
 
-    def finish(
-        self, out: Path, lidar_poses: npt.NDArray[np.float64], times: npt.NDArray[np.float64]
-    ) -> None:
+    def finish(self, out: Path, lidar_poses: npt.NDArray[np.float64], times: npt.NDArray[np.float64]) -> None:
         for index, pose in enumerate(lidar_poses):
             path = out / "poses" / f"city_SE3_egovehicle_{self.stamp(index)}.json"
             path.write_text(json.dumps(_pose_record(pose)) + "\n")

@@ -37,8 +37,8 @@ def hdl64e_elevations() -> npt.NDArray[np.float64]:
 
 
 def vlp32c_elevations() -> npt.NDArray[np.float64]:
-    """32 beam elevations (degrees, top first) of a Velodyne VLP-32C: +15° … −25°, 1/3° apart around the
-    horizon (−5.33° … +3.33°) and sparse beyond. Argoverse numbers the lasers 0–31 in this order."""
+    """32 beam elevations (degrees, top first) of a Velodyne VLP-32C: +15° … −25°, 1/3° apart from
+    +1.67° to −4° and sparser beyond. Argoverse numbers the lasers 0–31 in this order."""
     return np.array(
         [15.0, 10.333, 7.0, 4.667, 3.333, 2.333, 1.667, 1.333, 1.0, 0.667, 0.333, 0.0, -0.333, -0.667,
          -1.0, -1.333, -1.667, -2.0, -2.333, -2.667, -3.0, -3.333, -3.667, -4.0, -4.667, -5.333, -6.148,
@@ -46,9 +46,9 @@ def vlp32c_elevations() -> npt.NDArray[np.float64]:
     )  # fmt: skip
 
 
-def mount_matrix(quaternion_wxyz: tuple[float, float, float, float], translation: tuple[float, float, float]) -> (
-    tuple[float, ...]
-):
+def mount_matrix(
+    quaternion_wxyz: tuple[float, float, float, float], translation: tuple[float, float, float]
+) -> tuple[float, ...]:
     """A mount `T_rig_unit` as a row-major 16-tuple from a `w x y z` quaternion and a translation."""
     w, x, y, z = quaternion_wxyz
     matrix = np.eye(4)
@@ -108,8 +108,8 @@ HDL64E = LidarModel(
     mount_height=1.73,
 )
 
-# Argoverse 1: two VLP-32C stacked on the roof, the lower one upside down, so the rig sees −25° … +25° with
-# the beams densest near the horizon. Mounts (`vehicle_SE3_up_lidar_`, `vehicle_SE3_down_lidar_`) as in the
+# Argoverse 1: two VLP-32C stacked on the roof, the lower one upside down, so the rig sees −25° … +25°
+# with the beams densest near the horizon. Mounts (`vehicle_SE3_up_lidar_`, `vehicle_SE3_down_lidar_`) as in the
 # `vehicle_calibration_info.json` of an AV1 tracking log; the ego frame's origin (rear axle centre) is
 # 0.34 m above the road, as the ground of a real AV1 sweep shows. 0.2° azimuth steps at 10 Hz, 200 m range,
 # ±3 cm accuracy.

@@ -108,7 +108,9 @@ def simulate_sequence(
 
     out = Path(out_dir)
     writer = make_layout(layout_name, model, tr)
-    old_scans = sorted({path for name in LAYOUTS for path in make_layout(name, model, tr).existing_scans(out)})
+    old_scans = sorted(
+        {path for name in LAYOUTS for path in make_layout(name, model, tr).existing_scans(out)}
+    )
     if old_scans and not overwrite and not (out / "simulation.json").is_file():
         raise ValueError(
             f"out: {out} already holds scans not written by the simulator ({len(old_scans)} files); "

@@ -34,8 +34,8 @@ if TYPE_CHECKING:
 
 TRAFFIC = ("lanes", "mixed")
 _SAMPLE = 1.0  # metres between the samples of a car path
-_EGO_CLEARANCE = 4.0
-_RAMP = 6.0  # metres beyond the main street's sidewalk where a cross street reaches the terrain  # metres between a car's body and the ego's pose origin, at every frame
+_EGO_CLEARANCE = 4.0  # metres between a car's body and the ego's pose origin, at every frame
+_RAMP = 6.0  # metres beyond the main street's sidewalk where a cross street reaches the terrain
 
 
 @dataclass(frozen=True)
@@ -83,8 +83,11 @@ class CarPath:
         """(xy, ground z, heading, pitch) at arc length `s`; pitch is nose-up negative as in the ego's."""
         xy = np.array([np.interp(s, self.s, self.xy[:, 0]), np.interp(s, self.s, self.xy[:, 1])])
         z0, z1 = np.interp([s - 1.5, s + 1.5], self.s, self.ground_z)
-        return xy, float(np.interp(s, self.s, self.ground_z)), float(np.interp(s, self.s, self.heading)), float(
-            -np.arctan((z1 - z0) / 3.0)
+        return (
+            xy,
+            float(np.interp(s, self.s, self.ground_z)),
+            float(np.interp(s, self.s, self.heading)),
+            float(-np.arctan((z1 - z0) / 3.0)),
         )
 
 
@@ -169,7 +172,9 @@ def add_cross_traffic(
                         length=length,
                         width=width,
                         height=height,
-                        albedo=float(np.clip(rng.choice([0.08, 0.2, 0.35, 0.6]) + rng.normal(0, 0.03), 0.03, 1.0)),
+                        albedo=float(
+                            np.clip(rng.choice([0.08, 0.2, 0.35, 0.6]) + rng.normal(0, 0.03), 0.03, 1.0)
+                        ),
                     )
                 )
             paths.append(car_path)
@@ -192,7 +197,8 @@ def _place_cross_streets(
             street = CrossStreet((float(center[0]), float(center[1])), direction, half_width, (0.0, 0.0))
             reach = tuple(_free_reach(path, street, sign, main_half) for sign in (-1.0, 1.0))
             if min(reach) > main_half + 20.0:
-                streets.append(CrossStreet(street.center, direction, half_width, reach))  # type: ignore[arg-type]
+                sides = (reach[0], reach[1])
+                streets.append(CrossStreet(street.center, direction, half_width, sides))
         s += float(rng.uniform(60.0, 160.0))
     return streets
 
@@ -322,7 +328,10 @@ def _turning_route(
 
 
 def _lines_meet(
-    a0: npt.NDArray[np.float64], a1: npt.NDArray[np.float64], b0: npt.NDArray[np.float64], b1: npt.NDArray[np.float64]
+    a0: npt.NDArray[np.float64],
+    a1: npt.NDArray[np.float64],
+    b0: npt.NDArray[np.float64],
+    b1: npt.NDArray[np.float64],
 ) -> npt.NDArray[np.float64]:
     """Where line a0→a1 meets line b0→b1 (their midpoint when nearly parallel)."""
     da, db = a1 - a0, b1 - b0
@@ -360,7 +369,9 @@ def _timed_car(
         on = (s >= 0.0) & (s <= car_path.length)
         if not on.any():
             continue
-        xy = np.column_stack([np.interp(s, car_path.s, car_path.xy[:, 0]), np.interp(s, car_path.s, car_path.xy[:, 1])])
+        xy = np.column_stack(
+            [np.interp(s, car_path.s, car_path.xy[:, 0]), np.interp(s, car_path.s, car_path.xy[:, 1])]
+        )
         gap = np.linalg.norm(xy - ego_xy, axis=1)[on]
         if gap.min() > length / 2 + _EGO_CLEARANCE:
             return s0, speed
