@@ -306,7 +306,9 @@ def generate_street(
     moving = _moving_cars(path, layout, rng, instances)
     cross = None
     if traffic == "mixed":
-        cross = add_cross_traffic(prims, path, layout, lidar_poses, FRAME_RATE_HZ, seed, instances, _car_size)
+        cross = add_cross_traffic(
+            prims, path, layout, lidar_poses, FRAME_RATE_HZ, seed, instances, _car_size, moving
+        )
     return StreetScene(path=path, layout=layout, static=prims, moving_cars=moving, traffic=cross)
 
 

@@ -12,14 +12,15 @@ terrain and then drapes it. Its cars drive their own paths:
 
 Every car drives at a constant speed along a `CarPath` (a polyline on the ground, heights taken by casting
 rays down onto the road and terrain, so cars sit on kerbs and hills), is labelled moving-car (252) with its
-own instance id, and is timed to pass the intersection within ±9 s of the ego, never closer than a car's
-length to it. Everything here draws from its own random stream, so the `"lanes"` traffic of a seed is
+own instance id, and is timed to pass the intersection within ±9 s of the ego, never closer than half a
+car plus 4 m to the ego's pose origin and never overlapping another moving car (lane or path) while the
+ego records. Everything here draws from its own random stream, so the `"lanes"` traffic of a seed is
 unchanged.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -30,12 +31,13 @@ from dmlo_rs import RayScene
 from dmlo.simulator.primitives import ROAD, SIDEWALK, PrimitiveSet
 
 if TYPE_CHECKING:
-    from dmlo.simulator.scene import StreetLayout, StreetPath
+    from dmlo.simulator.scene import MovingCar, StreetLayout, StreetPath
 
 TRAFFIC = ("lanes", "mixed")
 _SAMPLE = 1.0  # metres between the samples of a car path
 _EGO_CLEARANCE = 4.0  # metres between a car's body and the ego's pose origin, at every frame
 _RAMP = 6.0  # metres beyond the main street's sidewalk where a cross street reaches the terrain
+_CORNER = 3.0  # metres a cross street widens by on each side where it crosses the main sidewalks
 
 
 @dataclass(frozen=True)
@@ -121,6 +123,7 @@ def add_cross_traffic(
     seed: int,
     instances: Iterator[int],
     car_size: Callable[[np.random.Generator], tuple[float, float, float]],
+    lane_cars: Sequence[MovingCar] = (),
 ) -> Traffic:
     """Adds cross streets to the static `prims` (clearing what stands on them) and returns their traffic.
 
@@ -137,6 +140,7 @@ def add_cross_traffic(
     ground = RayScene(triangles=prims.parameters("triangles"))
     ego_xy = ego_poses[:, :2, 3]
     ego_times = np.arange(len(ego_poses)) / frame_rate_hz
+    others = lane_car_tracks(path, lane_cars, ego_times)
     paths: list[CarPath] = []
     cars: list[PathCar] = []
     for street in streets:
@@ -159,7 +163,7 @@ def add_cross_traffic(
                 continue
             for _ in range(int(rng.integers(1, 4))):
                 length, width, height = car_size(rng)
-                car = _timed_car(car_path, length, meet, ego_xy, ego_times, rng)
+                car = _timed_car(car_path, length, width, meet, ego_xy, ego_times, others, rng)
                 if car is None:
                     continue
                 s0, speed = car
@@ -238,7 +242,7 @@ def _clear_strip(prims: PrimitiveSet, street: CrossStreet) -> None:
     triangles = prims.parameters("triangles")
     if len(triangles):
         centroid = triangles.mean(axis=1)[:, :2]
-        in_mouth = np.abs((centroid - c) @ n) < street.half_width
+        in_mouth = np.abs((centroid - c) @ n) < street.half_width + _CORNER
         prims.drop("triangles", in_mouth & (prims.semantics("triangles") == SIDEWALK))
     boxes = prims.parameters("boxes")
     if len(boxes):
@@ -266,20 +270,25 @@ def _add_road(
 ) -> None:
     """The cross street's asphalt from the main road's edge outwards, 3 cm above the ground it drapes.
     Under the main street's sidewalks the terrain dips below its mesh, so up to `_RAMP` metres beyond
-    them the road runs straight from the main road's height to the terrain's."""
+    them the road runs straight from the main road's height to the terrain's (or on the terrain where
+    that is higher). Across the sidewalks it is
+    `_CORNER` metres wider on each side (the corners turning cars cut), narrowing over the ramp."""
     albedo = float(rng.uniform(0.28, 0.4))
-    lateral = np.linspace(-street.half_width, street.half_width, 5)
+    unit = np.linspace(-1.0, 1.0, 5)
     top = float(path.ground_z.max()) + 200.0
     # The street meets the main road askew: start far enough in that its whole first row is on the road.
     _, nearest = path.distance(np.asarray(street.center))
     heading = path.heading[int(nearest)]
     cos_skew = abs(float(np.dot(street.direction, (-np.sin(heading), np.cos(heading)))))
-    inset = 0.5 + street.half_width * np.sqrt(max(0.0, 1.0 - cos_skew**2)) / max(cos_skew, 0.1)
+    widest = street.half_width + _CORNER
+    inset = 0.5 + widest * np.sqrt(max(0.0, 1.0 - cos_skew**2)) / max(cos_skew, 0.1)
     for sign, reach, side in ((-1.0, street.reach[0], -1), (1.0, street.reach[1], 1)):
         distance = np.arange(max(layout.road(side) - inset, 1.0), reach + 1e-9, 2.0)
         if len(distance) < 2:
             continue
-        grid = street.point(sign * distance[:, None], lateral[None, :])  # (A, L, 2)
+        flare = _CORNER * np.clip((layout.outer(side) + _RAMP - distance) / (_RAMP - 1.0), 0.0, 1.0)
+        half_width = street.half_width + flare
+        grid = street.point(sign * distance[:, None], half_width[:, None] * unit[None, :])  # (A, L, 2)
         flat = grid.reshape(-1, 2)
         ranges, _, _ = ground.cast(
             np.column_stack([flat, np.full(len(flat), top)]), np.tile([0.0, 0.0, -1.0], (len(flat), 1)), 400.0
@@ -289,7 +298,10 @@ def _add_road(
         if ramp.any() and not ramp.all():
             end = int(np.argmin(ramp))  # first sample beyond the ramp
             fraction = (distance[ramp] - distance[0]) / (distance[end] - distance[0])
-            z[ramp] = z[0] + fraction[:, None] * (z[end] - z[0])
+            straight = z[0] + fraction[:, None] * (z[end] - z[0])
+            # Over the sidewalk the straight line; beyond it never below the terrain next to the road.
+            beyond_sidewalk = (distance[ramp] > layout.outer(side))[:, None]
+            z[ramp] = np.where(beyond_sidewalk, np.fmax(straight, z[ramp]), straight)
         vertices = np.concatenate([grid, z[..., None] + 0.03], axis=-1)
         a, b, c, d = vertices[:-1, :-1], vertices[:-1, 1:], vertices[1:, :-1], vertices[1:, 1:]
         tris = np.concatenate([np.stack([a, b, d], -2), np.stack([a, d, c], -2)]).reshape(-1, 3, 3)
@@ -349,30 +361,94 @@ def _bezier(
     return (1 - t) ** 2 * p0 + 2 * (1 - t) * t * p1 + t**2 * p2
 
 
+@dataclass(frozen=True)
+class _Track:
+    """Where a car is at each of the ego's frame times: centre (T,2), heading (T,), whether it is on its path
+    (T,), and its footprint."""
+
+    xy: npt.NDArray[np.float64]
+    heading: npt.NDArray[np.float64]
+    present: npt.NDArray[np.bool_]
+    length: float
+    width: float
+
+
+def lane_car_tracks(
+    path: StreetPath, cars: Sequence[MovingCar], times: npt.NDArray[np.float64]
+) -> list[_Track]:
+    """Tracks of the `"lanes"` traffic (cars along the street axis) at `times`."""
+    tracks = []
+    for car in cars:
+        s = car.s0 + car.direction * car.speed * times
+        xy, _, heading = path.at(np.clip(s, 0.0, path.length))
+        normal = np.stack([-np.sin(heading), np.cos(heading)], axis=-1)
+        tracks.append(
+            _Track(
+                xy + car.lateral * normal,
+                heading if car.direction > 0 else heading + np.pi,
+                (s >= 0.0) & (s <= path.length),
+                car.length,
+                car.width,
+            )
+        )
+    return tracks
+
+
+def _path_track(car_path: CarPath, s: npt.NDArray[np.float64], length: float, width: float) -> _Track:
+    xy = np.column_stack(
+        [np.interp(s, car_path.s, car_path.xy[:, 0]), np.interp(s, car_path.s, car_path.xy[:, 1])]
+    )
+    heading = np.interp(s, car_path.s, car_path.heading)
+    return _Track(xy, heading, (s >= 0.0) & (s <= car_path.length), length, width)
+
+
+def _collide(a: _Track, b: _Track, margin: float = 0.5) -> bool:
+    """Whether the two cars' footprints (grown by `margin`) overlap at any time both are present
+    (separating axis test on the four box axes)."""
+    both = a.present & b.present
+    if not both.any():
+        return False
+    offset = b.xy[both] - a.xy[both]
+    overlapping = np.ones(int(both.sum()), dtype=bool)
+    headings = (a.heading[both], b.heading[both])
+    for axis_heading in (*headings, headings[0] + np.pi / 2, headings[1] + np.pi / 2):
+        axis = np.stack([np.cos(axis_heading), np.sin(axis_heading)], axis=-1)
+        radius = 0.0
+        for track, heading in ((a, headings[0]), (b, headings[1])):
+            along = np.abs(np.cos(heading - axis_heading))
+            across = np.abs(np.sin(heading - axis_heading))
+            radius = radius + (track.length / 2 + margin) * along + (track.width / 2 + margin) * across
+        overlapping &= np.abs(np.sum(offset * axis, axis=1)) < radius
+    return bool(overlapping.any())
+
+
 def _timed_car(
     car_path: CarPath,
     length: float,
+    width: float,
     meet: float,
     ego_xy: npt.NDArray[np.float64],
     ego_times: npt.NDArray[np.float64],
+    others: list[_Track],
     rng: np.random.Generator,
 ) -> tuple[float, float] | None:
     """(s0, speed) putting the car at its path's point nearest the ego's meeting point within ±9 s of the
-    meeting time, never within `_EGO_CLEARANCE` + half its length of the ego's pose origin; None when five
-    draws all fail."""
+    meeting time, never within `_EGO_CLEARANCE` + half its length of the ego's pose origin and never
+    overlapping the cars of `others` while the ego looks (its track is then added to them); None when
+    eight draws all fail."""
     meet_xy = ego_xy[int(np.argmin(np.abs(ego_times - meet)))]
     s_meet = float(car_path.s[int(np.argmin(np.linalg.norm(car_path.xy - meet_xy, axis=1)))])
-    for _ in range(5):
+    for _ in range(8):
         speed = float(rng.uniform(4.0, 13.0))
         s0 = s_meet - speed * (meet + float(rng.uniform(-9.0, 9.0)))
-        s = s0 + speed * ego_times
-        on = (s >= 0.0) & (s <= car_path.length)
-        if not on.any():
+        track = _path_track(car_path, s0 + speed * ego_times, length, width)
+        if not track.present.any():
             continue
-        xy = np.column_stack(
-            [np.interp(s, car_path.s, car_path.xy[:, 0]), np.interp(s, car_path.s, car_path.xy[:, 1])]
-        )
-        gap = np.linalg.norm(xy - ego_xy, axis=1)[on]
-        if gap.min() > length / 2 + _EGO_CLEARANCE:
-            return s0, speed
+        gap = np.linalg.norm(track.xy - ego_xy, axis=1)[track.present]
+        if gap.min() <= length / 2 + _EGO_CLEARANCE:
+            continue
+        if any(_collide(track, other) for other in others):
+            continue
+        others.append(track)
+        return s0, speed
     return None
