@@ -216,7 +216,9 @@ def test_ground_truth_aligns_the_static_points(av1_drive: tuple[Path, Simulation
         assert angle < 0.05, (k, angle)
 
 
-def test_ground_lies_below_the_ego_origin_at_the_mount_height(av1_drive: tuple[Path, SimulationResult]) -> None:
+def test_ground_lies_below_the_ego_origin_at_the_mount_height(
+    av1_drive: tuple[Path, SimulationResult],
+) -> None:
     out, _ = av1_drive
     frame = open_sequence(out)[1]
     assert frame.labels is not None
@@ -296,3 +298,38 @@ def test_bad_input_names_the_argument(tmp_path: Path) -> None:
         main(["simulate", "--sensor", "vlp16", "--out", str(tmp_path / "x")])
     assert not any(tmp_path.iterdir())
     assert HDL64E.units == 1 and HDL64E.default_layout == "kitti"
+
+
+def test_motion_distortion_of_the_rig_skews_the_rear_but_not_the_front(
+    tmp_path: Path, shared_data: Path
+) -> None:
+    """Each unit fires its forward column at the frame's pose (the lower, upside-down unit looks forward
+    12° to the left there), so the front of a skewed sweep stays put and the rear moves."""
+    from scipy.spatial import cKDTree
+
+    trajectory = shared_data / "kitti_gt_poses" / "00.txt"
+    sweeps = []
+    for distortion in (False, True):
+        out = tmp_path / str(distortion)
+        simulate_sequence(
+            out,
+            2,
+            seed=3,
+            trajectory=trajectory,
+            start=300,
+            sensor="argoverse",
+            motion_distortion=distortion,
+            progress=False,
+        )
+        sweeps.append(open_sequence(out)[0].points)
+
+    def sector(points: np.ndarray, center_deg: float) -> np.ndarray:
+        azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0] - 1.35))  # around the units' axis
+        gap = np.abs((azimuth - center_deg + 180.0) % 360.0 - 180.0)
+        return points[(gap < 2.0) & (points[:, 2] > 0.5), :3]  # above the ground: vertical structure
+
+    still, skewed = sweeps
+    front = cKDTree(sector(still, 5.0)).query(sector(skewed, 5.0))[0]
+    rear = cKDTree(sector(still, 185.0)).query(sector(skewed, 185.0))[0]
+    assert np.median(front) < 0.1
+    assert np.median(rear) > 0.15  # ~1 m a frame: the rear columns fire half a frame before or after
