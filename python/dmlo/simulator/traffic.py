@@ -413,7 +413,7 @@ def _collide(a: _Track, b: _Track, margin: float = 0.5) -> bool:
     headings = (a.heading[both], b.heading[both])
     for axis_heading in (*headings, headings[0] + np.pi / 2, headings[1] + np.pi / 2):
         axis = np.stack([np.cos(axis_heading), np.sin(axis_heading)], axis=-1)
-        radius = 0.0
+        radius = np.zeros(len(offset))
         for track, heading in ((a, headings[0]), (b, headings[1])):
             along = np.abs(np.cos(heading - axis_heading))
             across = np.abs(np.sin(heading - axis_heading))
