@@ -196,8 +196,10 @@ class Odometry:
 
         For evaluating the geometry on other flows (ground truth, another network) or one step at a time.
         """
-        arrays = [np.ascontiguousarray(a, dtype=np.float32) for a in (ref_range, tgt_range, flow, confidence)]
-        return self._match(*arrays)
+        def as_f32(array: npt.ArrayLike) -> npt.NDArray[np.float32]:
+            return np.ascontiguousarray(array, dtype=np.float32)
+
+        return self._match(as_f32(ref_range), as_f32(tgt_range), as_f32(flow), as_f32(confidence))
 
     def _project(self, cloud: npt.NDArray[np.float32]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         projection = dmlo_rs.project(cloud, self.cylinder)
