@@ -15,7 +15,7 @@ def _static_scans(shared_data: Path, count: int) -> list[np.ndarray]:
     return [np.fromfile(f, dtype=np.float32).reshape(-1, 4) for f in files]
 
 
-@pytest.mark.parametrize("name", ["KISS-ICP", "small_gicp GICP"])
+@pytest.mark.parametrize("name", ["KISS-ICP", "KISS-ICP 0.25 m voxels", "small_gicp GICP"])
 def test_peer_stays_still_on_static_scans(shared_data: Path, name: str) -> None:
     peer = next(p for p in PEERS if p.name == name)
     if not peer.available:

@@ -56,3 +56,22 @@ def test_ground_truth_flow_recovers_the_motion(drive: Path) -> None:
     assert errors.translation_max < 0.03, errors
     assert errors.angular_max < 0.1, errors
     assert min(d.inlier_ratio for d in odometry.diagnostics[1:]) > 0.5
+
+
+def test_pose_from_flow_is_the_back_end_alone(drive: Path) -> None:
+    # The public step-by-step API: project both scans, hand any flow to the back end.
+    sequence = open_sequence(drive)
+    ref, tgt = sequence[2], sequence[3]
+    assert ref.pose is not None and tgt.pose is not None
+    T_tgt_ref = np.linalg.inv(tgt.pose) @ ref.pose
+    odometry = Odometry.from_default()
+    ref_image, ref_range = odometry.project(ref.points)
+    _, tgt_range = odometry.project(tgt.points)
+    assert ref_image.shape == (2, *ref_range.shape) and np.array_equal(ref_image[0], ref_range)
+    flow, valid = dmlo_rs.ground_truth_flow(ref_range, tgt_range, T_tgt_ref, odometry.cylinder)
+    pair = odometry.pose_from_flow(ref_range, tgt_range, flow, valid.astype(np.float64))
+    errors = registration_errors(pair.T_tgt_ref[None], T_tgt_ref[None])
+    assert errors.translation_max < 0.03 and errors.angular_max < 0.1, errors
+    assert pair.num_matches == odometry.config.matching.max_matches and pair.inlier_ratio > 0.5
+    with pytest.raises(ValueError, match="points"):
+        odometry.project(np.zeros((5, 2), dtype=np.float32))

@@ -33,15 +33,15 @@ def evaluate(model: Path, drives: list[Path], pairs_per_drive: int) -> dict[str,
             ref, tgt = sequence[int(start)], sequence[int(start) + 1]
             assert ref.pose is not None and tgt.pose is not None
             T_tgt_ref = np.linalg.inv(tgt.pose) @ ref.pose
-            ref_image, ref_range = odometry._project(ref.points)
-            tgt_image, tgt_range = odometry._project(tgt.points)
+            ref_image, ref_range = odometry.project(ref.points)
+            tgt_image, tgt_range = odometry.project(tgt.points)
             began = time.perf_counter()
             features = odometry.matcher.frame(ref_image, None).features
             middle = time.perf_counter()
             output = odometry.matcher.frame(tgt_image, features)
             network_ms.append((time.perf_counter() - middle) * 1e3)
             assert output.flow is not None and output.confidence is not None
-            pair = odometry._match(ref_range, tgt_range, output.flow, output.confidence)
+            pair = odometry.pose_from_flow(ref_range, tgt_range, output.flow, output.confidence)
             pair_ms.append((time.perf_counter() - began) * 1e3 - (middle - began) * 1e3)
             gt_flow, valid = dmlo_rs.ground_truth_flow(ref_range, tgt_range, T_tgt_ref, cylinder)
             all_cells = flow_errors(output.flow, gt_flow, valid)

@@ -180,6 +180,27 @@ class Odometry:
 
     # -- the paper's steps ----------------------------------------------------------------------
 
+    def project(self, points: npt.ArrayLike) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """The network input `[2, H, W]` (range, reflectance) of a scan and its range image `[H, W]` (Eq. 1)."""
+        return self._project(_as_scan(points, "points"))
+
+    def pose_from_flow(
+        self,
+        ref_range: npt.ArrayLike,
+        tgt_range: npt.ArrayLike,
+        flow: npt.ArrayLike,
+        confidence: npt.ArrayLike,
+    ) -> PairResult:
+        """The back end alone: matches from any flow `[2, H, W]` and confidence `[H, W]` between two range
+        images → NMS → RANSAC around the SVD solve, with this odometry's settings (§III-D).
+
+        For evaluating the geometry on other flows (ground truth, another network) or one step at a time.
+        """
+        def as_f32(array: npt.ArrayLike) -> npt.NDArray[np.float32]:
+            return np.ascontiguousarray(array, dtype=np.float32)
+
+        return self._match(as_f32(ref_range), as_f32(tgt_range), as_f32(flow), as_f32(confidence))
+
     def _project(self, cloud: npt.NDArray[np.float32]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         projection = dmlo_rs.project(cloud, self.cylinder)
         return np.stack([projection.range, projection.reflectance]), projection.range

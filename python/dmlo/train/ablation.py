@@ -1,6 +1,6 @@
 """A small Table V: the paper's ablations trained under one budget, then measured the same way.
 
-    python -m dmlo.train.ablation --data DATA_DIR --out RUNS_DIR [--epochs 2] [--variants fast no_norm ...]
+    python -m dmlo.train.ablation --data DATA_DIR --out RUNS_DIR [--epochs 1] [--variants fast no_norm ...]
 
 Every variant trains from scratch on the default recipe's simulated drives with the same seed, data order,
 optimiser and number of steps, is exported to ONNX, and is measured by `dmlo.benchmarks.matching` on the
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, help="folder of the default recipe's simulated drives")
     parser.add_argument("--out", type=Path, required=True, help="folder for one run per variant and the results")
-    parser.add_argument("--epochs", type=int, default=2, help="training epochs per variant (the same for all)")
+    parser.add_argument("--epochs", type=int, default=1, help="training epochs per variant (the same for all)")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--poses", type=Path, default=Path(__file__).resolve().parents[4] / "shared/data/kitti_gt_poses",
                         help="KITTI ground-truth pose files the drives follow (as in the default recipe)")
