@@ -3,6 +3,7 @@ diagnostics, the motion model, and bad input."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -152,3 +153,31 @@ def test_real_scans_of_a_standing_car_give_no_motion(shared_data: Path) -> None:
     errors = registration_errors(motions, np.broadcast_to(np.eye(4), motions.shape))
     assert errors.translation_max < 0.02, errors  # the real motion is a few millimetres at most
     assert errors.angular_max < 0.1, errors  # degrees; 0.1° moves a point 10 m away by 1.7 cm
+
+
+def test_scans_of_another_sensor_are_flagged(shared_data: Path) -> None:
+    # A real Argoverse 1 sweep (two VLP-32C) fills 13 % of the bundled model's KITTI image: warn once.
+    from plyfile import PlyData
+
+    from dmlo.odometry import SensorMismatchWarning
+
+    vertex = PlyData.read(next((shared_data / "argoverse1_layout").glob("real_sweep_*.ply")))["vertex"]
+    sweep = np.stack([vertex["x"], vertex["y"], vertex["z"], vertex["intensity"] / 255.0], axis=1).astype(np.float32)
+    odometry = Odometry.from_default()
+    with pytest.warns(SensorMismatchWarning, match="fill only 13 %"):
+        odometry.register(sweep)
+    fill = odometry.diagnostics[0].image_fill
+    assert fill is not None and 0.1 < fill < 0.16
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        odometry.register(sweep)  # once per odometry, not per scan
+
+
+def test_scans_of_the_trained_sensor_are_not_flagged(scans: list[np.ndarray]) -> None:
+    odometry = Odometry.from_default()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        odometry.register(scans[0])
+    fill = odometry.diagnostics[0].image_fill
+    assert fill is not None and fill > 0.7
+    assert odometry.diagnostics[0].to_dict()["image_fill"] == round(fill, 4)

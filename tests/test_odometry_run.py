@@ -127,3 +127,14 @@ def test_command_dataset_formats_are_the_reader_registry() -> None:
     from dmlo.datasets import FORMATS
 
     assert set(DATASET_FORMATS) == set(FORMATS)
+
+
+def test_run_on_another_sensor_warns_in_one_line(tmp_path: Path) -> None:
+    drive = tmp_path / "argoverse"
+    simulate_sequence(drive, frames=2, seed=3, sensor="argoverse", progress=False)
+    result = dmlo("run", str(drive), "--out", str(tmp_path / "out"))
+    assert result.returncode == 0, result.stderr
+    # Its own line above the progress bar (which redraws with carriage returns).
+    lines = [line.split("\r")[-1] for line in result.stderr.splitlines()]
+    warning = [line for line in lines if "warning" in line]
+    assert len(warning) == 1 and warning[0].startswith("dmlo run: warning: the scans fill only"), result.stderr

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Sequence
+import warnings
+from collections.abc import Callable, Sequence
 
 import dmlo
 
@@ -38,12 +39,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line_warning(command: str) -> Callable[..., None]:
+    """Warnings meant for the user read as one line, like the errors (not as a source location), and
+    on a line of their own above a progress bar."""
+
+    def show(message: Warning | str, *_args: object, **_kwargs: object) -> None:
+        from tqdm import tqdm
+
+        tqdm.write(f"dmlo {command}: warning: {message}", file=sys.stderr)
+
+    return show
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not hasattr(args, "run"):
         parser.print_help()
         return 0
+    warnings.showwarning = _one_line_warning(args.command)
     try:
         return int(args.run(args) or 0)
     except UserError as err:

@@ -7,7 +7,7 @@ from dmlo.odometry.config import (
     OdometryConfig,
     RansacConfig,
 )
-from dmlo.odometry.pipeline import FrameDiagnostics, Odometry, PairResult
+from dmlo.odometry.pipeline import FrameDiagnostics, Odometry, PairResult, SensorMismatchWarning
 
 __all__ = [
     "FrameDiagnostics",
@@ -18,4 +18,5 @@ __all__ = [
     "OdometryConfig",
     "PairResult",
     "RansacConfig",
+    "SensorMismatchWarning",
 ]

@@ -7,6 +7,7 @@ network, with the paper's section next to it.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,15 @@ from dmlo.odometry.matcher import (
 
 Matrix4 = npt.NDArray[np.float64]
 
+# HDL-64E scans fill 75–82 % of KITTI's 64×1792 cylinder image (real and simulated), Argoverse's two
+# VLP-32C 13 %. A network only knows the images it was trained on, so far emptier images mean a sensor
+# the model was not made for, and poses that cannot be trusted.
+LOW_IMAGE_FILL = 0.35
+
+
+class SensorMismatchWarning(UserWarning):
+    """The scans fill far less of the model's cylinder image than the sensor it was trained for."""
+
 
 @dataclass
 class FrameDiagnostics:
@@ -39,6 +49,7 @@ class FrameDiagnostics:
     inlier_ratio: float = 0.0
     fallback: str | None = None  # "constant_velocity" when RANSAC found too few inliers
     ndt_converged: bool | None = None
+    image_fill: float | None = None  # fraction of the cylinder image's cells holding a point
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -50,6 +61,7 @@ class FrameDiagnostics:
             "inlier_ratio": round(self.inlier_ratio, 4),
             "fallback": self.fallback,
             "ndt_converged": self.ndt_converged,
+            "image_fill": None if self.image_fill is None else round(self.image_fill, 4),
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
         }
 
@@ -107,6 +119,7 @@ class Odometry:
         self._velocity = np.eye(4)  # T_tgt_ref per frame, for the constant-velocity model
         self._map = self._make_map() if self.config.mapping.enabled else None
         self._wide: Matcher | None = None  # loaded on the first large-motion pair
+        self._warned_sensor = False
 
     @classmethod
     def from_default(cls, config: OdometryConfig | None = None) -> Odometry:
@@ -132,6 +145,8 @@ class Odometry:
             return self._skip(diagnostics, "too_few_points")
 
         image, ranges = self._project(cloud)  # Eq. 1
+        diagnostics.image_fill = float(np.count_nonzero(ranges) / ranges.size)
+        self._check_sensor(diagnostics.image_fill)
         previous = self._reference
         output = self.matcher.frame(image, previous.features if previous else None)  # §III-C
         watch.lap("network")
@@ -152,6 +167,19 @@ class Odometry:
         self._reference = _Scan(range=ranges, features=output.features, pose=pose)
         self._reference_index = diagnostics.index
         return self._record(pose, diagnostics)
+
+    def _check_sensor(self, image_fill: float) -> None:
+        if image_fill < LOW_IMAGE_FILL and not self._warned_sensor:
+            self._warned_sensor = True
+            height, width = self.cylinder.height, self.cylinder.width
+            warnings.warn(
+                f"the scans fill only {100 * image_fill:.0f} % of the model's {height}×{width} cylinder image "
+                f"(the HDL-64E scans it was trained on fill 75–82 %): it was not made for this sensor, so its "
+                f"poses cannot be trusted; train a model on drives of this sensor (dmlo train, "
+                f"dmlo simulate --sensor)",
+                SensorMismatchWarning,
+                stacklevel=3,
+            )
 
     def predict_skipped(self, reason: str = "unreadable_scan") -> Matrix4:
         """Records a scan that could not be read: its pose comes from the motion model."""
