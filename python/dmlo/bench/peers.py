@@ -47,8 +47,10 @@ class ScanToScanOdometry:
 class KissIcpOdometry:
     """KISS-ICP with its default configuration for a 100 m sensor and deskewing off (no timestamps).
 
-    ``voxel_size`` overrides its map voxel (default 1 m = max range / 100): its point-to-point ICP slides
-    on the simulator's large planar facades with 1 m voxels, and finer voxels are its fair best there.
+    ``voxel_size`` overrides its map voxel (default 1 m = max range / 100). Measured on simulated drives
+    starting from standstill (0.1–0.7 m per frame), the default errs 10–20 cm per frame in the ground plane
+    for the first tens of frames and 0.25 m voxels about 5 cm; over 300 frames along KITTI 07 both reach
+    t_rel ≈ 0.05–0.06 %, the finer map 12× slower.
     """
 
     def __init__(self, voxel_size: float | None = None) -> None:
