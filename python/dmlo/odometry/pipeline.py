@@ -39,6 +39,7 @@ class FrameDiagnostics:
     inlier_ratio: float = 0.0
     fallback: str | None = None  # "constant_velocity" when RANSAC found too few inliers
     ndt_converged: bool | None = None
+    ndt_degenerate_directions: int | None = None  # pose directions the map did not constrain (kept as DMLO's)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -50,6 +51,7 @@ class FrameDiagnostics:
             "inlier_ratio": round(self.inlier_ratio, 4),
             "fallback": self.fallback,
             "ndt_converged": self.ndt_converged,
+            "ndt_degenerate_directions": self.ndt_degenerate_directions,
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
         }
 
@@ -299,12 +301,18 @@ class Odometry:
         try:
             c = self.config.mapping
             result = self._map.align(
-                cloud[:, :3], pose, max_iterations=c.max_iterations, source_voxel_size=c.downsample
+                cloud[:, :3],
+                pose,
+                max_iterations=c.max_iterations,
+                source_voxel_size=c.downsample,
+                degeneracy_threshold=c.degeneracy_threshold,
+                rotation_degeneracy_threshold=c.rotation_degeneracy_threshold,
             )
         except ValueError:
             diagnostics.ndt_converged = False
             return pose
         diagnostics.ndt_converged = bool(result.converged)
+        diagnostics.ndt_degenerate_directions = int(result.degenerate_directions)
         return np.asarray(result.transform, dtype=np.float64) if result.converged else pose
 
 
