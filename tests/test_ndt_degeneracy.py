@@ -161,3 +161,14 @@ def test_mapping_thresholds_reach_the_alignment_and_the_diagnostics(straight_dri
     assert odometry.diagnostics[0].ndt_degenerate_directions is None  # the first scan only builds the map
     # A street constrains every direction; at 0.99 all but the best translation and rotation are held.
     assert counts == {0.05: [0, 0, 0], 0.99: [4, 4, 4]}
+
+
+@pytest.mark.parametrize("name", ["degeneracy_threshold", "rotation_degeneracy_threshold"])
+def test_bad_mapping_threshold_is_refused_up_front(name: str) -> None:
+    from dmlo.odometry import Odometry, OdometryConfig
+
+    config = OdometryConfig()
+    config.mapping.enabled = True
+    setattr(config.mapping, name, 1.5)
+    with pytest.raises(ValueError, match=rf"mapping\.{name}: must lie in \[0, 1\), got 1.5"):
+        Odometry.from_default(config)

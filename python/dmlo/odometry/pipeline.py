@@ -292,6 +292,11 @@ class Odometry:
 
     def _make_map(self) -> Any:
         c = self.config.mapping
+        # align() would refuse these on every frame, and a refused alignment silently keeps the DMLO pose.
+        for name in ("degeneracy_threshold", "rotation_degeneracy_threshold"):
+            value = getattr(c, name)
+            if not 0.0 <= value < 1.0:
+                raise ValueError(f"mapping.{name}: must lie in [0, 1), got {value}")
         return dmlo_rs.NdtMap(voxel_size=c.voxel_size, max_scans=c.max_scans)
 
     def _refine_with_map(
