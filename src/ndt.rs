@@ -9,7 +9,9 @@
 //!   incrementally on every [`NdtMap::insert`] ([`map`]).
 //! - [`NdtMap::align`] — Newton's method on the NDT score with its analytic gradient and Hessian
 //!   ([`score`]), a step-length limit and a backtracking line search ([`align`]); the source scan is
-//!   thinned by a voxel-grid filter first ([`voxel`]). Returns `T_map_source` in an [`NdtResult`].
+//!   thinned by a voxel-grid filter first ([`voxel`]). Directions the map does not constrain (found by an
+//!   eigen-analysis of the information at the initial pose) keep their initial value (Zhang, Kaess &
+//!   Singh 2016). Returns `T_map_source` in an [`NdtResult`].
 //!
 //! ```
 //! use dmlo_rs::ndt::{NdtAlignConfig, NdtMap, NdtMapConfig};

@@ -112,6 +112,10 @@ def test_recovers_known_motion(scene_map: dmlo_rs.NdtMap, truth: FloatArray, sta
     assert rotation_error < 0.05, result
     assert result.num_correspondences > 1_000
     assert result.transform.dtype == np.float64 and result.transform.shape == (4, 4)
+    # A well-constrained scene: nothing is held back by the degeneracy analysis.
+    assert result.degenerate_directions == 0, result
+    assert result.translation_eigenvalues.shape == result.rotation_eigenvalues.shape == (3,)
+    assert result.translation_eigenvalues[-1] == result.rotation_eigenvalues[-1] == 1.0
 
 
 def test_float32_with_reflectance_equals_float64(scene_map: dmlo_rs.NdtMap) -> None:
@@ -193,6 +197,7 @@ def test_kitti_static_scan_aligns_to_identity(kitti_pair: tuple[dmlo_rs.NdtMap, 
     translation_error, rotation_error = pose_errors(result.transform, np.eye(4))
     assert result.converged, result
     assert translation_error < 0.02 and rotation_error < 0.1, result
+    assert result.degenerate_directions == 0, (result.translation_eigenvalues, result.rotation_eigenvalues)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

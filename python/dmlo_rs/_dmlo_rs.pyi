@@ -253,6 +253,16 @@ class NdtResult:
     @property
     def score(self) -> float:
         """Mean NDT likelihood per thinned source point (each nearby distribution adds up to 1, far away 0)."""
+    @property
+    def degenerate_directions(self) -> int:
+        """Directions of the pose held at the initial estimate because the map does not constrain them."""
+    @property
+    def translation_eigenvalues(self) -> npt.NDArray[np.float64]:
+        """Information about the translation (rotation marginalised) at the initial pose: 3 eigenvalues,
+        ascending, divided by the largest; those below `degeneracy_threshold` are degenerate."""
+    @property
+    def rotation_eigenvalues(self) -> npt.NDArray[np.float64]:
+        """The same for the rotation (translation marginalised), against `rotation_degeneracy_threshold`."""
 
 @_final
 class NdtMap:
@@ -282,9 +292,14 @@ class NdtMap:
         max_step_translation: float = 0.5,
         max_step_rotation_deg: float = 5.0,
         min_correspondences: int = 20,
+        degeneracy_threshold: float = 0.05,
+        rotation_degeneracy_threshold: float = 0.01,
         num_threads: int | None = None,
     ) -> NdtResult:
-        """Registers `points` (sensor frame) to the map from `initial_transform` = T_map_source (4×4)."""
+        """Registers `points` (sensor frame) to the map from `initial_transform` = T_map_source (4×4).
+
+        Translations (rotations) with less than `degeneracy_threshold` (`rotation_degeneracy_threshold`)
+        of the best-constrained one's information at the initial pose keep their initial value (0: off)."""
     @property
     def num_voxels(self) -> int: ...
     @property

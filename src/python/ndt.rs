@@ -6,7 +6,7 @@
 
 use nalgebra::{Matrix4, Point3};
 use numpy::ndarray::Array2;
-use numpy::{IntoPyArray, PyArray2, PyReadonlyArray2, PyUntypedArray, PyUntypedArrayMethods};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2, PyUntypedArray, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
@@ -82,6 +82,11 @@ pub struct PyNdtResult {
     /// Mean NDT likelihood per thinned source point (each nearby distribution adds up to 1, far away 0).
     #[pyo3(get)]
     score: f64,
+    /// Directions of the pose held at the initial estimate because the map does not constrain them.
+    #[pyo3(get)]
+    degenerate_directions: usize,
+    translation_eigenvalues: [f64; 3],
+    rotation_eigenvalues: [f64; 3],
 }
 
 impl From<NdtResult> for PyNdtResult {
@@ -92,6 +97,9 @@ impl From<NdtResult> for PyNdtResult {
             iterations: result.iterations,
             num_correspondences: result.num_correspondences,
             score: result.score,
+            degenerate_directions: result.degenerate_directions,
+            translation_eigenvalues: result.translation_eigenvalues,
+            rotation_eigenvalues: result.rotation_eigenvalues,
         }
     }
 }
@@ -104,14 +112,29 @@ impl PyNdtResult {
         Array2::from_shape_fn((4, 4), |(r, c)| self.transform[(r, c)]).into_pyarray(py)
     }
 
+    /// Eigenvalues of the information about the translation (rotation marginalised) at the initial pose,
+    /// ascending, divided by the largest (3 float64); those below `degeneracy_threshold` are degenerate
+    /// (held at the initial estimate).
+    #[getter]
+    fn translation_eigenvalues<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.translation_eigenvalues.to_vec().into_pyarray(py)
+    }
+
+    /// The same for the rotation (translation marginalised), against `rotation_degeneracy_threshold`.
+    #[getter]
+    fn rotation_eigenvalues<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.rotation_eigenvalues.to_vec().into_pyarray(py)
+    }
+
     fn __repr__(&self) -> String {
         let t = &self.transform;
         format!(
-            "NdtResult(converged={}, iterations={}, num_correspondences={}, score={:.4}, translation=[{:.4}, {:.4}, {:.4}])",
+            "NdtResult(converged={}, iterations={}, num_correspondences={}, score={:.4}, degenerate_directions={}, translation=[{:.4}, {:.4}, {:.4}])",
             if self.converged { "True" } else { "False" },
             self.iterations,
             self.num_correspondences,
             self.score,
+            self.degenerate_directions,
             t[(0, 3)],
             t[(1, 3)],
             t[(2, 3)]
@@ -167,6 +190,8 @@ impl PyNdtMap {
         max_step_translation = 0.5,
         max_step_rotation_deg = 5.0,
         min_correspondences = 20,
+        degeneracy_threshold = 0.05,
+        rotation_degeneracy_threshold = 0.01,
         num_threads = None,
     ))]
     #[allow(clippy::too_many_arguments)]
@@ -184,6 +209,8 @@ impl PyNdtMap {
         max_step_translation: f64,
         max_step_rotation_deg: f64,
         min_correspondences: usize,
+        degeneracy_threshold: f64,
+        rotation_degeneracy_threshold: f64,
         num_threads: Option<usize>,
     ) -> PyResult<PyNdtResult> {
         let neighbours = match neighbours {
@@ -206,6 +233,8 @@ impl PyNdtMap {
             max_step_translation,
             max_step_rotation_deg,
             min_correspondences,
+            degeneracy_threshold,
+            rotation_degeneracy_threshold,
         };
         let points = read_points(points, "points")?;
         let initial = read_transform(initial_transform, "initial_transform")?;

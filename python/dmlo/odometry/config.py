@@ -43,6 +43,10 @@ class MappingConfig:
     max_scans: int = 10
     downsample: float = 0.5
     max_iterations: int = 30
+    # Translations (rotations) with less than this fraction of the best-constrained translation's
+    # (rotation's) information keep the DMLO estimate instead of the map's pull; 0 turns the test off.
+    degeneracy_threshold: float = 0.05
+    rotation_degeneracy_threshold: float = 0.01
 
 
 @dataclass

@@ -49,6 +49,7 @@ class FrameDiagnostics:
     inlier_ratio: float = 0.0
     fallback: str | None = None  # "constant_velocity" when RANSAC found too few inliers
     ndt_converged: bool | None = None
+    ndt_degenerate_directions: int | None = None  # pose directions the map did not constrain (kept as DMLO's)
     image_fill: float | None = None  # fraction of the cylinder image's cells holding a point
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -61,6 +62,7 @@ class FrameDiagnostics:
             "inlier_ratio": round(self.inlier_ratio, 4),
             "fallback": self.fallback,
             "ndt_converged": self.ndt_converged,
+            "ndt_degenerate_directions": self.ndt_degenerate_directions,
             "image_fill": None if self.image_fill is None else round(self.image_fill, 4),
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
         }
@@ -318,6 +320,11 @@ class Odometry:
 
     def _make_map(self) -> Any:
         c = self.config.mapping
+        # align() would refuse these on every frame, and a refused alignment silently keeps the DMLO pose.
+        for name in ("degeneracy_threshold", "rotation_degeneracy_threshold"):
+            value = getattr(c, name)
+            if not 0.0 <= value < 1.0:
+                raise ValueError(f"mapping.{name}: must lie in [0, 1), got {value}")
         return dmlo_rs.NdtMap(voxel_size=c.voxel_size, max_scans=c.max_scans)
 
     def _refine_with_map(
@@ -327,12 +334,18 @@ class Odometry:
         try:
             c = self.config.mapping
             result = self._map.align(
-                cloud[:, :3], pose, max_iterations=c.max_iterations, source_voxel_size=c.downsample
+                cloud[:, :3],
+                pose,
+                max_iterations=c.max_iterations,
+                source_voxel_size=c.downsample,
+                degeneracy_threshold=c.degeneracy_threshold,
+                rotation_degeneracy_threshold=c.rotation_degeneracy_threshold,
             )
         except ValueError:
             diagnostics.ndt_converged = False
             return pose
         diagnostics.ndt_converged = bool(result.converged)
+        diagnostics.ndt_degenerate_directions = int(result.degenerate_directions)
         return np.asarray(result.transform, dtype=np.float64) if result.converged else pose
 
 
