@@ -4,7 +4,7 @@ Simulated drives along real KITTI ground-truth trajectories (several seeds), plu
 scans when `../shared/data` is present. Every method reads the same files; the table gives drift, speed
 and the ratios to KISS-ICP measured in this run.
 
-    python -m dmlo.benchmarks.odometry --frames 200 --seeds 1 2 3 --out runs/bench_odometry
+    python -m dmlo.benchmarks.odometry --frames 300 --seeds 1 2 3 --trajectories 07 07 05 --out runs/bench_odometry
 """
 
 from __future__ import annotations
@@ -32,13 +32,15 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--poses", type=Path, default=Path(__file__).resolve().parents[3].parent / "shared/data/kitti_gt_poses",
                         help="folder of KITTI ground-truth pose files to drive along (default: ../shared/data)")
+    parser.add_argument("--trajectories", nargs="+", default=list(TRAJECTORIES), metavar="XX",
+                        help="KITTI sequence each seed's drive follows, in order (cycled; default: 07 05 00)")
     parser.add_argument("--model", type=Path, default=None)
     parser.add_argument("--peers", nargs="*", default=["KISS-ICP", "small_gicp GICP", "Open3D GICP"])
     parser.add_argument("--out", type=Path, default=Path("runs/bench_odometry"))
     args = parser.parse_args()
 
     for index, seed in enumerate(args.seeds):
-        trajectory = args.poses / f"{TRAJECTORIES[index % len(TRAJECTORIES)]}.txt"
+        trajectory = args.poses / f"{args.trajectories[index % len(args.trajectories)]}.txt"
         drive = args.out / f"drive_seed{seed}"
         if not (drive / "poses.txt").is_file():
             simulate_sequence(drive, frames=args.frames, seed=seed,
