@@ -132,6 +132,15 @@ impl CylinderConfig {
         360.0 / self.horizontal_resolution_deg
     }
 
+    /// The period of the image's cell columns when it covers 360° ([`Self::wraps_azimuth`]):
+    /// `round(360°/Δθ)`, so that column `c` and `c + P` are the same direction and the cells either
+    /// side of the azimuth seam are neighbours (KITTI's full 1801-column grid: 1800). `None` for a
+    /// cropped image, whose edges are not neighbours.
+    pub fn column_period(&self) -> Option<usize> {
+        self.wraps_azimuth()
+            .then(|| self.columns_per_turn().round() as usize)
+    }
+
     /// Checks every field; all functions taking a config call this first.
     pub fn validate(&self) -> Result<()> {
         let finite_positive = |v: f64| v.is_finite() && v > 0.0;
@@ -377,16 +386,24 @@ impl BinTable {
         }
     }
 
-    /// The bin of a key (float32 arithmetic; the cast saturates and the index is clamped, so any
-    /// key, even NaN, lands in some bin — callers only use finite keys).
+    /// The bin of a key: `⌊(key − lowest)·bins_per_unit⌋` clamped to the table, up to rounding at bin
+    /// edges (which `KEY_MARGIN` covers). Any key, even NaN, lands in some bin (callers only trust
+    /// bins of finite keys). Branch-free float32 arithmetic that vectorises: the clamped position
+    /// minus ½ is rounded to an integer by adding 2²³, whose float32 bits then hold it.
     #[inline(always)]
     fn index(&self, key: f32) -> u32 {
-        ((key - self.lowest) * self.bins_per_unit) as u32
+        const TWO_POW_23: f32 = 8_388_608.0;
+        let position = (key - self.lowest) * self.bins_per_unit;
+        let highest = self.bins.len() as f32 - 0.5;
+        let position = if position < highest { position } else { highest };
+        // NaN fails the comparison and goes to bin 0.
+        let position = if position >= 0.5 { position } else { 0.5 };
+        (position - 0.5 + TWO_POW_23).to_bits() - TWO_POW_23.to_bits()
     }
 
     #[inline(always)]
     fn bin(&self, index: u32) -> Bin {
-        self.bins[(index as usize).min(self.bins.len() - 1)]
+        self.bins[index as usize]
     }
 }
 
@@ -1127,7 +1144,7 @@ mod tests {
             v
         };
         let mut points = Vec::new();
-        let mut push = |p: [f32; 3], points: &mut Vec<f32>| {
+        let push = |p: [f32; 3], points: &mut Vec<f32>| {
             points.extend_from_slice(&[p[0], p[1], p[2], 0.5]);
         };
         for _ in 0..4000 {
@@ -1248,6 +1265,13 @@ mod tests {
         assert_eq!(config.row_of_zero_elevation(), 3.0);
         assert_eq!(config.col_of_zero_azimuth(), 896.0);
         assert!(!config.wraps_azimuth());
+        assert_eq!(config.column_period(), None);
+        let full = CylinderConfig {
+            height: 68,
+            width: 1801,
+            ..config
+        };
+        assert_eq!(full.column_period(), Some(1800));
         let argoverse = CylinderConfig::argoverse();
         assert_eq!(
             (argoverse.full_height(), argoverse.full_width()),
