@@ -26,6 +26,8 @@
 //! columns (the paper's 68 × 1801 for KITTI: the first and last full columns both look backwards, at
 //! +180° and −180°).
 
+use std::sync::{Arc, Mutex};
+
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
@@ -312,6 +314,11 @@ const BOUNDARY_MARGIN: f64 = 1e-11;
 /// key's error (≤ 1e-6 for keys within ±2, including the bin computation).
 const KEY_MARGIN: f64 = 1e-5;
 
+/// A key this far (key units) from its bin's unsettled boundary settles the comparison in float32:
+/// above the float32 keys' error (≤ 5e-7, with the boundary key's rounding), so the point is
+/// ≥ 3e-6 rad from the boundary.
+const FAST_KEY_MARGIN: f32 = 4e-6;
+
 /// Boundaries within this many radians of the poles (elevation) or of ±180° (azimuth) are left to
 /// the libm formula; boundaries farther beyond them are passed by every point or by none.
 const EDGE_GUARD: f64 = 1e-6;
@@ -332,16 +339,19 @@ fn exact_cell(origin: f64, y: f64, x: f64, cells_per_radian: f64) -> i64 {
 }
 
 /// One bin of a [`BinTable`]: every point in it passes `passed` (padded) boundaries for sure, plus
-/// boundary `test` if the exact test says so.
+/// the bin's unsettled boundary when the point's key is ≤ `test_key`, the boundary's key in float32
+/// (−∞ when the bin has none; NaN when it cannot be decided this way).
 #[derive(Clone, Copy)]
 struct Bin {
     passed: u32,
-    test: u32,
+    test_key: f32,
 }
 
 /// Uniform bins over the key range `[lowest, lowest + span]` of one axis.
 struct BinTable {
     bins: Vec<Bin>,
+    /// Per bin, the padded index of the boundary its exact test compares with.
+    tests: Vec<u32>,
     lowest: f32,
     bins_per_unit: f32,
 }
@@ -349,8 +359,16 @@ struct BinTable {
 impl BinTable {
     /// `keys[m]`: key of padded boundary `m`, non-increasing; a point passes it when its own key is
     /// ≤ (up to the margins). `never` and `undecidable` are the indices of the boundaries tested when
-    /// a bin holds no unsettled boundary (passed by none) or more than one (always undecided).
-    fn new(keys: &[f64], lowest: f64, highest: f64, never: usize, undecidable: usize) -> Self {
+    /// a bin holds no unsettled boundary (passed by none) or more than one (always undecided);
+    /// `exact[m]` says whether boundary m has an exact test (not edge-guarded).
+    fn new(
+        keys: &[f64],
+        exact: &[bool],
+        lowest: f64,
+        highest: f64,
+        never: usize,
+        undecidable: usize,
+    ) -> Self {
         let spacing = keys
             .windows(2)
             .filter(|w| w[0].is_finite() && w[1].is_finite())
@@ -362,7 +380,7 @@ impl BinTable {
         // spacing exceeds 4·KEY_MARGIN; closer boundaries just make their bins undecidable).
         let bins = (span / (0.5 * spacing)).ceil().clamp(16.0, (1 << 16) as f64) as usize;
         let bin_width = span / bins as f64;
-        let bins = (0..bins)
+        let (bins, tests) = (0..bins)
             .map(|bin| {
                 let lower = lowest + bin as f64 * bin_width;
                 let upper = lower + bin_width;
@@ -373,14 +391,23 @@ impl BinTable {
                     1 => passed,
                     _ => undecidable,
                 };
-                Bin {
+                let test_key = if test == never {
+                    f32::NEG_INFINITY
+                } else if test == undecidable || !exact[test] {
+                    f32::NAN
+                } else {
+                    keys[test] as f32
+                };
+                let bin = Bin {
                     passed: passed as u32,
-                    test: test as u32,
-                }
+                    test_key,
+                };
+                (bin, test as u32)
             })
-            .collect();
+            .unzip();
         BinTable {
             bins,
+            tests,
             lowest: lowest as f32,
             bins_per_unit: (1.0 / bin_width) as f32,
         }
@@ -404,6 +431,11 @@ impl BinTable {
     #[inline(always)]
     fn bin(&self, index: u32) -> Bin {
         self.bins[index as usize]
+    }
+
+    #[inline(always)]
+    fn test(&self, index: u32) -> usize {
+        self.tests[index as usize] as usize
     }
 }
 
@@ -493,8 +525,10 @@ impl CellLocator {
         }
         elevation_sines.extend([f64::NEG_INFINITY, f64::NAN]);
         elevation_keys.extend([f64::NEG_INFINITY, f64::NEG_INFINITY]);
+        let exact: Vec<bool> = elevation_sines.iter().map(|s| !s.is_nan()).collect();
         let elevation_bins = BinTable::new(
             &elevation_keys,
+            &exact,
             -1.0,
             1.0,
             height + 2,
@@ -534,7 +568,8 @@ impl CellLocator {
         }
         azimuth.extend([AzimuthBoundary::NEVER, AzimuthBoundary::UNDECIDABLE]);
         azimuth_keys.extend([f64::NEG_INFINITY, f64::NEG_INFINITY]);
-        let azimuth_bins = BinTable::new(&azimuth_keys, -2.0, 2.0, width + 2, width + 3);
+        let exact: Vec<bool> = azimuth.iter().map(|b| !b.cos.is_nan()).collect();
+        let azimuth_bins = BinTable::new(&azimuth_keys, &exact, -2.0, 2.0, width + 2, width + 3);
 
         CellLocator {
             row0,
@@ -548,28 +583,6 @@ impl CellLocator {
             azimuth,
             azimuth_bins,
         }
-    }
-
-    /// The row (−1 above the image, ≥ height below) of a point from its elevation bin, or `None` when
-    /// the exact test is undecided.
-    #[inline(always)]
-    fn row(&self, bin: u32, z: f64, range: f64) -> Option<i64> {
-        let bin = self.elevation_bins.bin(bin);
-        let side = z - range * self.elevation_sines[bin.test as usize];
-        let decided = side.abs() > BOUNDARY_MARGIN * range;
-        // Padded count m = row + 2.
-        decided.then_some(bin.passed as i64 + (side <= 0.0) as i64 - 2)
-    }
-
-    /// Like [`Self::row`] for the column.
-    #[inline(always)]
-    fn col(&self, bin: u32, x: f64, y: f64) -> Option<i64> {
-        let bin = self.azimuth_bins.bin(bin);
-        let b = &self.azimuth[bin.test as usize];
-        let norm1 = x.abs() + y.abs();
-        let side = b.cos * y - b.sin * x + b.beyond[y.is_sign_negative() as usize] * norm1;
-        let decided = side.abs() > BOUNDARY_MARGIN * norm1;
-        decided.then_some(bin.passed as i64 + (side <= 0.0) as i64 - 2)
     }
 
     /// `(cell or NO_CELL, range)` of a finite point, by the libm formula alone.
@@ -593,59 +606,129 @@ impl CellLocator {
         }
     }
 
+    /// The padded count of elevation boundaries passed, by the bin's float64 test; `None` when the
+    /// point is within `BOUNDARY_MARGIN` of it.
+    #[inline(never)]
+    fn exact_row_count(&self, bin: u32, z: f64, range: f64) -> Option<i64> {
+        let passed = self.elevation_bins.bin(bin).passed as i64;
+        let side = z - range * self.elevation_sines[self.elevation_bins.test(bin)];
+        (side.abs() > BOUNDARY_MARGIN * range).then_some(passed + (side <= 0.0) as i64)
+    }
+
+    /// Like [`Self::exact_row_count`] for the azimuth.
+    #[inline(never)]
+    fn exact_col_count(&self, bin: u32, x: f64, y: f64) -> Option<i64> {
+        let passed = self.azimuth_bins.bin(bin).passed as i64;
+        let b = &self.azimuth[self.azimuth_bins.test(bin)];
+        let norm1 = x.abs() + y.abs();
+        let side = b.cos * y - b.sin * x + b.beyond[y.is_sign_negative() as usize] * norm1;
+        (side.abs() > BOUNDARY_MARGIN * norm1).then_some(passed + (side <= 0.0) as i64)
+    }
+
     /// `(cell, range)` of every point of a block of at most [`BLOCK`] points (`NO_CELL` outside the
-    /// image or at the origin, `NON_FINITE` for NaN/Inf values), written to `out`.
+    /// image or at the origin, `NON_FINITE` for NaN/Inf values), written to `out`. The arithmetic
+    /// runs in loops over the block that vectorise, with the table reads between them.
     fn locate_block(&self, points: &[f32], channels: usize, out: &mut [(u32, f32)]) {
         let n = out.len();
         let mut xyz = [[0.0f32; BLOCK]; 3];
+        let mut reflectance_finite = [true; BLOCK];
         for (i, p) in points.chunks_exact(channels).enumerate() {
             (xyz[0][i], xyz[1][i], xyz[2][i]) = (p[0], p[1], p[2]);
+            if channels == 4 {
+                reflectance_finite[i] = p[3].is_finite();
+            }
         }
         let [xs, ys, zs] = &xyz;
-        // Vectorisable: ranges in float64 (the output's exact value), keys and bins in float32.
+        // Ranges in float64 (the output's exact value), keys and bins in float32.
         let mut ranges = [0.0f64; BLOCK];
         for i in 0..BLOCK {
             let (x, y, z) = (xs[i] as f64, ys[i] as f64, zs[i] as f64);
             ranges[i] = (x * x + y * y + z * z).sqrt();
         }
+        let mut row_keys = [0.0f32; BLOCK];
+        let mut col_keys = [0.0f32; BLOCK];
         let mut row_bins = [0u32; BLOCK];
         let mut col_bins = [0u32; BLOCK];
+        let mut ordinary = [false; BLOCK];
         for i in 0..BLOCK {
-            let sine = zs[i] / ranges[i] as f32;
-            row_bins[i] = self.elevation_bins.index(sine);
-            col_bins[i] = self.azimuth_bins.index(pseudo_azimuth(xs[i], ys[i]));
-        }
-        for i in 0..n {
-            let (x32, y32, z32) = (xs[i], ys[i], zs[i]);
-            let range = ranges[i];
-            // The keys are trustworthy (normal float32, no overflow, a direction in the plane);
-            // anything else, including NaN/Inf, takes the exact path.
-            let ordinary = (x32.abs() < 1e18)
-                & (y32.abs() < 1e18)
-                & (z32.abs() < 1e18)
+            let (x, y, z) = (xs[i], ys[i], zs[i]);
+            let range = ranges[i] as f32;
+            row_keys[i] = z / range;
+            col_keys[i] = pseudo_azimuth(x, y);
+            row_bins[i] = self.elevation_bins.index(row_keys[i]);
+            col_bins[i] = self.azimuth_bins.index(col_keys[i]);
+            // The keys are trustworthy for normal float32 values without overflow and a direction
+            // in the plane; anything else, including NaN/Inf, goes to the formula.
+            ordinary[i] = (x.abs() < 1e18)
+                & (y.abs() < 1e18)
+                & (z.abs() < 1e18)
                 & (range > 1e-30)
-                & (x32 != 0.0 || y32 != 0.0)
-                & (channels == 3 || points[i * channels + 3].is_finite());
-            if !ordinary {
-                let p = &points[i * channels..(i + 1) * channels];
-                out[i] = if p.iter().all(|v| v.is_finite()) {
-                    self.exact(x32 as f64, y32 as f64, z32 as f64)
-                } else {
-                    (NON_FINITE, 0.0)
-                };
-                continue;
-            }
-            let (x, y, z) = (x32 as f64, y32 as f64, z32 as f64);
-            let row = match self.row(row_bins[i], z, range) {
-                Some(row) => row,
-                None => exact_cell(self.row0, z, (x * x + y * y).sqrt(), self.rows_per_radian),
-            };
-            let col = match self.col(col_bins[i], x, y) {
-                Some(col) => col,
-                None => exact_cell(self.col0, y, x, self.cols_per_radian),
-            };
-            out[i] = (self.cell(row, col), range as f32);
+                & ((x != 0.0) | (y != 0.0))
+                & reflectance_finite[i];
         }
+        let mut row_bin = [Bin { passed: 0, test_key: 0.0 }; BLOCK];
+        let mut col_bin = [Bin { passed: 0, test_key: 0.0 }; BLOCK];
+        for i in 0..BLOCK {
+            row_bin[i] = self.elevation_bins.bin(row_bins[i]);
+            col_bin[i] = self.azimuth_bins.bin(col_bins[i]);
+        }
+        // Padded counts from the keys alone, settled when the key is `FAST_KEY_MARGIN` clear of the
+        // bin's unsettled boundary (almost always).
+        let mut rows = [0i32; BLOCK];
+        let mut cols = [0i32; BLOCK];
+        let mut settled = [false; BLOCK];
+        for i in 0..BLOCK {
+            let (row_key, col_key) = (row_keys[i], col_keys[i]);
+            let (rb, cb) = (row_bin[i], col_bin[i]);
+            rows[i] = rb.passed as i32 + (row_key <= rb.test_key) as i32 - 2;
+            cols[i] = cb.passed as i32 + (col_key <= cb.test_key) as i32 - 2;
+            settled[i] = ordinary[i]
+                & ((row_key - rb.test_key).abs() > FAST_KEY_MARGIN)
+                & ((col_key - cb.test_key).abs() > FAST_KEY_MARGIN);
+        }
+        let (height, width) = (self.height as i64, self.width as i64);
+        for i in 0..n {
+            out[i] = if settled[i] {
+                let (row, col) = (rows[i] as i64, cols[i] as i64);
+                let cell = if row < 0 || col < 0 || row >= height || col >= width {
+                    NO_CELL
+                } else {
+                    (row * width + col) as u32
+                };
+                (cell, ranges[i] as f32)
+            } else {
+                self.locate_slowly(&points[i * channels..(i + 1) * channels], row_bins[i], col_bins[i])
+            };
+        }
+    }
+
+    /// [`Self::locate_block`] for a point whose keys did not settle its cell: the float64 tests,
+    /// and the formula for what they cannot decide (or for unusual points).
+    #[inline(never)]
+    fn locate_slowly(&self, p: &[f32], row_bin: u32, col_bin: u32) -> (u32, f32) {
+        if !p.iter().all(|v| v.is_finite()) {
+            return (NON_FINITE, 0.0);
+        }
+        let (x32, y32, z32) = (p[0], p[1], p[2]);
+        let (x, y, z) = (x32 as f64, y32 as f64, z32 as f64);
+        let range = (x * x + y * y + z * z).sqrt();
+        let usual = x32.abs() < 1e18
+            && y32.abs() < 1e18
+            && z32.abs() < 1e18
+            && range as f32 > 1e-30
+            && (x32 != 0.0 || y32 != 0.0);
+        if !usual {
+            return self.exact(x, y, z);
+        }
+        let row = match self.exact_row_count(row_bin, z, range) {
+            Some(m) => m - 2,
+            None => exact_cell(self.row0, z, (x * x + y * y).sqrt(), self.rows_per_radian),
+        };
+        let col = match self.exact_col_count(col_bin, x, y) {
+            Some(m) => m - 2,
+            None => exact_cell(self.col0, y, x, self.cols_per_radian),
+        };
+        (self.cell(row, col), range as f32)
     }
 }
 
@@ -676,15 +759,15 @@ pub fn project_flat(
     if height * width >= NON_FINITE as usize {
         return Err(Error::invalid("config", "image too large"));
     }
-    let locator = CellLocator::new(config);
-    let mut image = ClosestPoints::new(height * width);
+    let locator = cached_locator(config);
+    let mut image = ClosestPoints::new(height, width);
     if rayon::current_num_threads() == 1 {
         // One pass, no intermediate buffer.
         let mut located = [(NO_CELL, 0.0f32); BLOCK];
         for (block, points) in points.chunks(BLOCK * channels).enumerate() {
             let located = &mut located[..points.len() / channels];
             locator.locate_block(points, channels, located);
-            image.add(block * BLOCK, located);
+            image.add(block * BLOCK, located, points, channels);
         }
     } else {
         // Pass 1 (parallel): every point's cell and range. Pass 2 (serial, cheap): closest per cell.
@@ -694,71 +777,66 @@ pub fn project_flat(
             .zip(points.par_chunks(BLOCK * channels))
             .with_min_len(16)
             .for_each(|(out, points)| locator.locate_block(points, channels, out));
-        image.add(0, &located);
+        image.add(0, &located, points, channels);
     }
-    Ok(image.finish(points, channels, height, width))
+    Ok(image.projection)
 }
 
-/// The running closest point of every cell (`u32` indices while filling: half the memory traffic).
+/// The running closest point of every cell, filled in input order (so a tie keeps the lower index).
 struct ClosestPoints {
-    range: Vec<f32>,
-    index: Vec<u32>,
-    num_non_finite: usize,
-    num_out_of_view: usize,
+    projection: Projection,
 }
 
 impl ClosestPoints {
-    const EMPTY: u32 = u32::MAX;
-
-    fn new(cells: usize) -> Self {
+    fn new(height: usize, width: usize) -> Self {
         ClosestPoints {
-            range: vec![0.0; cells],
-            index: vec![Self::EMPTY; cells],
-            num_non_finite: 0,
-            num_out_of_view: 0,
+            projection: Projection {
+                height,
+                width,
+                range: vec![0.0; height * width],
+                reflectance: vec![0.0; height * width],
+                index: vec![-1; height * width],
+                num_non_finite: 0,
+                num_out_of_view: 0,
+            },
         }
     }
 
-    /// Adds points `first, first + 1, …` in input order, so that a tie keeps the lower index.
+    /// Adds points `first, first + 1, …` (`points`: their values, `channels` per point).
     #[inline]
-    fn add(&mut self, first: usize, located: &[(u32, f32)]) {
+    fn add(&mut self, first: usize, located: &[(u32, f32)], points: &[f32], channels: usize) {
+        let image = &mut self.projection;
         for (i, &(cell, range)) in located.iter().enumerate() {
             match cell {
-                NON_FINITE => self.num_non_finite += 1,
-                NO_CELL => self.num_out_of_view += 1,
+                NON_FINITE => image.num_non_finite += 1,
+                NO_CELL => image.num_out_of_view += 1,
                 cell => {
                     let cell = cell as usize;
-                    if self.index[cell] == Self::EMPTY || range < self.range[cell] {
-                        self.range[cell] = range;
-                        self.index[cell] = (first + i) as u32;
+                    if image.index[cell] < 0 || range < image.range[cell] {
+                        image.range[cell] = range;
+                        image.index[cell] = (first + i) as i64;
+                        if channels == 4 {
+                            image.reflectance[cell] = points[i * 4 + 3];
+                        }
                     }
                 }
             }
         }
     }
+}
 
-    fn finish(self, points: &[f32], channels: usize, height: usize, width: usize) -> Projection {
-        let index: Vec<i64> = self
-            .index
-            .iter()
-            .map(|&i| if i == Self::EMPTY { -1 } else { i as i64 })
-            .collect();
-        let reflectance = if channels == 4 {
-            index
-                .iter()
-                .map(|&i| if i >= 0 { points[i as usize * 4 + 3] } else { 0.0 })
-                .collect()
-        } else {
-            vec![0.0; height * width]
-        };
-        Projection {
-            height,
-            width,
-            range: self.range,
-            reflectance,
-            index,
-            num_non_finite: self.num_non_finite,
-            num_out_of_view: self.num_out_of_view,
+/// Tables of the most recent config, reused while calls keep the same config (building them costs
+/// about a tenth of projecting a scan).
+fn cached_locator(config: &CylinderConfig) -> Arc<CellLocator> {
+    static CACHE: Mutex<Option<(CylinderConfig, Arc<CellLocator>)>> = Mutex::new(None);
+    // A poisoned cache only means another thread panicked while holding it; the data is replaced.
+    let mut cache = CACHE.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    match &*cache {
+        Some((cached, locator)) if cached == config => Arc::clone(locator),
+        _ => {
+            let locator = Arc::new(CellLocator::new(config));
+            *cache = Some((*config, Arc::clone(&locator)));
+            locator
         }
     }
 }
