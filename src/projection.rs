@@ -629,12 +629,23 @@ impl CellLocator {
     /// image or at the origin, `NON_FINITE` for NaN/Inf values), written to `out`. The arithmetic
     /// runs in loops over the block that vectorise, with the table reads between them.
     fn locate_block(&self, points: &[f32], channels: usize, out: &mut [(u32, f32)]) {
+        // Separate code for each point layout: the loops below then know their stride.
+        if channels == 4 {
+            self.locate_block_of::<4>(points, out)
+        } else {
+            self.locate_block_of::<3>(points, out)
+        }
+    }
+
+    #[inline(always)]
+    fn locate_block_of<const CHANNELS: usize>(&self, points: &[f32], out: &mut [(u32, f32)]) {
+        let channels = CHANNELS;
         let n = out.len();
         let mut xyz = [[0.0f32; BLOCK]; 3];
         let mut reflectance_finite = [true; BLOCK];
-        for (i, p) in points.chunks_exact(channels).enumerate() {
+        for (i, p) in points.chunks_exact(CHANNELS).enumerate() {
             (xyz[0][i], xyz[1][i], xyz[2][i]) = (p[0], p[1], p[2]);
-            if channels == 4 {
+            if CHANNELS == 4 {
                 reflectance_finite[i] = p[3].is_finite();
             }
         }
@@ -658,12 +669,11 @@ impl CellLocator {
             row_bins[i] = self.elevation_bins.index(row_keys[i]);
             col_bins[i] = self.azimuth_bins.index(col_keys[i]);
             // The keys are trustworthy for normal float32 values without overflow and a direction
-            // in the plane; anything else, including NaN/Inf, goes to the formula.
-            ordinary[i] = (x.abs() < 1e18)
-                & (y.abs() < 1e18)
-                & (z.abs() < 1e18)
+            // in the plane; anything else, including NaN/Inf (whose range fails the comparisons),
+            // goes to the formula.
+            ordinary[i] = (ranges[i] < 1e18)
                 & (range > 1e-30)
-                & ((x != 0.0) | (y != 0.0))
+                & (x.abs() + y.abs() > 0.0)
                 & reflectance_finite[i];
         }
         let mut row_bin = [Bin { passed: 0, test_key: 0.0 }; BLOCK];
@@ -712,11 +722,7 @@ impl CellLocator {
         let (x32, y32, z32) = (p[0], p[1], p[2]);
         let (x, y, z) = (x32 as f64, y32 as f64, z32 as f64);
         let range = (x * x + y * y + z * z).sqrt();
-        let usual = x32.abs() < 1e18
-            && y32.abs() < 1e18
-            && z32.abs() < 1e18
-            && range as f32 > 1e-30
-            && (x32 != 0.0 || y32 != 0.0);
+        let usual = range < 1e18 && range as f32 > 1e-30 && x32.abs() + y32.abs() > 0.0;
         if !usual {
             return self.exact(x, y, z);
         }
