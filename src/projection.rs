@@ -642,28 +642,30 @@ impl CellLocator {
         let channels = CHANNELS;
         let n = out.len();
         let mut xyz = [[0.0f32; BLOCK]; 3];
-        let mut reflectance_finite = [true; BLOCK];
+        let mut reflectance_finite = [1u32; BLOCK];
         for (i, p) in points.chunks_exact(CHANNELS).enumerate() {
             (xyz[0][i], xyz[1][i], xyz[2][i]) = (p[0], p[1], p[2]);
             if CHANNELS == 4 {
-                reflectance_finite[i] = p[3].is_finite();
+                reflectance_finite[i] = p[3].is_finite() as u32;
             }
         }
         let [xs, ys, zs] = &xyz;
-        // Ranges in float64 (the output's exact value), keys and bins in float32.
+        // Ranges in float64 (the output's exact value), keys and bins in float32 (four lanes).
         let mut ranges = [0.0f64; BLOCK];
+        let mut ranges32 = [0.0f32; BLOCK];
         for i in 0..BLOCK {
             let (x, y, z) = (xs[i] as f64, ys[i] as f64, zs[i] as f64);
             ranges[i] = (x * x + y * y + z * z).sqrt();
+            ranges32[i] = ranges[i] as f32;
         }
         let mut row_keys = [0.0f32; BLOCK];
         let mut col_keys = [0.0f32; BLOCK];
         let mut row_bins = [0u32; BLOCK];
         let mut col_bins = [0u32; BLOCK];
-        let mut ordinary = [false; BLOCK];
+        // 0/1 flags as u32: whole lanes, no packing of booleans.
+        let mut ordinary = [0u32; BLOCK];
         for i in 0..BLOCK {
-            let (x, y, z) = (xs[i], ys[i], zs[i]);
-            let range = ranges[i] as f32;
+            let (x, y, z, range) = (xs[i], ys[i], zs[i], ranges32[i]);
             row_keys[i] = z / range;
             col_keys[i] = pseudo_azimuth(x, y);
             row_bins[i] = self.elevation_bins.index(row_keys[i]);
@@ -671,13 +673,14 @@ impl CellLocator {
             // The keys are trustworthy for normal float32 values without overflow and a direction
             // in the plane; anything else, including NaN/Inf (whose range fails the comparisons),
             // goes to the formula.
-            ordinary[i] = (ranges[i] < 1e18)
-                & (range > 1e-30)
-                & (x.abs() + y.abs() > 0.0)
+            ordinary[i] = ((range < 1e18) & (range > 1e-30) & (x.abs() + y.abs() > 0.0)) as u32
                 & reflectance_finite[i];
         }
-        let mut row_bin = [Bin { passed: 0, test_key: 0.0 }; BLOCK];
-        let mut col_bin = [Bin { passed: 0, test_key: 0.0 }; BLOCK];
+        let mut row_bin = [Bin {
+            passed: 0,
+            test_key: 0.0,
+        }; BLOCK];
+        let mut col_bin = row_bin;
         for i in 0..BLOCK {
             row_bin[i] = self.elevation_bins.bin(row_bins[i]);
             col_bin[i] = self.azimuth_bins.bin(col_bins[i]);
@@ -686,26 +689,23 @@ impl CellLocator {
         // bin's unsettled boundary (almost always).
         let mut rows = [0i32; BLOCK];
         let mut cols = [0i32; BLOCK];
-        let mut settled = [false; BLOCK];
+        let mut settled = [0u32; BLOCK];
         for i in 0..BLOCK {
             let (row_key, col_key) = (row_keys[i], col_keys[i]);
             let (rb, cb) = (row_bin[i], col_bin[i]);
             rows[i] = rb.passed as i32 + (row_key <= rb.test_key) as i32 - 2;
             cols[i] = cb.passed as i32 + (col_key <= cb.test_key) as i32 - 2;
             settled[i] = ordinary[i]
-                & ((row_key - rb.test_key).abs() > FAST_KEY_MARGIN)
-                & ((col_key - cb.test_key).abs() > FAST_KEY_MARGIN);
+                & ((row_key - rb.test_key).abs() > FAST_KEY_MARGIN) as u32
+                & ((col_key - cb.test_key).abs() > FAST_KEY_MARGIN) as u32;
         }
         let (height, width) = (self.height as i64, self.width as i64);
         for i in 0..n {
-            out[i] = if settled[i] {
+            out[i] = if settled[i] != 0 {
                 let (row, col) = (rows[i] as i64, cols[i] as i64);
-                let cell = if row < 0 || col < 0 || row >= height || col >= width {
-                    NO_CELL
-                } else {
-                    (row * width + col) as u32
-                };
-                (cell, ranges[i] as f32)
+                let inside = (row >= 0) & (col >= 0) & (row < height) & (col < width);
+                let cell = if inside { (row * width + col) as u32 } else { NO_CELL };
+                (cell, ranges32[i])
             } else {
                 self.locate_slowly(&points[i * channels..(i + 1) * channels], row_bins[i], col_bins[i])
             };
@@ -773,7 +773,11 @@ pub fn project_flat(
         for (block, points) in points.chunks(BLOCK * channels).enumerate() {
             let located = &mut located[..points.len() / channels];
             locator.locate_block(points, channels, located);
-            image.add(block * BLOCK, located, points, channels);
+            if channels == 4 {
+                image.add::<4>(block * BLOCK, located, points);
+            } else {
+                image.add::<3>(block * BLOCK, located, points);
+            }
         }
     } else {
         // Pass 1 (parallel): every point's cell and range. Pass 2 (serial, cheap): closest per cell.
@@ -783,51 +787,69 @@ pub fn project_flat(
             .zip(points.par_chunks(BLOCK * channels))
             .with_min_len(16)
             .for_each(|(out, points)| locator.locate_block(points, channels, out));
-        image.add(0, &located, points, channels);
+        if channels == 4 {
+            image.add::<4>(0, &located, points);
+        } else {
+            image.add::<3>(0, &located, points);
+        }
     }
-    Ok(image.projection)
+    Ok(image.finish())
 }
 
 /// The running closest point of every cell, filled in input order (so a tie keeps the lower index).
+/// The arrays have one spare cell at the end that takes the points outside the image, so that adding
+/// a point needs no branch; it is cut off by [`Self::finish`].
 struct ClosestPoints {
     projection: Projection,
 }
 
 impl ClosestPoints {
     fn new(height: usize, width: usize) -> Self {
+        let cells = height * width + 1;
         ClosestPoints {
             projection: Projection {
                 height,
                 width,
-                range: vec![0.0; height * width],
-                reflectance: vec![0.0; height * width],
-                index: vec![-1; height * width],
+                range: vec![0.0; cells],
+                reflectance: vec![0.0; cells],
+                index: vec![-1; cells],
                 num_non_finite: 0,
                 num_out_of_view: 0,
             },
         }
     }
 
-    /// Adds points `first, first + 1, …` (`points`: their values, `channels` per point).
+    /// Adds points `first, first + 1, …` (`points`: their values, `CHANNELS` per point).
     #[inline]
-    fn add(&mut self, first: usize, located: &[(u32, f32)], points: &[f32], channels: usize) {
+    fn add<const CHANNELS: usize>(&mut self, first: usize, located: &[(u32, f32)], points: &[f32]) {
         let image = &mut self.projection;
+        let spare = image.index.len() - 1;
+        let (mut non_finite, mut out_of_view) = (0, 0);
         for (i, &(cell, range)) in located.iter().enumerate() {
-            match cell {
-                NON_FINITE => image.num_non_finite += 1,
-                NO_CELL => image.num_out_of_view += 1,
-                cell => {
-                    let cell = cell as usize;
-                    if image.index[cell] < 0 || range < image.range[cell] {
-                        image.range[cell] = range;
-                        image.index[cell] = (first + i) as i64;
-                        if channels == 4 {
-                            image.reflectance[cell] = points[i * 4 + 3];
-                        }
-                    }
-                }
+            non_finite += (cell == NON_FINITE) as usize;
+            out_of_view += (cell == NO_CELL) as usize;
+            let cell = (cell as usize).min(spare);
+            let (kept, kept_range) = (image.index[cell], image.range[cell]);
+            // Unpredictable (empty cell or farther point), so selected rather than branched on.
+            let take = (kept < 0) | (range < kept_range);
+            image.index[cell] = if take { (first + i) as i64 } else { kept };
+            image.range[cell] = if take { range } else { kept_range };
+            if CHANNELS == 4 {
+                let kept_reflectance = image.reflectance[cell];
+                image.reflectance[cell] = if take { points[i * 4 + 3] } else { kept_reflectance };
             }
         }
+        image.num_non_finite += non_finite;
+        image.num_out_of_view += out_of_view;
+    }
+
+    fn finish(mut self) -> Projection {
+        let image = &mut self.projection;
+        let cells = image.index.len() - 1;
+        image.index.truncate(cells);
+        image.range.truncate(cells);
+        image.reflectance.truncate(cells);
+        self.projection
     }
 }
 
