@@ -766,18 +766,20 @@ pub fn project_flat(
         return Err(Error::invalid("config", "image too large"));
     }
     let locator = cached_locator(config);
-    let mut image = ClosestPoints::new(height, width);
+    if points.len() / channels >= u32::MAX as usize {
+        return Err(Error::invalid(
+            "points",
+            format!("{} points, at most {} supported", points.len() / channels, u32::MAX - 1),
+        ));
+    }
+    let mut image = ClosestPoints::new(height * width);
     if rayon::current_num_threads() == 1 {
         // One pass, no intermediate buffer.
         let mut located = [(NO_CELL, 0.0f32); BLOCK];
         for (block, points) in points.chunks(BLOCK * channels).enumerate() {
             let located = &mut located[..points.len() / channels];
             locator.locate_block(points, channels, located);
-            if channels == 4 {
-                image.add::<4>(block * BLOCK, located, points);
-            } else {
-                image.add::<3>(block * BLOCK, located, points);
-            }
+            image.add(block * BLOCK, located);
         }
     } else {
         // Pass 1 (parallel): every point's cell and range. Pass 2 (serial, cheap): closest per cell.
@@ -787,69 +789,99 @@ pub fn project_flat(
             .zip(points.par_chunks(BLOCK * channels))
             .with_min_len(16)
             .for_each(|(out, points)| locator.locate_block(points, channels, out));
-        if channels == 4 {
-            image.add::<4>(0, &located, points);
-        } else {
-            image.add::<3>(0, &located, points);
-        }
+        image.add(0, &located);
     }
-    Ok(image.finish())
+    Ok(image.finish(points, channels, height, width))
 }
 
-/// The running closest point of every cell, filled in input order (so a tie keeps the lower index).
-/// The arrays have one spare cell at the end that takes the points outside the image, so that adding
-/// a point needs no branch; it is cut off by [`Self::finish`].
+/// The running closest point of every cell as one `u64` per cell: the range's float32 bits above the
+/// point's index, so that the smaller key is the closer point and, at equal range, the lower index —
+/// exactly the rule "closest, ties to the lower index" — and adding a point is a `min`. One spare
+/// cell at the end takes the points outside the image, so adding needs no branch. The buffer is kept
+/// per thread between calls (no fresh pages to fault in each time).
 struct ClosestPoints {
-    projection: Projection,
+    best: Vec<u64>,
+    num_non_finite: usize,
+    num_out_of_view: usize,
+}
+
+thread_local! {
+    static BEST_BUFFER: std::cell::RefCell<Vec<u64>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
 impl ClosestPoints {
-    fn new(height: usize, width: usize) -> Self {
-        let cells = height * width + 1;
+    const EMPTY: u64 = u64::MAX;
+
+    fn new(cells: usize) -> Self {
+        let mut best = BEST_BUFFER.with(|buffer| std::mem::take(&mut *buffer.borrow_mut()));
+        best.clear();
+        best.resize(cells + 1, Self::EMPTY);
         ClosestPoints {
-            projection: Projection {
-                height,
-                width,
-                range: vec![0.0; cells],
-                reflectance: vec![0.0; cells],
-                index: vec![-1; cells],
-                num_non_finite: 0,
-                num_out_of_view: 0,
-            },
+            best,
+            num_non_finite: 0,
+            num_out_of_view: 0,
         }
     }
 
-    /// Adds points `first, first + 1, …` (`points`: their values, `CHANNELS` per point).
+    /// Adds points `first, first + 1, …` (indices below `u32::MAX`, checked by the caller).
     #[inline]
-    fn add<const CHANNELS: usize>(&mut self, first: usize, located: &[(u32, f32)], points: &[f32]) {
-        let image = &mut self.projection;
-        let spare = image.index.len() - 1;
+    fn add(&mut self, first: usize, located: &[(u32, f32)]) {
+        let spare = self.best.len() - 1;
         let (mut non_finite, mut out_of_view) = (0, 0);
         for (i, &(cell, range)) in located.iter().enumerate() {
             non_finite += (cell == NON_FINITE) as usize;
             out_of_view += (cell == NO_CELL) as usize;
-            let cell = (cell as usize).min(spare);
-            let (kept, kept_range) = (image.index[cell], image.range[cell]);
-            // Unpredictable (empty cell or farther point), so selected rather than branched on.
-            let take = (kept < 0) | (range < kept_range);
-            image.index[cell] = if take { (first + i) as i64 } else { kept };
-            image.range[cell] = if take { range } else { kept_range };
-            if CHANNELS == 4 {
-                let kept_reflectance = image.reflectance[cell];
-                image.reflectance[cell] = if take { points[i * 4 + 3] } else { kept_reflectance };
-            }
+            let slot = &mut self.best[(cell as usize).min(spare)];
+            *slot = (*slot).min(((range.to_bits() as u64) << 32) | (first + i) as u64);
         }
-        image.num_non_finite += non_finite;
-        image.num_out_of_view += out_of_view;
+        self.num_non_finite += non_finite;
+        self.num_out_of_view += out_of_view;
     }
 
-    fn finish(mut self) -> Projection {
-        let image = &mut self.projection;
-        let cells = image.index.len() - 1;
-        image.index.truncate(cells);
-        image.range.truncate(cells);
-        image.reflectance.truncate(cells);
-        self.projection
+    /// The images (`points`, `channels` per point, supply the reflectance of the kept points).
+    fn finish(mut self, points: &[f32], channels: usize, height: usize, width: usize) -> Projection {
+        let cells = height * width;
+        // Separate passes: the first two vectorise.
+        let best = &self.best[..cells];
+        let range = best
+            .iter()
+            .map(|&key| {
+                if key == Self::EMPTY {
+                    0.0
+                } else {
+                    f32::from_bits((key >> 32) as u32)
+                }
+            })
+            .collect();
+        let index: Vec<i64> = best
+            .iter()
+            .map(|&key| {
+                if key == Self::EMPTY {
+                    -1
+                } else {
+                    (key & u32::MAX as u64) as i64
+                }
+            })
+            .collect();
+        let reflectance = if channels == 4 {
+            index
+                .iter()
+                .map(|&i| if i >= 0 { points[i as usize * 4 + 3] } else { 0.0 })
+                .collect()
+        } else {
+            vec![0.0; cells]
+        };
+        let best = std::mem::take(&mut self.best);
+        BEST_BUFFER.with(|buffer| *buffer.borrow_mut() = best);
+        Projection {
+            height,
+            width,
+            range,
+            reflectance,
+            index,
+            num_non_finite: self.num_non_finite,
+            num_out_of_view: self.num_out_of_view,
+        }
     }
 }
 
