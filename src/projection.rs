@@ -772,25 +772,31 @@ pub fn project_flat(
             format!("{} points, at most {} supported", points.len() / channels, u32::MAX - 1),
         ));
     }
-    let mut image = ClosestPoints::new(height * width);
-    if rayon::current_num_threads() == 1 {
-        // One pass, no intermediate buffer.
+    // One piece per thread, each filling its own buffer of closest points; buffers merge by `min`,
+    // which does not depend on the order, so the result is the same for any number of threads.
+    let threads = rayon::current_num_threads().max(1);
+    let blocks = (points.len() / channels).div_ceil(BLOCK);
+    let piece = blocks.div_ceil(threads).max(1) * BLOCK * channels;
+    let fill = |first: usize, points: &[f32]| {
+        let mut image = ClosestPoints::new(height * width);
         let mut located = [(NO_CELL, 0.0f32); BLOCK];
         for (block, points) in points.chunks(BLOCK * channels).enumerate() {
             let located = &mut located[..points.len() / channels];
             locator.locate_block(points, channels, located);
-            image.add(block * BLOCK, located);
+            image.add(first + block * BLOCK, located);
         }
+        image
+    };
+    let image = if threads == 1 || points.len() <= piece {
+        fill(0, points)
     } else {
-        // Pass 1 (parallel): every point's cell and range. Pass 2 (serial, cheap): closest per cell.
-        let mut located = vec![(NO_CELL, 0.0f32); points.len() / channels];
-        located
-            .par_chunks_mut(BLOCK)
-            .zip(points.par_chunks(BLOCK * channels))
-            .with_min_len(16)
-            .for_each(|(out, points)| locator.locate_block(points, channels, out));
-        image.add(0, &located);
-    }
+        points
+            .par_chunks(piece)
+            .enumerate()
+            .map(|(k, points)| fill(k * piece / channels, points))
+            .reduce_with(ClosestPoints::merge)
+            .unwrap_or_else(|| ClosestPoints::new(height * width))
+    };
     Ok(image.finish(points, channels, height, width))
 }
 
@@ -836,6 +842,23 @@ impl ClosestPoints {
         }
         self.num_non_finite += non_finite;
         self.num_out_of_view += out_of_view;
+    }
+
+    /// Combines the closest points of two sets of points.
+    fn merge(mut self, other: Self) -> Self {
+        for (mine, theirs) in self.best.iter_mut().zip(&other.best) {
+            *mine = (*mine).min(*theirs);
+        }
+        self.num_non_finite += other.num_non_finite;
+        self.num_out_of_view += other.num_out_of_view;
+        other.recycle();
+        self
+    }
+
+    /// Returns the buffer for the next call on this thread.
+    fn recycle(mut self) {
+        let best = std::mem::take(&mut self.best);
+        BEST_BUFFER.with(|buffer| *buffer.borrow_mut() = best);
     }
 
     /// The images (`points`, `channels` per point, supply the reflectance of the kept points).
