@@ -741,8 +741,11 @@ impl CellLocator {
 /// Φ (Eq. 1) for a whole scan: every cell keeps its closest point (ties: the lower input index).
 ///
 /// `points` is a flat row-major array of `N × channels` values, `channels` = 3 (x, y, z) or 4 (x, y, z,
-/// reflectance). Points with a NaN/Inf value are dropped and counted; so are points outside the
-/// cropped image. Runs in the caller's rayon pool.
+/// reflectance), `N < 2³² − 1`. Points with a NaN/Inf value are dropped and counted; so are points
+/// outside the cropped image. A point's cell is exactly the float64 formula
+/// `⌊row₀ − atan2(z, √(x²+y²))·(1/Δφ) + ½⌋`, `⌊col₀ − atan2(y, x)·(1/Δθ) + ½⌋` (libm `atan2`, angles in
+/// radians), found without evaluating it (see the comment above `BOUNDARY_MARGIN`). Runs in the
+/// caller's rayon pool; the result does not depend on the number of threads.
 pub fn project_flat(
     points: &[f32],
     channels: usize,
