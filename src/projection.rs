@@ -267,6 +267,13 @@ impl Projection {
     }
 }
 
+/// Cells and ranges of a block of points (`NO_CELL` outside the image or at the origin, `NON_FINITE`
+/// for NaN/Inf values).
+struct Located {
+    cells: [u32; BLOCK],
+    ranges: [f32; BLOCK],
+}
+
 /// Sentinel for "this point lands in no cell".
 const NO_CELL: u32 = u32::MAX;
 /// Sentinel for "this point is NaN/Inf".
@@ -628,7 +635,7 @@ impl CellLocator {
     /// `(cell, range)` of every point of a block of at most [`BLOCK`] points (`NO_CELL` outside the
     /// image or at the origin, `NON_FINITE` for NaN/Inf values), written to `out`. The arithmetic
     /// runs in loops over the block that vectorise, with the table reads between them.
-    fn locate_block(&self, points: &[f32], channels: usize, out: &mut [(u32, f32)]) {
+    fn locate_block(&self, points: &[f32], channels: usize, out: &mut Located) {
         // Separate code for each point layout: the loops below then know their stride.
         if channels == 4 {
             self.locate_block_of::<4>(points, out)
@@ -638,9 +645,9 @@ impl CellLocator {
     }
 
     #[inline(always)]
-    fn locate_block_of<const CHANNELS: usize>(&self, points: &[f32], out: &mut [(u32, f32)]) {
+    fn locate_block_of<const CHANNELS: usize>(&self, points: &[f32], out: &mut Located) {
         let channels = CHANNELS;
-        let n = out.len();
+        let n = points.len() / CHANNELS;
         let mut xyz = [[0.0f32; BLOCK]; 3];
         let mut reflectance_finite = [1u32; BLOCK];
         for (i, p) in points.chunks_exact(CHANNELS).enumerate() {
@@ -651,12 +658,10 @@ impl CellLocator {
         }
         let [xs, ys, zs] = &xyz;
         // Ranges in float64 (the output's exact value), keys and bins in float32 (four lanes).
-        let mut ranges = [0.0f64; BLOCK];
-        let mut ranges32 = [0.0f32; BLOCK];
+        let ranges32 = &mut out.ranges;
         for i in 0..BLOCK {
             let (x, y, z) = (xs[i] as f64, ys[i] as f64, zs[i] as f64);
-            ranges[i] = (x * x + y * y + z * z).sqrt();
-            ranges32[i] = ranges[i] as f32;
+            ranges32[i] = (x * x + y * y + z * z).sqrt() as f32;
         }
         let mut row_keys = [0.0f32; BLOCK];
         let mut col_keys = [0.0f32; BLOCK];
@@ -687,28 +692,26 @@ impl CellLocator {
         }
         // Padded counts from the keys alone, settled when the key is `FAST_KEY_MARGIN` clear of the
         // bin's unsettled boundary (almost always).
-        let mut rows = [0i32; BLOCK];
-        let mut cols = [0i32; BLOCK];
         let mut settled = [0u32; BLOCK];
+        // Cells fit u32 (checked by `project_flat`); counts stay far below 2³¹.
+        let (height, width) = (self.height as i32, self.width as i32);
         for i in 0..BLOCK {
             let (row_key, col_key) = (row_keys[i], col_keys[i]);
             let (rb, cb) = (row_bin[i], col_bin[i]);
-            rows[i] = rb.passed as i32 + (row_key <= rb.test_key) as i32 - 2;
-            cols[i] = cb.passed as i32 + (col_key <= cb.test_key) as i32 - 2;
+            let row = rb.passed as i32 + (row_key <= rb.test_key) as i32 - 2;
+            let col = cb.passed as i32 + (col_key <= cb.test_key) as i32 - 2;
+            let inside = (row >= 0) & (col >= 0) & (row < height) & (col < width);
+            let cell = (row as u32).wrapping_mul(width as u32).wrapping_add(col as u32);
+            out.cells[i] = if inside { cell } else { NO_CELL };
             settled[i] = ordinary[i]
                 & ((row_key - rb.test_key).abs() > FAST_KEY_MARGIN) as u32
                 & ((col_key - cb.test_key).abs() > FAST_KEY_MARGIN) as u32;
         }
-        let (height, width) = (self.height as i64, self.width as i64);
         for i in 0..n {
-            out[i] = if settled[i] != 0 {
-                let (row, col) = (rows[i] as i64, cols[i] as i64);
-                let inside = (row >= 0) & (col >= 0) & (row < height) & (col < width);
-                let cell = if inside { (row * width + col) as u32 } else { NO_CELL };
-                (cell, ranges32[i])
-            } else {
-                self.locate_slowly(&points[i * channels..(i + 1) * channels], row_bins[i], col_bins[i])
-            };
+            if settled[i] == 0 {
+                let p = &points[i * channels..(i + 1) * channels];
+                (out.cells[i], out.ranges[i]) = self.locate_slowly(p, row_bins[i], col_bins[i]);
+            }
         }
     }
 
@@ -765,8 +768,12 @@ pub fn project_flat(
         ));
     }
     let (height, width) = (config.height, config.width);
-    if height * width >= NON_FINITE as usize {
-        return Err(Error::invalid("config", "image too large"));
+    // Below 2³¹ cells, the lookup's 32-bit arithmetic is exact (that is already a 32 GiB image).
+    if height * width >= i32::MAX as usize {
+        return Err(Error::invalid(
+            "config",
+            format!("image too large: {height} x {width} cells, at most 2^31 - 1"),
+        ));
     }
     let locator = cached_locator(config);
     if points.len() / channels >= u32::MAX as usize {
@@ -782,11 +789,13 @@ pub fn project_flat(
     let piece = blocks.div_ceil(threads).max(1) * BLOCK * channels;
     let fill = |first: usize, points: &[f32]| {
         let mut image = ClosestPoints::new(height * width);
-        let mut located = [(NO_CELL, 0.0f32); BLOCK];
+        let mut located = Located {
+            cells: [NO_CELL; BLOCK],
+            ranges: [0.0; BLOCK],
+        };
         for (block, points) in points.chunks(BLOCK * channels).enumerate() {
-            let located = &mut located[..points.len() / channels];
-            locator.locate_block(points, channels, located);
-            image.add(first + block * BLOCK, located);
+            locator.locate_block(points, channels, &mut located);
+            image.add(first + block * BLOCK, &located, points.len() / channels);
         }
         image
     };
@@ -834,10 +843,10 @@ impl ClosestPoints {
 
     /// Adds points `first, first + 1, …` (indices below `u32::MAX`, checked by the caller).
     #[inline]
-    fn add(&mut self, first: usize, located: &[(u32, f32)]) {
+    fn add(&mut self, first: usize, located: &Located, n: usize) {
         let spare = self.best.len() - 1;
         let (mut non_finite, mut out_of_view) = (0, 0);
-        for (i, &(cell, range)) in located.iter().enumerate() {
+        for (i, (&cell, &range)) in located.cells[..n].iter().zip(&located.ranges[..n]).enumerate() {
             non_finite += (cell == NON_FINITE) as usize;
             out_of_view += (cell == NO_CELL) as usize;
             let slot = &mut self.best[(cell as usize).min(spare)];
