@@ -650,10 +650,22 @@ impl CellLocator {
         let n = points.len() / CHANNELS;
         let mut xyz = [[0.0f32; BLOCK]; 3];
         let mut reflectance_finite = [1u32; BLOCK];
-        for (i, p) in points.chunks_exact(CHANNELS).enumerate() {
-            (xyz[0][i], xyz[1][i], xyz[2][i]) = (p[0], p[1], p[2]);
-            if CHANNELS == 4 {
-                reflectance_finite[i] = p[3].is_finite() as u32;
+        if n == BLOCK {
+            // A full block: fixed trip count and stride, so the loads can be shuffled into lanes.
+            let points = &points[..BLOCK * CHANNELS];
+            for i in 0..BLOCK {
+                let p = &points[i * CHANNELS..i * CHANNELS + CHANNELS];
+                (xyz[0][i], xyz[1][i], xyz[2][i]) = (p[0], p[1], p[2]);
+                if CHANNELS == 4 {
+                    reflectance_finite[i] = p[3].is_finite() as u32;
+                }
+            }
+        } else {
+            for (i, p) in points.chunks_exact(CHANNELS).enumerate() {
+                (xyz[0][i], xyz[1][i], xyz[2][i]) = (p[0], p[1], p[2]);
+                if CHANNELS == 4 {
+                    reflectance_finite[i] = p[3].is_finite() as u32;
+                }
             }
         }
         let [xs, ys, zs] = &xyz;
