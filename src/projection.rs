@@ -719,10 +719,13 @@ impl CellLocator {
                 & ((row_key - rb.test_key).abs() > FAST_KEY_MARGIN) as u32
                 & ((col_key - cb.test_key).abs() > FAST_KEY_MARGIN) as u32;
         }
-        for i in 0..n {
-            if settled[i] == 0 {
-                let p = &points[i * channels..(i + 1) * channels];
-                (out.cells[i], out.ranges[i]) = self.locate_slowly(p, row_bins[i], col_bins[i]);
+        // Most blocks are settled throughout: one vectorised check instead of a branch per point.
+        if settled.iter().fold(1, |all, &s| all & s) == 0 {
+            for i in 0..n {
+                if settled[i] == 0 {
+                    let p = &points[i * channels..(i + 1) * channels];
+                    (out.cells[i], out.ranges[i]) = self.locate_slowly(p, row_bins[i], col_bins[i]);
+                }
             }
         }
     }
