@@ -759,7 +759,7 @@ impl CellLocator {
 /// Φ (Eq. 1) for a whole scan: every cell keeps its closest point (ties: the lower input index).
 ///
 /// `points` is a flat row-major array of `N × channels` values, `channels` = 3 (x, y, z) or 4 (x, y, z,
-/// reflectance), `N < 2³² − 1`. Points with a NaN/Inf value are dropped and counted; so are points
+/// reflectance), `N < 2³¹ − 1`. Points with a NaN/Inf value are dropped and counted; so are points
 /// outside the cropped image. A point's cell is exactly the float64 formula
 /// `⌊row₀ − atan2(z, √(x²+y²))·(1/Δφ) + ½⌋`, `⌊col₀ − atan2(y, x)·(1/Δθ) + ½⌋` (libm `atan2`, angles in
 /// radians), found without evaluating it (see the comment above `BOUNDARY_MARGIN`). Runs in the
@@ -791,10 +791,10 @@ pub fn project_flat(
         ));
     }
     let locator = cached_locator(config);
-    if points.len() / channels >= u32::MAX as usize {
+    if points.len() / channels >= i32::MAX as usize {
         return Err(Error::invalid(
             "points",
-            format!("{} points, at most {} supported", points.len() / channels, u32::MAX - 1),
+            format!("{} points, at most 2^31 - 2 supported", points.len() / channels),
         ));
     }
     // One piece per thread, each filling its own buffer of closest points; buffers merge by `min`,
@@ -856,7 +856,7 @@ impl ClosestPoints {
         }
     }
 
-    /// Adds points `first, first + 1, …` (indices below `u32::MAX`, checked by the caller).
+    /// Adds points `first, first + 1, …` (indices below `i32::MAX`, checked by the caller).
     #[inline]
     fn add(&mut self, first: usize, located: &Located, n: usize) {
         let spare = self.best.len() - 1;
@@ -896,23 +896,16 @@ impl ClosestPoints {
         let range = best
             .iter()
             .map(|&key| {
-                if key == Self::EMPTY {
+                let bits = (key >> 32) as u32;
+                if bits == u32::MAX {
                     0.0
                 } else {
-                    f32::from_bits((key >> 32) as u32)
+                    f32::from_bits(bits)
                 }
             })
             .collect();
-        let index: Vec<i64> = best
-            .iter()
-            .map(|&key| {
-                if key == Self::EMPTY {
-                    -1
-                } else {
-                    (key & u32::MAX as u64) as i64
-                }
-            })
-            .collect();
+        // Indices are below 2³¹ (checked by `project_flat`), and EMPTY's low half is −1 as i32.
+        let index: Vec<i64> = best.iter().map(|&key| key as u32 as i32 as i64).collect();
         let reflectance = if channels == 4 {
             index
                 .iter()
