@@ -181,7 +181,10 @@ impl SuppressionGrid {
                     line[..=end - self.cols].fill(true);
                 }
             } else {
-                let (c0, c1) = (col.saturating_sub(radius), (col + radius).min(self.cols - 1));
+                let (c0, c1) = (
+                    col.saturating_sub(radius),
+                    (col + radius).min(self.cols - 1),
+                );
                 line[c0..=c1].fill(true);
             }
         }
@@ -253,10 +256,21 @@ mod tests {
                 .map(|_| (rng.random_range(0..40) as f32) / 10.0)
                 .collect();
             let radius = trial % 4;
-            let top_n = if trial % 2 == 0 { n } else { rng.random_range(1..40) };
+            let top_n = if trial % 2 == 0 {
+                n
+            } else {
+                rng.random_range(1..40)
+            };
             assert_eq!(
                 nms_wrapping(&rows, &cols, &scores, radius, Some(top_n), Some(period)).unwrap(),
-                reference_wrapping(&rows, &cols, &scores, radius as i64, top_n, Some(period as i64)),
+                reference_wrapping(
+                    &rows,
+                    &cols,
+                    &scores,
+                    radius as i64,
+                    top_n,
+                    Some(period as i64)
+                ),
                 "trial {trial}, period {period}, radius {radius}"
             );
         }

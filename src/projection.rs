@@ -385,7 +385,9 @@ impl BinTable {
         let span = highest - lowest;
         // Bins of half the closest spacing leave at most one boundary unsettled per bin (when the
         // spacing exceeds 4·KEY_MARGIN; closer boundaries just make their bins undecidable).
-        let bins = (span / (0.5 * spacing)).ceil().clamp(16.0, (1 << 16) as f64) as usize;
+        let bins = (span / (0.5 * spacing))
+            .ceil()
+            .clamp(16.0, (1 << 16) as f64) as usize;
         let bin_width = span / bins as f64;
         let (bins, tests) = (0..bins)
             .map(|bin| {
@@ -429,7 +431,11 @@ impl BinTable {
         const TWO_POW_23: f32 = 8_388_608.0;
         let position = (key - self.lowest) * self.bins_per_unit;
         let highest = self.bins.len() as f32 - 0.5;
-        let position = if position < highest { position } else { highest };
+        let position = if position < highest {
+            position
+        } else {
+            highest
+        };
         // NaN fails the comparison and goes to bin 0.
         let position = if position >= 0.5 { position } else { 0.5 };
         (position - 0.5 + TWO_POW_23).to_bits() - TWO_POW_23.to_bits()
@@ -533,14 +539,8 @@ impl CellLocator {
         elevation_sines.extend([f64::NEG_INFINITY, f64::NAN]);
         elevation_keys.extend([f64::NEG_INFINITY, f64::NEG_INFINITY]);
         let exact: Vec<bool> = elevation_sines.iter().map(|s| !s.is_nan()).collect();
-        let elevation_bins = BinTable::new(
-            &elevation_keys,
-            &exact,
-            -1.0,
-            1.0,
-            height + 2,
-            height + 3,
-        );
+        let elevation_bins =
+            BinTable::new(&elevation_keys, &exact, -1.0, 1.0, height + 2, height + 3);
 
         let mut azimuth = vec![AzimuthBoundary::ALWAYS];
         let mut azimuth_keys = vec![f64::INFINITY];
@@ -713,7 +713,9 @@ impl CellLocator {
             let row = rb.passed as i32 + (row_key <= rb.test_key) as i32 - 2;
             let col = cb.passed as i32 + (col_key <= cb.test_key) as i32 - 2;
             let inside = (row >= 0) & (col >= 0) & (row < height) & (col < width);
-            let cell = (row as u32).wrapping_mul(width as u32).wrapping_add(col as u32);
+            let cell = (row as u32)
+                .wrapping_mul(width as u32)
+                .wrapping_add(col as u32);
             out.cells[i] = if inside { cell } else { NO_CELL };
             settled[i] = ordinary[i]
                 & ((row_key - rb.test_key).abs() > FAST_KEY_MARGIN) as u32
@@ -794,7 +796,10 @@ pub fn project_flat(
     if points.len() / channels >= i32::MAX as usize {
         return Err(Error::invalid(
             "points",
-            format!("{} points, at most 2^31 - 2 supported", points.len() / channels),
+            format!(
+                "{} points, at most 2^31 - 2 supported",
+                points.len() / channels
+            ),
         ));
     }
     // One piece per thread, each filling its own buffer of closest points; buffers merge by `min`,
@@ -861,7 +866,11 @@ impl ClosestPoints {
     fn add(&mut self, first: usize, located: &Located, n: usize) {
         let spare = self.best.len() - 1;
         let (mut non_finite, mut out_of_view) = (0, 0);
-        for (i, (&cell, &range)) in located.cells[..n].iter().zip(&located.ranges[..n]).enumerate() {
+        for (i, (&cell, &range)) in located.cells[..n]
+            .iter()
+            .zip(&located.ranges[..n])
+            .enumerate()
+        {
             non_finite += (cell == NON_FINITE) as usize;
             out_of_view += (cell == NO_CELL) as usize;
             let slot = &mut self.best[(cell as usize).min(spare)];
@@ -889,7 +898,13 @@ impl ClosestPoints {
     }
 
     /// The images (`points`, `channels` per point, supply the reflectance of the kept points).
-    fn finish(mut self, points: &[f32], channels: usize, height: usize, width: usize) -> Projection {
+    fn finish(
+        mut self,
+        points: &[f32],
+        channels: usize,
+        height: usize,
+        width: usize,
+    ) -> Projection {
         let cells = height * width;
         // Separate passes: the first two vectorise.
         let best = &self.best[..cells];
@@ -909,7 +924,13 @@ impl ClosestPoints {
         let reflectance = if channels == 4 {
             index
                 .iter()
-                .map(|&i| if i >= 0 { points[i as usize * 4 + 3] } else { 0.0 })
+                .map(|&i| {
+                    if i >= 0 {
+                        points[i as usize * 4 + 3]
+                    } else {
+                        0.0
+                    }
+                })
                 .collect()
         } else {
             vec![0.0; cells]
@@ -933,7 +954,9 @@ impl ClosestPoints {
 fn cached_locator(config: &CylinderConfig) -> Arc<CellLocator> {
     static CACHE: Mutex<Option<(CylinderConfig, Arc<CellLocator>)>> = Mutex::new(None);
     // A poisoned cache only means another thread panicked while holding it; the data is replaced.
-    let mut cache = CACHE.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    let mut cache = CACHE
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
     match &*cache {
         Some((cached, locator)) if cached == config => Arc::clone(locator),
         _ => {
@@ -1021,7 +1044,8 @@ mod reference {
             let series = 1.0
                 - u2 * (1.0 / 3.0
                     - u2 * (1.0 / 5.0
-                        - u2 * (1.0 / 7.0 - u2 * (1.0 / 9.0 - u2 * (1.0 / 11.0 - u2 * (1.0 / 13.0))))));
+                        - u2 * (1.0 / 7.0
+                            - u2 * (1.0 / 9.0 - u2 * (1.0 / 11.0 - u2 * (1.0 / 13.0))))));
             let octant = if big {
                 std::f64::consts::FRAC_PI_4
             } else {
@@ -1223,7 +1247,9 @@ mod tests {
                 .num_threads(threads)
                 .build()
                 .unwrap();
-            let got = pool.install(|| project_flat(points, channels, config)).unwrap();
+            let got = pool
+                .install(|| project_flat(points, channels, config))
+                .unwrap();
             if got != expected {
                 let differing: Vec<usize> = (0..got.index.len())
                     .filter(|&c| got.index[c] != expected.index[c])
@@ -1315,12 +1341,20 @@ mod tests {
         let col0 = config.col_of_zero_azimuth();
         let d_phi = config.vertical_resolution_deg.to_radians();
         let d_theta = config.horizontal_resolution_deg.to_radians();
-        let rows: Vec<f64> = (-1..=config.height as i64 + 1).map(|k| (row0 + 0.5 - k as f64) * d_phi).collect();
-        let cols: Vec<f64> = (-1..=config.width as i64 + 1).map(|k| (col0 + 0.5 - k as f64) * d_theta).collect();
+        let rows: Vec<f64> = (-1..=config.height as i64 + 1)
+            .map(|k| (row0 + 0.5 - k as f64) * d_phi)
+            .collect();
+        let cols: Vec<f64> = (-1..=config.width as i64 + 1)
+            .map(|k| (col0 + 0.5 - k as f64) * d_theta)
+            .collect();
         let nudge = |v: f32, steps: i32| -> f32 {
             let mut v = v;
             for _ in 0..steps.abs() {
-                v = if steps > 0 { v.next_up() } else { v.next_down() };
+                v = if steps > 0 {
+                    v.next_up()
+                } else {
+                    v.next_down()
+                };
             }
             v
         };
@@ -1343,7 +1377,11 @@ mod tests {
             let range = [1e-3, 0.7, 13.0, 80.0, 1e6][rng.random_range(0..5)];
             let (se, ce) = f64::sin_cos(elevation);
             let (sa, ca) = f64::sin_cos(azimuth);
-            let base = [(range * ce * ca) as f32, (range * ce * sa) as f32, (range * se) as f32];
+            let base = [
+                (range * ce * ca) as f32,
+                (range * ce * sa) as f32,
+                (range * se) as f32,
+            ];
             for _ in 0..3 {
                 let p = [
                     nudge(base[0], rng.random_range(-2..=2)),
@@ -1354,7 +1392,18 @@ mod tests {
             }
         }
         let specials = [
-            0.0f32, -0.0, 1.0, -1.0, 1e-45, -1e-45, 1e-38, 3e38, -3e38, 1e19, f32::MAX, f32::MIN_POSITIVE,
+            0.0f32,
+            -0.0,
+            1.0,
+            -1.0,
+            1e-45,
+            -1e-45,
+            1e-38,
+            3e38,
+            -3e38,
+            1e19,
+            f32::MAX,
+            f32::MIN_POSITIVE,
         ];
         for &x in &specials {
             for &y in &specials {

@@ -570,7 +570,10 @@ fn non_maximum_suppression<'py>(
         None => None,
         Some(config) => {
             let config = config.inner;
-            for (name, values, limit) in [("rows", &rows, config.height), ("cols", &cols, config.width)] {
+            for (name, values, limit) in [
+                ("rows", &rows, config.height),
+                ("cols", &cols, config.width),
+            ] {
                 if let Some(i) = values.iter().position(|&v| v >= limit as i64) {
                     return Err(PyValueError::new_err(format!(
                         "{name}: element {i} ({}) is outside the config's {} x {} image",
