@@ -1628,4 +1628,3 @@ mod tests {
         assert!(unproject_many(&[3.0], &[1.0], &[f64::NAN], &config).is_err());
     }
 }
-
