@@ -891,20 +891,18 @@ impl ClosestPoints {
         self
     }
 
-    /// Returns the buffer for the next call on this thread.
+    /// Keeps the buffer for the next call on this thread, unless it is huge (then memory matters
+    /// more than page faults).
     fn recycle(mut self) {
+        const KEEP_AT_MOST: usize = 1 << 22; // cells: 32 MiB
         let best = std::mem::take(&mut self.best);
-        BEST_BUFFER.with(|buffer| *buffer.borrow_mut() = best);
+        if best.capacity() <= KEEP_AT_MOST {
+            BEST_BUFFER.with(|buffer| *buffer.borrow_mut() = best);
+        }
     }
 
     /// The images (`points`, `channels` per point, supply the reflectance of the kept points).
-    fn finish(
-        mut self,
-        points: &[f32],
-        channels: usize,
-        height: usize,
-        width: usize,
-    ) -> Projection {
+    fn finish(self, points: &[f32], channels: usize, height: usize, width: usize) -> Projection {
         let cells = height * width;
         // Separate passes: the first two vectorise.
         let best = &self.best[..cells];
@@ -935,16 +933,16 @@ impl ClosestPoints {
         } else {
             vec![0.0; cells]
         };
-        let best = std::mem::take(&mut self.best);
-        BEST_BUFFER.with(|buffer| *buffer.borrow_mut() = best);
+        let (num_non_finite, num_out_of_view) = (self.num_non_finite, self.num_out_of_view);
+        self.recycle();
         Projection {
             height,
             width,
             range,
             reflectance,
             index,
-            num_non_finite: self.num_non_finite,
-            num_out_of_view: self.num_out_of_view,
+            num_non_finite,
+            num_out_of_view,
         }
     }
 }
