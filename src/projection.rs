@@ -1615,6 +1615,23 @@ mod tests {
         assert!(bad.validate().is_err());
         assert!(project_flat(&[1.0; 10], 4, &config).is_err());
         assert!(project_flat(&[1.0; 10], 5, &config).is_err());
+        // A valid config whose image has more than 2³¹ − 1 cells is refused before allocating.
+        let huge = CylinderConfig {
+            fov_up_deg: 0.5,
+            fov_down_deg: -0.5,
+            vertical_resolution_deg: 0.001,
+            horizontal_resolution_deg: 1e-4,
+            height: 1000,
+            width: 3_600_000,
+        };
+        huge.validate().unwrap();
+        assert!(matches!(
+            project_flat(&[], 4, &huge),
+            Err(Error::InvalidArgument {
+                argument: "config",
+                ..
+            })
+        ));
     }
 
     #[test]
