@@ -15,6 +15,7 @@ use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::ground_truth::check_range_image;
+use crate::nms::SuppressionGrid;
 use crate::projection::{floor_fast, CylinderConfig};
 
 /// Thresholds of [`decode_matches`].
@@ -166,11 +167,13 @@ pub fn decode_matches(
     Ok(all)
 }
 
-/// [`decode_matches`] followed by [`crate::nms::nms`] with `radius` and `top_n`, fused: candidate
-/// cells are visited in NMS order (confidence descending, then cell index) and only those that
-/// survive suppression are decoded; a cell that cannot be decoded is skipped without suppressing its
-/// neighbours. The result is exactly that of decoding everything and then running NMS on the decoded
-/// matches, best first, at a cost that grows with `top_n` instead of the image size.
+/// [`decode_matches`] followed by [`crate::nms::nms_wrapping`] with `radius`, `top_n` and the
+/// config's [`column_period`](CylinderConfig::column_period) (a 360° image suppresses across the
+/// azimuth seam, a cropped one does not), fused: candidate cells are visited in NMS order (confidence
+/// descending, then cell index) and only those that survive suppression are decoded; a cell that
+/// cannot be decoded is skipped without suppressing its neighbours. The result is exactly that of
+/// decoding everything and then running NMS on the decoded matches, best first, at a cost that grows
+/// with `top_n` instead of the image size.
 #[allow(clippy::too_many_arguments)]
 pub fn select_matches(
     ref_range: &[f32],
@@ -196,7 +199,10 @@ pub fn select_matches(
             .then(a.cmp(b))
     };
     let mut out = DecodedMatches::with_capacity(top_n.min(candidates.len()));
-    let mut suppressed = vec![false; height * width];
+    let mut suppressed = match config.column_period() {
+        Some(period) => SuppressionGrid::new(height, period, true),
+        None => SuppressionGrid::new(height, width, false),
+    };
     // Sort only as many candidates as are likely needed (each kept match suppresses at most
     // (2r+1)² − 1 others; undecodable ones need more), then the rest if they run out.
     let mut sorted = 0;
@@ -217,18 +223,14 @@ pub fn select_matches(
         }
         let cell = candidates[next] as usize;
         next += 1;
-        if suppressed[cell] {
+        let (row, col) = (cell / width, cell % width);
+        if suppressed.is_suppressed(row, col) {
             continue;
         }
-        let (row, col) = (cell / width, cell % width);
         if !decoder.decode_into(row, col, &mut out) {
             continue;
         }
-        for r in row.saturating_sub(radius)..=(row + radius).min(height - 1) {
-            let start = r * width + col.saturating_sub(radius);
-            let stop = r * width + (col + radius).min(width - 1);
-            suppressed[start..=stop].fill(true);
-        }
+        suppressed.suppress_around(row, col, radius);
     }
     Ok(out)
 }
@@ -500,7 +502,18 @@ mod tests {
 
     #[test]
     fn fused_selection_equals_decoding_then_nms() {
-        let config = CylinderConfig::kitti();
+        // Cropped (no wrap) and the full 360° grid (wraps: NMS across the seam).
+        let full = CylinderConfig {
+            height: 68,
+            width: 1801,
+            ..CylinderConfig::kitti()
+        };
+        for config in [CylinderConfig::kitti(), full] {
+            fused_selection_equals_decoding_then_nms_for(config);
+        }
+    }
+
+    fn fused_selection_equals_decoding_then_nms_for(config: CylinderConfig) {
         let n = config.height * config.width;
         let mut state = 12345u64;
         let mut random = || {
@@ -548,7 +561,15 @@ mod tests {
         for (radius, top_n) in [(1, 1000), (2, 300), (0, 50_000), (1, 10)] {
             let rows: Vec<i64> = all.cells.iter().map(|c| c[0] as i64).collect();
             let cols: Vec<i64> = all.cells.iter().map(|c| c[1] as i64).collect();
-            let kept = crate::nms::nms(&rows, &cols, &all.confidence, radius, Some(top_n)).unwrap();
+            let kept = crate::nms::nms_wrapping(
+                &rows,
+                &cols,
+                &all.confidence,
+                radius,
+                Some(top_n),
+                config.column_period(),
+            )
+            .unwrap();
             let fused = select_matches(
                 &ref_range,
                 &tgt_range,

@@ -149,15 +149,56 @@ def test_ransac_with_no_consistent_motion_or_too_few_matches() -> None:
 # ---- nms -----------------------------------------------------------------------------------------
 
 
-def reference_nms(rows: np.ndarray, cols: np.ndarray, scores: np.ndarray, radius: int, top_n: int) -> list[int]:
+def reference_nms(
+    rows: np.ndarray, cols: np.ndarray, scores: np.ndarray, radius: int, top_n: int, period: int | None = None
+) -> list[int]:
+    """Greedy NMS by pairwise checks; with a period the column distance is the shorter way round."""
+
+    def column_distance(a: int, b: int) -> int:
+        if period is None:
+            return abs(a - b)
+        d = (a - b) % period
+        return min(d, period - d)
+
     order = sorted(range(len(scores)), key=lambda i: (-scores[i], i))
     kept: list[int] = []
     for i in order:
         if len(kept) == top_n:
             break
-        if all(abs(rows[k] - rows[i]) > radius or abs(cols[k] - cols[i]) > radius for k in kept):
+        if all(abs(rows[k] - rows[i]) > radius or column_distance(cols[k], cols[i]) > radius for k in kept):
             kept.append(i)
     return kept
+
+
+FULL_RING = CylinderConfig(height=68, width=1801)  # KITTI's uncropped 360° grid: columns wrap every 1800
+
+
+def test_nms_wraps_across_the_seam_of_a_360_image() -> None:
+    rng = np.random.default_rng(16)
+    # Entries crowd both edges of the full ring (column 1800 is column 0 again) and the middle.
+    rows = rng.integers(0, 68, 1500)
+    cols = np.concatenate([rng.integers(0, 4, 500), rng.integers(1796, 1801, 500), rng.integers(0, 1801, 500)])
+    scores = rng.integers(0, 25, 1500).astype(np.float32) / 25
+    for radius, top_n in [(1, 1500), (2, 300), (0, 1500)]:
+        kept = dmlo_rs.nms(rows, cols, scores, radius, top_n, config=FULL_RING)
+        assert kept.tolist() == reference_nms(rows, cols, scores, radius, top_n, period=1800)
+        # Without the config (or with a cropped one) the seam does not suppress.
+        assert dmlo_rs.nms(rows, cols, scores, radius, top_n).tolist() == reference_nms(rows, cols, scores, radius, top_n)
+    kitti = CylinderConfig.kitti()
+    inside = (cols < kitti.width) & (rows < kitti.height)
+    plain = dmlo_rs.nms(rows[inside], cols[inside], scores[inside], 1, 500)
+    np.testing.assert_array_equal(dmlo_rs.nms(rows[inside], cols[inside], scores[inside], 1, 500, config=kitti), plain)
+
+
+def test_nms_with_a_config_rejects_cells_outside_its_image() -> None:
+    kitti = CylinderConfig.kitti()
+    one = np.zeros(1, np.float32)
+    with pytest.raises(ValueError, match="cols"):
+        dmlo_rs.nms(np.zeros(1, np.int64), np.array([1792]), one, config=kitti)
+    with pytest.raises(ValueError, match="rows"):
+        dmlo_rs.nms(np.array([64]), np.zeros(1, np.int64), one, config=kitti)
+    with pytest.raises(TypeError):
+        dmlo_rs.nms(np.zeros(1, np.int64), np.zeros(1, np.int64), one, config="kitti")  # type: ignore[arg-type]
 
 
 def test_nms_equals_the_greedy_reference() -> None:
@@ -253,6 +294,44 @@ def test_fused_nms_equals_decoding_then_nms(moved_pair) -> None:
         np.testing.assert_array_equal(fused.cells, everything.cells[keep])
         np.testing.assert_array_equal(fused.source, everything.source[keep])
         np.testing.assert_array_equal(fused.target, everything.target[keep])
+
+
+def test_fused_nms_equals_decoding_then_nms_on_a_360_image(shared_data: Path) -> None:
+    """On the full ring the fused NMS suppresses across the azimuth seam, like nms(..., config=...)."""
+    path = shared_data / "kitti_raw_static" / "0000000000.bin"
+    if not path.is_file():
+        pytest.skip(f"{path} is absent")
+    scan = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", 1.0, degrees=True).as_matrix()
+    moved = scan.copy()
+    moved[:, :3] = apply(T, scan[:, :3].astype(np.float64)).astype(np.float32)
+    config = FULL_RING
+    ref, tgt = dmlo_rs.project(scan, config), dmlo_rs.project(moved, config)
+    flow, valid = dmlo_rs.ground_truth_flow(ref.range, tgt.range, T, config)
+    rng = np.random.default_rng(19)
+    flow += rng.normal(scale=1.0, size=flow.shape).astype(np.float32)
+    confidence = (rng.integers(0, 10, valid.shape) / 10).astype(np.float32)
+    # The best confidences sit right at the seam, so the wrap decides what survives there.
+    confidence[:, :2] = 1.0
+    confidence[:, -3:] = 1.0
+    everything = dmlo_rs.decode_matches(ref.range, tgt.range, flow, confidence, config, 0.2)
+    for radius, top_n in [(1, 1000), (2, 300)]:
+        keep = dmlo_rs.nms(everything.cells[:, 0], everything.cells[:, 1], everything.confidence, radius, top_n,
+                           config=config)
+        fused = dmlo_rs.decode_matches(ref.range, tgt.range, flow, confidence, config, 0.2, top_n=top_n,
+                                       nms_radius=radius)
+        np.testing.assert_array_equal(fused.cells, everything.cells[keep])
+        np.testing.assert_array_equal(fused.source, everything.source[keep])
+        np.testing.assert_array_equal(fused.target, everything.target[keep])
+        # No two kept cells are neighbours the short way round the ring.
+        r, c = fused.cells[:, 0], fused.cells[:, 1]
+        d = np.abs(c[:, None] - c[None]) % 1800
+        close = (np.abs(r[:, None] - r[None]) <= radius) & (np.minimum(d, 1800 - d) <= radius)
+        assert close.sum() == len(fused)
+        # ...which the non-wrapping NMS would not guarantee at the seam.
+        plain = dmlo_rs.nms(everything.cells[:, 0], everything.cells[:, 1], everything.confidence, radius, top_n)
+        assert plain.tolist() != keep.tolist()
 
 
 def test_decoding_honours_confidence_and_the_exclusion_mask(moved_pair) -> None:

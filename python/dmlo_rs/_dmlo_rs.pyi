@@ -171,8 +171,11 @@ def nms(
     scores: npt.NDArray[np.floating],
     radius: int = 1,
     top_n: int | None = None,
+    *,
+    config: CylinderConfig | None = None,
 ) -> npt.NDArray[np.int64]:
-    """Greedy NMS in a (2r+1)² window on the grid → kept indices (int64), best first."""
+    """Greedy NMS in a (2r+1)² window on the grid → kept indices (int64), best first. With the
+    image's config, cells must lie in it, and a 360° image's columns wrap (the seam suppresses)."""
 
 def decode_matches(
     ref_range: npt.NDArray[np.float32] | npt.NDArray[np.float64],
@@ -189,7 +192,8 @@ def decode_matches(
     num_threads: int | None = None,
 ) -> Matches:
     """Network output (flow[2, H, W], confidence[H, W]) → 3D matches; mask True = exclude the cell.
-    With top_n, NMS (nms_radius) is fused in: only the kept matches are decoded, best first."""
+    With top_n, NMS (nms_radius) is fused in: only the kept matches are decoded, best first, exactly
+    nms(..., config=config) of the full output (wrapping round the seam of a 360° image)."""
 
 
 

@@ -546,10 +546,11 @@ fn ransac_rigid(
 // ---- NMS and match decoding ------------------------------------------------------------------------
 
 /// Greedy NMS on the cylinder grid: keeps the highest `scores` first and suppresses every other entry
-/// within `radius` cells (square window); at most `top_n` (None = all). → kept indices (int64), best
-/// first.
+/// within `radius` cells (square window); at most `top_n` (None = all). With `config` (the image the
+/// cells belong to) the cells are checked to lie in it, and when it covers 360° the columns wrap, so
+/// entries either side of the azimuth seam suppress each other. → kept indices (int64), best first.
 #[pyfunction]
-#[pyo3(name = "nms", signature = (rows, cols, scores, radius = 1, top_n = None))]
+#[pyo3(name = "nms", signature = (rows, cols, scores, radius = 1, top_n = None, *, config = None))]
 fn non_maximum_suppression<'py>(
     py: Python<'py>,
     rows: &Bound<'py, PyAny>,
@@ -557,6 +558,7 @@ fn non_maximum_suppression<'py>(
     scores: &Bound<'py, PyAny>,
     radius: usize,
     top_n: Option<usize>,
+    config: Option<&PyCylinderConfig>,
 ) -> PyResult<Bound<'py, PyArray1<i64>>> {
     let (rows, cols) = (vector_i64("rows", rows)?, vector_i64("cols", cols)?);
     let array = floats("scores", scores)?;
@@ -564,8 +566,26 @@ fn non_maximum_suppression<'py>(
         return Err(shape_error("scores", "(N,)", array.shape()));
     }
     let scores = array.f32_data().into_owned();
+    let column_period = match config {
+        None => None,
+        Some(config) => {
+            let config = config.inner;
+            for (name, values, limit) in [
+                ("rows", &rows, config.height),
+                ("cols", &cols, config.width),
+            ] {
+                if let Some(i) = values.iter().position(|&v| v >= limit as i64) {
+                    return Err(PyValueError::new_err(format!(
+                        "{name}: element {i} ({}) is outside the config's {} x {} image",
+                        values[i], config.height, config.width
+                    )));
+                }
+            }
+            config.column_period()
+        }
+    };
     let kept = run(py, Some(1), || {
-        nms::nms(&rows, &cols, &scores, radius, top_n)
+        nms::nms_wrapping(&rows, &cols, &scores, radius, top_n, column_period)
     })?;
     Ok(Array1::from_iter(kept.into_iter().map(|i| i as i64)).into_pyarray(py))
 }
@@ -601,7 +621,8 @@ impl PyMatches {
 /// Network output → 3D matches: `flow[2, H, W]` (Δrow, Δcol) and `confidence[H, W]` with both range
 /// images; cells below `min_confidence`, without range, or where `mask` (H×W bool, True = exclude, e.g.
 /// moving objects) is set are dropped. With `top_n`, NMS (`nms_radius`) is fused in: only the kept
-/// matches are decoded, best first — the same result as `nms` on the full output, much faster.
+/// matches are decoded, best first — the same result as `nms(..., config=config)` on the full output
+/// (wrapping round the azimuth seam when the image covers 360°), much faster.
 #[pyfunction]
 #[pyo3(signature = (ref_range, tgt_range, flow, confidence, config, min_confidence = 0.0, mask = None, *,
                     max_relative_range_spread = 0.1, top_n = None, nms_radius = 1, num_threads = None))]

@@ -3,7 +3,7 @@
     python -m dmlo.benchmarks.core [--data DIR] [--repeats N]
 
 Measures, on a real KITTI scan from ``kitti_raw_static`` and on synthetic correspondences: the cylinder
-projection; NMS over a full 64×1792 confidence map; RANSAC on 500 / 2000 matches with 50 % / 80 %
+projection (one thread and all cores); NMS over a full 64×1792 confidence map; RANSAC on 500 / 2000 matches with 50 % / 80 %
 outliers (dmlo_rs, a vectorised numpy RANSAC written here, and Open3D's
 ``registration_ransac_based_on_correspondence`` with the same threshold, confidence and iteration cap);
 and one frame's post-processing (decode + NMS + RANSAC + solve). Prints a markdown table: median times,
@@ -217,14 +217,15 @@ def main(argv: list[str] | None = None) -> None:
     config = dmlo_rs.CylinderConfig.kitti()
     rows: list[list[str]] = []
 
-    # Projection of a real scan.
-    ours, image = median_ms(lambda: dmlo_rs.project(scan, config), args.repeats)
+    # Projection of a real scan: one thread (the target) and the module's pool (all cores).
     reference, index = median_ms(lambda: numpy_project(scan, config), max(3, args.repeats // 3))
-    same = np.mean(image.index == index) * 100
-    rows.append(
-        [f"projection, {len(scan) / 1000:.0f}k points → 64×1792", f"{ours:.2f}", f"{reference:.2f}", "—",
-         ratio(reference, ours), "—", f"{same:.2f} % cells identical to numpy"]
-    )
+    for threads, label in [(1, "1 thread"), (None, f"{os.cpu_count()} threads")]:
+        ours, image = median_ms(lambda: dmlo_rs.project(scan, config, num_threads=threads), args.repeats)
+        same = np.mean(image.index == index) * 100
+        rows.append(
+            [f"projection, {len(scan) / 1000:.0f}k points → 64×1792, {label}", f"{ours:.2f}", f"{reference:.2f}",
+             "—", ratio(reference, ours), "—", f"{same:.2f} % cells identical to numpy"]
+        )
 
     # NMS over a full confidence map.
     confidence = np.random.default_rng(0).random((64, 1792)).astype(np.float32)
