@@ -13,7 +13,7 @@ from dmlo.cli import main as dmlo_main  # noqa: E402
 from dmlo.model import MatcherConfig  # noqa: E402
 from dmlo.train import ArrayPairDataset, Augmentation, PairDataset, TrainConfig, Trainer, load_model, pair_indices  # noqa: E402
 from dmlo.train.checkpoint import load  # noqa: E402
-from dmlo.train.dataset import crop, roll_columns  # noqa: E402
+from dmlo.train.dataset import crop, mirror_columns, roll_columns  # noqa: E402
 from dmlo.train.metrics import FlowErrorSums  # noqa: E402
 
 from test_model import synthetic_pair  # noqa: E402
@@ -54,6 +54,23 @@ def test_roll_and_crop_keep_matches_honest_and_drop_leaving_targets() -> None:
     assert cut["valid"][:14, 12 : 32 - 7].all()
     with pytest.raises(ValueError, match="exceeds"):
         crop(original, 0, 40, 16, 32)
+
+
+def test_mirror_keeps_every_match_honest_with_the_column_flow_negated() -> None:
+    original = sample((2, 7), width=64)
+    mirrored = mirror_columns(original)
+    assert_matches_are_honest(mirrored)
+    assert mirrored["valid"].sum() == original["valid"].sum()
+    assert (mirrored["flow"][1][mirrored["valid"]] == -7).all() and (mirrored["flow"][0][mirrored["valid"]] == 2).all()
+    twice = mirror_columns(mirrored)
+    assert all(np.array_equal(twice[key], original[key]) for key in original)
+    # Drawn only when asked for: about half of the samples, each one honest.
+    flips = 0
+    for k in range(40):
+        augmented = Augmentation(mirror=True)(sample((1, 5), seed=k), np.random.default_rng(k))
+        assert_matches_are_honest(augmented)
+        flips += int((augmented["flow"][1][augmented["valid"]] < 0).all())
+    assert 10 < flips < 30
 
 
 def test_augmentation_is_seeded_and_validates_sizes() -> None:

@@ -19,6 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--crop-width", type=int, default=448, help="random azimuth crop in columns, multiple of 8; 0 = full width (default 448)")
     data.add_argument("--crop-height", type=int, default=0, help="random row crop, multiple of 4; 0 = full height")
     data.add_argument("--no-yaw-roll", action="store_true", help="do not roll both scans by a random yaw")
+    data.add_argument("--mirror", action="store_true",
+                      help="flip half of the pairs left-right (the mirror world): no learned turning preference")
     data.add_argument("--max-gap", type=int, default=2, help="pairs 1..N frames apart (default 2: the paper's triplets)")
     data.add_argument("--val-max-pairs", type=int, default=64)
     data.add_argument("--val-width", type=int, default=0, help="centred validation crop; 0 = full width")
@@ -102,11 +104,11 @@ def run(args: argparse.Namespace) -> int:
             epochs=args.epochs, batch_size=args.batch_size, optimizer=args.optimizer, lr=args.lr, momentum=args.momentum,
             weight_decay=args.weight_decay, lr_step_epochs=args.lr_step, lr_gamma=args.lr_gamma,
             crop_height=args.crop_height or None, crop_width=args.crop_width or None, yaw_roll=not args.no_yaw_roll,
-            max_gap=args.max_gap, val_max_pairs=args.val_max_pairs, val_width=args.val_width or None,
+            mirror=args.mirror, max_gap=args.max_gap, val_max_pairs=args.val_max_pairs, val_width=args.val_width or None,
             seed=args.seed, workers=args.workers, device=args.device, checkpoint_every=args.checkpoint_every,
             max_steps=args.max_steps,
         )
-        augmentation = Augmentation(config.crop_height, config.crop_width, config.yaw_roll)
+        augmentation = Augmentation(config.crop_height, config.crop_width, config.yaw_roll, mirror=config.mirror)
         train_set = PairDataset.from_paths(config.data, augmentation=augmentation, max_gap=config.max_gap, seed=config.seed)
         val_set = None
         if config.val:

@@ -29,6 +29,8 @@ class TrainConfig:
     crop_height: int | None = None
     crop_width: int | None = 448
     yaw_roll: bool = True
+    mirror: bool = False
+    """Also train on the mirror world (half of the samples flipped left–right)."""
     max_gap: int = 2
     """Pairs 1 … max_gap frames apart (2: the paper's triplets)."""
     val_max_pairs: int = 64

@@ -12,6 +12,9 @@ Augmentations keep the geometry honest:
   yaw angle, so the flow is unchanged; a match that would cross the image's azimuth seam is dropped.
 - *crop*: the same window of rows and columns cut from both images; a match whose target leaves the
   window is dropped.
+- *mirror* (optional): both images flipped left–right — the scans of the mirror world (y → −y), whose
+  flow is the column-negated flow. Every drive then also turns the other way, so the network cannot learn
+  a preferred turning direction (a yaw bias that drifts the odometry).
 """
 
 from __future__ import annotations
@@ -48,6 +51,13 @@ def roll_columns(sample: Sample, shift: int) -> Sample:
     return rolled
 
 
+def mirror_columns(sample: Sample) -> Sample:
+    """Both scans of the mirror world (left–right flip): Δcol negated, every match kept."""
+    mirrored = {key: np.ascontiguousarray(value[..., ::-1]) for key, value in sample.items()}
+    mirrored["flow"][1] *= -1
+    return mirrored
+
+
 def crop(sample: Sample, top: int, left: int, height: int, width: int) -> Sample:
     """The same window cut from both scans; matches whose target leaves it are dropped."""
     full_height, full_width = sample["valid"].shape
@@ -60,13 +70,15 @@ def crop(sample: Sample, top: int, left: int, height: int, width: int) -> Sample
 
 @dataclass(frozen=True)
 class Augmentation:
-    """Random yaw roll and crop; ``crop_height`` / ``crop_width`` None keep the full size."""
+    """Random yaw roll, mirror and crop; ``crop_height`` / ``crop_width`` None keep the full size."""
 
     crop_height: int | None = None
     crop_width: int | None = None
     yaw_roll: bool = True
     random: bool = True
-    """False: no roll and a centred crop (validation)."""
+    """False: no roll, no mirror and a centred crop (validation)."""
+    mirror: bool = False
+    """Flip half of the samples left–right (drawn after the roll, so runs without it are unchanged)."""
 
     def __post_init__(self) -> None:
         if self.crop_height is not None and (self.crop_height <= 0 or self.crop_height % 4):
@@ -78,6 +90,8 @@ class Augmentation:
         height, width = sample["valid"].shape
         if self.random and self.yaw_roll:
             sample = roll_columns(sample, int(rng.integers(0, width)))
+        if self.random and self.mirror and rng.random() < 0.5:
+            sample = mirror_columns(sample)
         crop_height = self.crop_height or height
         crop_width = self.crop_width or width
         if crop_height > height or crop_width > width:
