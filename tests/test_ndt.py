@@ -13,23 +13,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import dmlo_rs
+from support import rigid, transform_points
 
 FloatArray = npt.NDArray[np.float64]
 
 
 # ---- helpers -------------------------------------------------------------------------------------------
-
-
-def rigid(translation: list[float], rotvec_deg: list[float]) -> FloatArray:
-    """A 4×4 transform from a translation and a rotation vector in degrees."""
-    transform = np.eye(4)
-    transform[:3, :3] = Rotation.from_rotvec(rotvec_deg, degrees=True).as_matrix()
-    transform[:3, 3] = translation
-    return transform
-
-
-def transform_points(transform: FloatArray, points: FloatArray) -> FloatArray:
-    return points @ transform[:3, :3].T + transform[:3, 3]
 
 
 def pose_errors(estimate: FloatArray, truth: FloatArray) -> tuple[float, float]:

@@ -15,19 +15,9 @@ from scipy.spatial.transform import Rotation
 import dmlo_rs
 from dmlo.datasets import open_sequence
 from dmlo.simulator import simulate_sequence
+from support import rigid, transform_points
 
 FloatArray = npt.NDArray[np.float64]
-
-
-def rigid(translation: list[float], rotvec_deg: list[float]) -> FloatArray:
-    transform = np.eye(4)
-    transform[:3, :3] = Rotation.from_rotvec(rotvec_deg, degrees=True).as_matrix()
-    transform[:3, 3] = translation
-    return transform
-
-
-def transform_points(transform: FloatArray, points: FloatArray) -> FloatArray:
-    return points @ transform[:3, :3].T + transform[:3, 3]
 
 
 def corridor(count: int, x_range: tuple[float, float], seed: int) -> FloatArray:
