@@ -523,24 +523,19 @@ mod tests {
             (state >> 33) as f32 / (1u64 << 31) as f32
         };
         // Holes in both images and flows that leave the image make many cells undecodable.
-        let ref_range: Vec<f32> = (0..n)
-            .map(|_| {
-                if random() < 0.3 {
-                    0.0
-                } else {
-                    5.0 + 20.0 * random()
-                }
-            })
-            .collect();
-        let tgt_range: Vec<f32> = (0..n)
-            .map(|_| {
-                if random() < 0.5 {
-                    0.0
-                } else {
-                    5.0 + 20.0 * random()
-                }
-            })
-            .collect();
+        let mut range_image = |holes: f32| -> Vec<f32> {
+            (0..n)
+                .map(|_| {
+                    if random() < holes {
+                        0.0
+                    } else {
+                        5.0 + 20.0 * random()
+                    }
+                })
+                .collect()
+        };
+        let ref_range = range_image(0.3);
+        let tgt_range = range_image(0.5);
         let flow: Vec<f32> = (0..2 * n).map(|_| (random() - 0.5) * 8.0).collect();
         // Coarse confidences: many ties.
         let confidence: Vec<f32> = (0..n).map(|_| (random() * 20.0).floor() / 20.0).collect();

@@ -758,6 +758,23 @@ impl CellLocator {
     }
 }
 
+/// `points` must be a flat array of whole points of 3 (x, y, z) or 4 (… reflectance) values.
+fn check_flat_points(points: &[f32], channels: usize) -> Result<()> {
+    if channels != 3 && channels != 4 {
+        return Err(Error::invalid(
+            "points",
+            format!("need 3 or 4 values per point, got {channels}"),
+        ));
+    }
+    if points.len() % channels != 0 {
+        return Err(Error::invalid(
+            "points",
+            format!("length {} is not a multiple of {channels}", points.len()),
+        ));
+    }
+    Ok(())
+}
+
 /// Φ (Eq. 1) for a whole scan: every cell keeps its closest point (ties: the lower input index).
 ///
 /// `points` is a flat row-major array of `N × channels` values, `channels` = 3 (x, y, z) or 4 (x, y, z,
@@ -772,18 +789,7 @@ pub fn project_flat(
     config: &CylinderConfig,
 ) -> Result<Projection> {
     config.validate()?;
-    if channels != 3 && channels != 4 {
-        return Err(Error::invalid(
-            "points",
-            format!("need 3 or 4 values per point, got {channels}"),
-        ));
-    }
-    if points.len() % channels != 0 {
-        return Err(Error::invalid(
-            "points",
-            format!("length {} is not a multiple of {channels}", points.len()),
-        ));
-    }
+    check_flat_points(points, channels)?;
     let (height, width) = (config.height, config.width);
     // Below 2³¹ cells, the lookup's 32-bit arithmetic is exact (that is already a 32 GiB image).
     if height * width >= i32::MAX as usize {
@@ -1103,18 +1109,7 @@ mod reference {
         config: &CylinderConfig,
     ) -> Result<Projection> {
         config.validate()?;
-        if channels != 3 && channels != 4 {
-            return Err(Error::invalid(
-                "points",
-                format!("need 3 or 4 values per point, got {channels}"),
-            ));
-        }
-        if points.len() % channels != 0 {
-            return Err(Error::invalid(
-                "points",
-                format!("length {} is not a multiple of {channels}", points.len()),
-            ));
-        }
+        super::check_flat_points(points, channels)?;
         let (height, width) = (config.height, config.width);
         if height * width >= NON_FINITE as usize {
             return Err(Error::invalid("config", "image too large"));
