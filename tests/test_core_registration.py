@@ -73,10 +73,10 @@ def test_rigid_transform_is_exact_without_noise_and_accepts_float32_and_strided_
 
 def test_rigid_transform_bad_input() -> None:
     good = np.random.default_rng(2).normal(size=(10, 3))
-    with pytest.raises(ValueError, match="at least 3"):
+    with pytest.raises(dmlo_rs.RegistrationError, match="at least 3"):
         dmlo_rs.rigid_transform(good[:2], good[:2])
     line = np.outer(np.arange(10.0), [1.0, 2.0, 3.0])
-    with pytest.raises(ValueError, match="degenerate"):
+    with pytest.raises(dmlo_rs.RegistrationError, match="degenerate"):
         dmlo_rs.rigid_transform(line, line)
     with pytest.raises(TypeError, match="src"):
         dmlo_rs.rigid_transform(good.astype(np.int64), good)
@@ -131,15 +131,17 @@ def test_ransac_with_no_consistent_motion_or_too_few_matches() -> None:
     result = dmlo_rs.ransac_rigid(src, dst, max_iterations=300)
     assert result.num_inliers < 10  # callers fall back to the motion model
     assert result.iterations == 300
-    with pytest.raises(ValueError, match="at least 3"):
+    with pytest.raises(dmlo_rs.RegistrationError, match="at least 3"):
         dmlo_rs.ransac_rigid(src[:2], dst[:2])
-    with pytest.raises(ValueError, match="at least 3"):
+    with pytest.raises(dmlo_rs.RegistrationError, match="at least 3"):
         dmlo_rs.ransac_rigid(np.zeros((0, 3)), np.zeros((0, 3)))
     line = np.outer(np.arange(20.0), [1.0, 0.5, 0.0])
-    with pytest.raises(ValueError, match="collinear"):
+    with pytest.raises(dmlo_rs.RegistrationError, match="collinear"):
         dmlo_rs.ransac_rigid(line, line)
-    with pytest.raises(ValueError, match="threshold"):
+    # A wrong setting is a plain ValueError: the odometry must not mistake it for a pair with no motion.
+    with pytest.raises(ValueError, match="threshold") as refused:
         dmlo_rs.ransac_rigid(src, dst, threshold=-0.1)
+    assert not isinstance(refused.value, dmlo_rs.RegistrationError)
     with pytest.raises(ValueError, match="confidence"):
         dmlo_rs.ransac_rigid(src, dst, confidence=1.5)
     with pytest.raises(TypeError, match="dst"):

@@ -163,7 +163,7 @@ def test_sliding_window_keeps_recent_scans() -> None:
     # The far block was evicted: the map is the two recent scans, exactly as if built from them alone.
     assert ndt_map.num_voxels == alone.num_voxels
     assert ndt_map.num_occupied_voxels == alone.num_occupied_voxels
-    with pytest.raises(ValueError, match="need at least 20"):
+    with pytest.raises(dmlo_rs.RegistrationError, match="need at least 20"):
         ndt_map.align(far_block - [500.0, 0.0, 0.0], rigid([500.0, 0, 0], [0, 0, 0]))
     ndt_map.clear()
     assert (ndt_map.num_scans, ndt_map.num_voxels) == (0, 0)
@@ -260,5 +260,9 @@ def test_bad_transforms_and_options_are_refused(scene_map: dmlo_rs.NdtMap) -> No
         scene_map.align(source, np.eye(4), max_iterations=0)
     with pytest.raises(ValueError, match="num_threads"):
         scene_map.align(source, np.eye(4), num_threads=0)
-    with pytest.raises(ValueError, match="need at least 20 point pairs, got 0"):
+    with pytest.raises(dmlo_rs.RegistrationError, match="need at least 20 point pairs, got 0"):
         scene_map.align(source, rigid([1000.0, 0.0, 0.0], [0.0, 0.0, 0.0]))
+    # Wrong arguments are plain ValueErrors, never the data-dependent RegistrationError callers fall back on.
+    with pytest.raises(ValueError) as refused:
+        scene_map.align(source, np.eye(4), outlier_ratio=1.0)
+    assert not isinstance(refused.value, dmlo_rs.RegistrationError)

@@ -59,6 +59,15 @@ def test_too_few_inliers_fall_back_to_constant_velocity(scans: list[np.ndarray])
     assert np.allclose(poses[2], np.eye(4))
 
 
+
+def test_a_wrong_ransac_setting_stops_instead_of_falling_back_on_every_pair(scans: list[np.ndarray]) -> None:
+    config = OdometryConfig()
+    config.ransac.threshold = -0.1
+    odometry = Odometry.from_default(config)
+    odometry.register(scans[0])
+    with pytest.raises(ValueError, match="threshold"):
+        odometry.register(scans[1])
+
 @pytest.mark.parametrize(
     "bad_scan",
     [np.zeros((0, 4), np.float32), np.full((5000, 4), np.nan, np.float32), np.ones((10, 4), np.float32)],

@@ -1,7 +1,8 @@
 """dmlo_rs — the Rust geometry core of DMLO, with numpy in and out.
 
 Every function releases the GIL while it works and raises ``ValueError`` / ``TypeError`` naming the
-argument at fault on bad input.
+argument at fault on bad input. Valid input whose data admit no solution (too few pairs or map
+correspondences, degenerate points) raises ``RegistrationError``, a ``ValueError`` subclass to fall back on.
 """
 
 from dmlo_rs import _dmlo_rs

@@ -3,9 +3,13 @@
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__"]
+__all__ = ["RegistrationError", "__version__"]
 
 __version__: str
+
+class RegistrationError(ValueError):
+    """Valid arguments whose data admit no solution (too few pairs or correspondences, degenerate
+    points); wrong arguments raise plain ValueError."""
 
 # ---- core (issue 2): projection, ground truth, matches, NMS, rigid solve, RANSAC ----------------------
 

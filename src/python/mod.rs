@@ -11,11 +11,21 @@ use pyo3::prelude::*;
 
 use crate::Error;
 
+pyo3::create_exception!(
+    dmlo_rs,
+    RegistrationError,
+    PyValueError,
+    "Valid arguments whose data admit no solution: too few point pairs or correspondences, or points \
+     that do not determine a unique motion. A subclass of ValueError, so callers can tell such \
+     data-dependent failures apart from wrong arguments (plain ValueError) and fall back."
+);
+
 impl From<Error> for PyErr {
     fn from(err: Error) -> PyErr {
         match err {
-            Error::InvalidArgument { .. } | Error::TooFewPoints { .. } | Error::Degenerate(_) => {
-                PyValueError::new_err(err.to_string())
+            Error::InvalidArgument { .. } => PyValueError::new_err(err.to_string()),
+            Error::TooFewPoints { .. } | Error::Degenerate(_) => {
+                RegistrationError::new_err(err.to_string())
             }
         }
     }
@@ -24,6 +34,7 @@ impl From<Error> for PyErr {
 #[pymodule]
 fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add("RegistrationError", m.py().get_type::<RegistrationError>())?;
     core::register(m)?;
     sim::register(m)?;
     ndt::register(m)?;

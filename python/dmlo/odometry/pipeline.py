@@ -263,7 +263,7 @@ class Odometry:
                     max_iterations=r.max_iterations, seed=r.seed,
                 )
                 transform, inliers, num_inliers = ransac.transform, ransac.inliers, ransac.num_inliers
-            except ValueError:  # degenerate or all-outlier matches: no motion from this pair
+            except dmlo_rs.RegistrationError:  # degenerate or all-outlier matches: no motion from this pair
                 pass
         if watch:
             watch.lap("ransac")
@@ -320,11 +320,6 @@ class Odometry:
 
     def _make_map(self) -> Any:
         c = self.config.mapping
-        # align() would refuse these on every frame, and a refused alignment silently keeps the DMLO pose.
-        for name in ("degeneracy_threshold", "rotation_degeneracy_threshold"):
-            value = getattr(c, name)
-            if not 0.0 <= value < 1.0:
-                raise ValueError(f"mapping.{name}: must lie in [0, 1), got {value}")
         return dmlo_rs.NdtMap(voxel_size=c.voxel_size, max_scans=c.max_scans)
 
     def _refine_with_map(
@@ -341,7 +336,7 @@ class Odometry:
                 degeneracy_threshold=c.degeneracy_threshold,
                 rotation_degeneracy_threshold=c.rotation_degeneracy_threshold,
             )
-        except ValueError:
+        except dmlo_rs.RegistrationError:  # too few correspondences with the map: keep the DMLO pose
             diagnostics.ndt_converged = False
             return pose
         diagnostics.ndt_converged = bool(result.converged)
