@@ -59,11 +59,18 @@ impl Scene {
             })?;
         }
         if primitives.len() > u32::MAX as usize {
-            return Err(Error::invalid("primitives", "more than 2^32 - 1 primitives"));
+            return Err(Error::invalid(
+                "primitives",
+                "more than 2^32 - 1 primitives",
+            ));
         }
         let bounds: Vec<_> = primitives.iter().map(Primitive::bounds).collect();
         let bvh = bvh::Bvh::build(&bounds);
-        let slots = bvh.order().iter().map(|&i| primitives[i as usize]).collect();
+        let slots = bvh
+            .order()
+            .iter()
+            .map(|&i| primitives[i as usize])
+            .collect();
         Ok(Self {
             primitives,
             slots,
@@ -88,7 +95,12 @@ impl Scene {
 
     /// Closest hit of one ray within `(0, max_range]`; `direction` must be a unit vector (not checked
     /// here: the batch methods normalise and validate).
-    pub fn cast_ray(&self, origin: &Point3<f64>, direction: &Vector3<f64>, max_range: f64) -> Option<Hit> {
+    pub fn cast_ray(
+        &self,
+        origin: &Point3<f64>,
+        direction: &Vector3<f64>,
+        max_range: f64,
+    ) -> Option<Hit> {
         self.cast_ray_with(&mut Vec::new(), origin, direction, max_range)
     }
 
@@ -101,11 +113,11 @@ impl Scene {
         max_range: f64,
     ) -> Option<Hit> {
         let slots = &self.slots;
-        let (range, slot) = self
-            .bvh
-            .closest(stack, origin, direction, max_range, |slot, t_max| {
-                slots[slot].intersect(origin, direction, t_max)
-            })?;
+        let (range, slot) =
+            self.bvh
+                .closest(stack, origin, direction, max_range, |slot, t_max| {
+                    slots[slot].intersect(origin, direction, t_max)
+                })?;
         let point = origin + direction * range;
         let normal = slots[slot].normal_at(&point);
         let primitive = self.bvh.order()[slot];
@@ -128,7 +140,11 @@ impl Scene {
         if origins.len() != directions.len() {
             return Err(Error::invalid(
                 "directions",
-                format!("{} directions for {} origins", directions.len(), origins.len()),
+                format!(
+                    "{} directions for {} origins",
+                    directions.len(),
+                    origins.len()
+                ),
             ));
         }
         if let Some(i) = origins
@@ -214,7 +230,11 @@ impl Scene {
             .enumerate()
             .with_min_len(256)
             .map_init(Vec::new, |stack, (i, d)| {
-                let (rotation, origin) = &frames[if frames.len() == 1 { 0 } else { i % azimuth_count }];
+                let (rotation, origin) = &frames[if frames.len() == 1 {
+                    0
+                } else {
+                    i % azimuth_count
+                }];
                 let world = (rotation * d).normalize();
                 self.cast_ray_with(stack, origin, &world, max_range)
             })
@@ -256,7 +276,8 @@ pub fn scan_directions(elevations_deg: &[f64], azimuth_count: usize) -> Result<V
     for elevation in elevations_deg {
         let (sin_e, cos_e) = elevation.to_radians().sin_cos();
         for j in 0..azimuth_count {
-            let azimuth = std::f64::consts::PI - std::f64::consts::TAU * j as f64 / azimuth_count as f64;
+            let azimuth =
+                std::f64::consts::PI - std::f64::consts::TAU * j as f64 / azimuth_count as f64;
             let (sin_a, cos_a) = azimuth.sin_cos();
             directions.push(Vector3::new(cos_e * cos_a, cos_e * sin_a, sin_e));
         }
@@ -283,7 +304,8 @@ fn check_rigid(pose: &Matrix4<f64>) -> Result<()> {
         .abs()
         .max();
     let bottom_ok =
-        (pose[(3, 0)].abs() + pose[(3, 1)].abs() + pose[(3, 2)].abs() + (pose[(3, 3)] - 1.0).abs()) < 1e-9;
+        (pose[(3, 0)].abs() + pose[(3, 1)].abs() + pose[(3, 2)].abs() + (pose[(3, 3)] - 1.0).abs())
+            < 1e-9;
     if error > 1e-6 || rotation.determinant() < 0.0 || !bottom_ok {
         return Err(Error::invalid(
             "pose",

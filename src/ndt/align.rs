@@ -20,12 +20,14 @@
 //! map neighbours and made the well-constrained roll look the weakest direction.
 
 use nalgebra::{
-    Isometry3, Matrix3, Matrix4, Matrix6, Point3, Rotation3, SymmetricEigen, Translation3, UnitQuaternion, Vector3,
-    Vector6,
+    Isometry3, Matrix3, Matrix4, Matrix6, Point3, Rotation3, SymmetricEigen, Translation3,
+    UnitQuaternion, Vector3, Vector6,
 };
 
 use super::map::NdtMap;
-use super::score::{apply_increment, evaluate, Evaluation, NeighbourSearch, ScoreConstants, ScoreContext};
+use super::score::{
+    apply_increment, evaluate, Evaluation, NeighbourSearch, ScoreConstants, ScoreContext,
+};
 use super::voxel::voxel_downsample;
 use crate::{Error, Result};
 
@@ -98,7 +100,10 @@ impl NdtAlignConfig {
             if value.is_finite() && value > 0.0 {
                 Ok(())
             } else {
-                Err(Error::invalid(name, format!("must be finite and > 0, got {value}")))
+                Err(Error::invalid(
+                    name,
+                    format!("must be finite and > 0, got {value}"),
+                ))
             }
         };
         if self.max_iterations == 0 {
@@ -107,7 +112,10 @@ impl NdtAlignConfig {
         positive(self.translation_epsilon, "translation_epsilon")?;
         positive(self.rotation_epsilon_deg, "rotation_epsilon_deg")?;
         if !(self.outlier_ratio > 0.0 && self.outlier_ratio < 1.0) {
-            return Err(Error::invalid("outlier_ratio", format!("must lie in (0, 1), got {}", self.outlier_ratio)));
+            return Err(Error::invalid(
+                "outlier_ratio",
+                format!("must lie in (0, 1), got {}", self.outlier_ratio),
+            ));
         }
         if !(self.source_voxel_size.is_finite() && self.source_voxel_size >= 0.0) {
             return Err(Error::invalid(
@@ -122,10 +130,16 @@ impl NdtAlignConfig {
         }
         for (value, name) in [
             (self.degeneracy_threshold, "degeneracy_threshold"),
-            (self.rotation_degeneracy_threshold, "rotation_degeneracy_threshold"),
+            (
+                self.rotation_degeneracy_threshold,
+                "rotation_degeneracy_threshold",
+            ),
         ] {
             if !(0.0..1.0).contains(&value) {
-                return Err(Error::invalid(name, format!("must lie in [0, 1), got {value}")));
+                return Err(Error::invalid(
+                    name,
+                    format!("must lie in [0, 1), got {value}"),
+                ));
             }
         }
         Ok(())
@@ -158,25 +172,37 @@ pub struct NdtResult {
 }
 
 /// `T` from a 4×4 matrix, refusing anything that is not a rigid motion (within float32 round-off).
-pub fn isometry_from_matrix4(matrix: &Matrix4<f64>, argument: &'static str) -> Result<Isometry3<f64>> {
+pub fn isometry_from_matrix4(
+    matrix: &Matrix4<f64>,
+    argument: &'static str,
+) -> Result<Isometry3<f64>> {
     if matrix.iter().any(|v| !v.is_finite()) {
         return Err(Error::invalid(argument, "has a non-finite entry"));
     }
     let last_row = matrix.fixed_view::<1, 4>(3, 0);
     if (last_row - nalgebra::RowVector4::new(0.0, 0.0, 0.0, 1.0)).amax() > 1e-6 {
-        return Err(Error::invalid(argument, format!("last row must be [0, 0, 0, 1], got {last_row}")));
+        return Err(Error::invalid(
+            argument,
+            format!("last row must be [0, 0, 0, 1], got {last_row}"),
+        ));
     }
     let rotation = matrix.fixed_view::<3, 3>(0, 0).into_owned();
     let orthogonality = (rotation.transpose() * rotation - nalgebra::Matrix3::identity()).amax();
     if orthogonality > 1e-4 || rotation.determinant() <= 0.0 {
         return Err(Error::invalid(
             argument,
-            format!("is not a rigid transform: |RᵀR − I| = {orthogonality:.3e}, det R = {:.6}", rotation.determinant()),
+            format!(
+                "is not a rigid transform: |RᵀR − I| = {orthogonality:.3e}, det R = {:.6}",
+                rotation.determinant()
+            ),
         ));
     }
     let rotation = Rotation3::from_matrix_eps(&rotation, 1e-12, 100, Rotation3::identity());
     let translation = Translation3::new(matrix[(0, 3)], matrix[(1, 3)], matrix[(2, 3)]);
-    Ok(Isometry3::from_parts(translation, UnitQuaternion::from_rotation_matrix(&rotation)))
+    Ok(Isometry3::from_parts(
+        translation,
+        UnitQuaternion::from_rotation_matrix(&rotation),
+    ))
 }
 
 impl NdtMap {
@@ -193,16 +219,31 @@ impl NdtMap {
     ) -> Result<NdtResult> {
         config.validate()?;
         if self.is_empty() {
-            return Err(Error::invalid("map", "is empty: insert a scan before aligning"));
+            return Err(Error::invalid(
+                "map",
+                "is empty: insert a scan before aligning",
+            ));
         }
         if points.is_empty() {
             return Err(Error::invalid("points", "is empty"));
         }
-        if let Some(row) = points.iter().position(|p| !p.coords.iter().all(|v| v.is_finite())) {
+        if let Some(row) = points
+            .iter()
+            .position(|p| !p.coords.iter().all(|v| v.is_finite()))
+        {
             return Err(Error::invalid("points", format!("row {row} is not finite")));
         }
-        if !(initial.translation.vector.iter().chain(initial.rotation.coords.iter()).all(|v| v.is_finite())) {
-            return Err(Error::invalid("initial_transform", "has a non-finite entry"));
+        if !(initial
+            .translation
+            .vector
+            .iter()
+            .chain(initial.rotation.coords.iter())
+            .all(|v| v.is_finite()))
+        {
+            return Err(Error::invalid(
+                "initial_transform",
+                "has a non-finite entry",
+            ));
         }
         let source = voxel_downsample(points, config.source_voxel_size);
         let voxel_size = self.config().voxel_size;
@@ -215,10 +256,16 @@ impl NdtMap {
         let mut pose = *initial;
         let mut current = evaluate(&context, &source, &pose);
         if current.num_correspondences < config.min_correspondences {
-            return Err(Error::TooFewPoints { needed: config.min_correspondences, got: current.num_correspondences });
+            return Err(Error::TooFewPoints {
+                needed: config.min_correspondences,
+                got: current.num_correspondences,
+            });
         }
-        let degeneracy =
-            Degeneracy::analyse(&current, config.degeneracy_threshold, config.rotation_degeneracy_threshold);
+        let degeneracy = Degeneracy::analyse(
+            &current,
+            config.degeneracy_threshold,
+            config.rotation_degeneracy_threshold,
+        );
         let rotation_epsilon = config.rotation_epsilon_deg.to_radians();
         let mut converged = false;
         let mut iterations = 0;
@@ -239,7 +286,9 @@ impl NdtMap {
                 converged = true;
                 break;
             }
-            let Some((next_pose, next, step)) = line_search(&context, &source, &pose, &current, &direction) else {
+            let Some((next_pose, next, step)) =
+                line_search(&context, &source, &pose, &current, &direction)
+            else {
                 break;
             };
             pose = next_pose;
@@ -314,7 +363,9 @@ impl Degeneracy {
                 relative[i] = value / largest;
                 if relative[i] < threshold {
                     let mut direction = Vector6::zeros();
-                    direction.fixed_rows_mut::<3>(offset).copy_from(&eigen.eigenvectors.column(i));
+                    direction
+                        .fixed_rows_mut::<3>(offset)
+                        .copy_from(&eigen.eigenvectors.column(i));
                     projector -= direction * direction.transpose();
                     degenerate_directions += 1;
                 }
@@ -339,13 +390,27 @@ fn symmetric_part(matrix: &Matrix6<f64>) -> Matrix6<f64> {
 
 /// The 3×3 information of the block at `keep` with the block at `marginalise` free:
 /// `A − B·C⁺·Bᵀ` (pseudo-inverse, so a block with no information in some direction is fine).
-fn marginal_information(information: &Matrix6<f64>, keep: usize, marginalise: usize) -> Matrix3<f64> {
+fn marginal_information(
+    information: &Matrix6<f64>,
+    keep: usize,
+    marginalise: usize,
+) -> Matrix3<f64> {
     let kept = information.fixed_view::<3, 3>(keep, keep).into_owned();
-    let coupling = information.fixed_view::<3, 3>(keep, marginalise).into_owned();
-    let other = SymmetricEigen::new(information.fixed_view::<3, 3>(marginalise, marginalise).into_owned());
+    let coupling = information
+        .fixed_view::<3, 3>(keep, marginalise)
+        .into_owned();
+    let other = SymmetricEigen::new(
+        information
+            .fixed_view::<3, 3>(marginalise, marginalise)
+            .into_owned(),
+    );
     let cutoff = other.eigenvalues.amax() * 1e-12;
-    let inverse_values = other.eigenvalues.map(|value| if value > cutoff { 1.0 / value } else { 0.0 });
-    let pseudo_inverse = other.eigenvectors * Matrix3::from_diagonal(&inverse_values) * other.eigenvectors.transpose();
+    let inverse_values = other
+        .eigenvalues
+        .map(|value| if value > cutoff { 1.0 / value } else { 0.0 });
+    let pseudo_inverse = other.eigenvectors
+        * Matrix3::from_diagonal(&inverse_values)
+        * other.eigenvectors.transpose();
     let marginal = kept - coupling * pseudo_inverse * coupling.transpose();
     (marginal + marginal.transpose()) * 0.5
 }
@@ -355,7 +420,11 @@ fn marginal_information(information: &Matrix6<f64>, keep: usize, marginalise: us
 /// degenerate directions the step is the Newton step of the problem restricted to the constrained ones
 /// (zero along the others). Shortened to the configured step limits. `None` when the curvature vanishes
 /// or is not finite.
-fn newton_direction(at: &Evaluation, config: &NdtAlignConfig, degeneracy: &Degeneracy) -> Option<Vector6<f64>> {
+fn newton_direction(
+    at: &Evaluation,
+    config: &NdtAlignConfig,
+    degeneracy: &Degeneracy,
+) -> Option<Vector6<f64>> {
     let hessian = symmetric_part(&at.hessian);
     let hessian_psd = symmetric_part(&at.hessian_psd);
     let mut step = match &degeneracy.projector {
@@ -371,12 +440,17 @@ fn newton_direction(at: &Evaluation, config: &NdtAlignConfig, degeneracy: &Degen
                 restricted + (Matrix6::identity() - projector) * filler
             };
             projector
-                * positive_definite_solve(&restrict(&hessian), &restrict(&hessian_psd), &(projector * at.gradient))?
+                * positive_definite_solve(
+                    &restrict(&hessian),
+                    &restrict(&hessian_psd),
+                    &(projector * at.gradient),
+                )?
         }
     };
     let translation = Vector3::new(step[0], step[1], step[2]).norm();
     let rotation = Vector3::new(step[3], step[4], step[5]).norm();
-    let shrink = (config.max_step_translation / translation).min(config.max_step_rotation_deg.to_radians() / rotation);
+    let shrink = (config.max_step_translation / translation)
+        .min(config.max_step_rotation_deg.to_radians() / rotation);
     if shrink < 1.0 {
         step *= shrink;
     }
@@ -391,7 +465,11 @@ fn positive_definite_solve(
     gradient: &Vector6<f64>,
 ) -> Option<Vector6<f64>> {
     let full = SymmetricEigen::new(*hessian);
-    let eigen = if full.eigenvalues.min() > 0.0 { full } else { SymmetricEigen::new(*fallback) };
+    let eigen = if full.eigenvalues.min() > 0.0 {
+        full
+    } else {
+        SymmetricEigen::new(*fallback)
+    };
     let largest = eigen.eigenvalues.amax();
     if !(largest.is_finite() && largest > 0.0) {
         return None;
@@ -475,7 +553,11 @@ mod tests {
             let point = if rng.random::<f64>() < 0.1 {
                 let [x, y] = poles[rng.random_range(0..poles.len())];
                 let angle: f64 = rng.random::<f64>() * std::f64::consts::TAU;
-                Vector3::new(x + 0.15 * angle.cos(), y + 0.15 * angle.sin(), rng.random::<f64>() * 5.0)
+                Vector3::new(
+                    x + 0.15 * angle.cos(),
+                    y + 0.15 * angle.sin(),
+                    rng.random::<f64>() * 5.0,
+                )
             } else {
                 let mut pick = rng.random::<f64>() * total;
                 let patch = patches
@@ -490,8 +572,11 @@ mod tests {
                     + Vector3::from(*a) * rng.random::<f64>()
                     + Vector3::from(*b) * rng.random::<f64>()
             };
-            let noise =
-                Vector3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()) - Vector3::repeat(0.5);
+            let noise = Vector3::new(
+                rng.random::<f64>(),
+                rng.random::<f64>(),
+                rng.random::<f64>(),
+            ) - Vector3::repeat(0.5);
             points.push(Point3::from(point + noise * 0.02));
         }
         points
@@ -504,27 +589,39 @@ mod tests {
     }
 
     fn motion(translation: [f64; 3], axis_angle_deg: [f64; 3]) -> Isometry3<f64> {
-        Isometry3::new(Vector3::from(translation), Vector3::from(axis_angle_deg).map(f64::to_radians))
+        Isometry3::new(
+            Vector3::from(translation),
+            Vector3::from(axis_angle_deg).map(f64::to_radians),
+        )
     }
 
     /// Translation (m) and rotation (deg) of `estimate⁻¹ · truth`.
     fn errors(estimate: &Isometry3<f64>, truth: &Isometry3<f64>) -> (f64, f64) {
         let delta = estimate.inverse() * truth;
-        (delta.translation.vector.norm(), delta.rotation.angle().to_degrees())
+        (
+            delta.translation.vector.norm(),
+            delta.rotation.angle().to_degrees(),
+        )
     }
 
     /// Map from one sample of the scene; the source an independent sample seen from `T_map_source`.
     fn align_scene(truth: &Isometry3<f64>, initial: &Isometry3<f64>) -> NdtResult {
         let map = map_of(&sample_scene(40_000, 1));
-        let source: Vec<Point3<f64>> =
-            sample_scene(8_000, 2).iter().map(|p| truth.inverse_transform_point(p)).collect();
-        map.align(&source, initial, &NdtAlignConfig::default()).unwrap()
+        let source: Vec<Point3<f64>> = sample_scene(8_000, 2)
+            .iter()
+            .map(|p| truth.inverse_transform_point(p))
+            .collect();
+        map.align(&source, initial, &NdtAlignConfig::default())
+            .unwrap()
     }
 
     fn assert_recovers(result: &NdtResult, truth: &Isometry3<f64>) {
         let (translation, rotation) = errors(&result.transform, truth);
         assert!(result.converged, "{result:?}");
-        assert!(translation < 0.01 && rotation < 0.05, "error {translation:.4} m {rotation:.4}°: {result:?}");
+        assert!(
+            translation < 0.01 && rotation < 0.05,
+            "error {translation:.4} m {rotation:.4}°: {result:?}"
+        );
         // A well-constrained scene: every direction is solved for.
         assert_eq!(result.degenerate_directions, 0, "{result:?}");
     }
@@ -547,14 +644,20 @@ mod tests {
         let initial = truth * motion([0.25, -0.15, 0.1], [0.8, -0.5, 1.5]);
         let result = align_scene(&truth, &initial);
         assert_recovers(&result, &truth);
-        assert!(result.score > 0.1 && result.num_correspondences > 1000, "{result:?}");
+        assert!(
+            result.score > 0.1 && result.num_correspondences > 1000,
+            "{result:?}"
+        );
     }
 
     #[test]
     fn result_is_identical_for_one_and_four_threads() {
         let truth = motion([0.4, 0.1, 0.0], [0.0, 0.0, 2.0]);
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
             pool.install(|| align_scene(&truth, &Isometry3::identity()))
         };
         assert_eq!(run(1), run(4));
@@ -573,33 +676,75 @@ mod tests {
         assert_eq!(argument_of(map.align(&[], &identity, &config)), "points");
         let mut with_nan = source.clone();
         with_nan[7].y = f64::NAN;
-        assert_eq!(argument_of(map.align(&with_nan, &identity, &config)), "points");
+        assert_eq!(
+            argument_of(map.align(&with_nan, &identity, &config)),
+            "points"
+        );
         let empty = NdtMap::new(NdtMapConfig::default()).unwrap();
         assert_eq!(argument_of(empty.align(&source, &identity, &config)), "map");
         let mut scaled = Matrix4::identity();
         scaled[(0, 0)] = 2.0;
-        assert_eq!(argument_of(map.align_matrix(&source, &scaled, &config)), "initial_transform");
+        assert_eq!(
+            argument_of(map.align_matrix(&source, &scaled, &config)),
+            "initial_transform"
+        );
         let mut reflected = Matrix4::identity();
         reflected[(2, 2)] = -1.0;
-        assert_eq!(argument_of(map.align_matrix(&source, &reflected, &config)), "initial_transform");
+        assert_eq!(
+            argument_of(map.align_matrix(&source, &reflected, &config)),
+            "initial_transform"
+        );
         let mut projective = Matrix4::identity();
         projective[(3, 0)] = 0.1;
-        assert_eq!(argument_of(map.align_matrix(&source, &projective, &config)), "initial_transform");
+        assert_eq!(
+            argument_of(map.align_matrix(&source, &projective, &config)),
+            "initial_transform"
+        );
         let mut not_finite = Matrix4::identity();
         not_finite[(1, 3)] = f64::INFINITY;
-        assert_eq!(argument_of(map.align_matrix(&source, &not_finite, &config)), "initial_transform");
-        let bad = NdtAlignConfig { outlier_ratio: 1.0, ..config.clone() };
-        assert_eq!(argument_of(map.align(&source, &identity, &bad)), "outlier_ratio");
-        let bad = NdtAlignConfig { max_iterations: 0, ..config.clone() };
-        assert_eq!(argument_of(map.align(&source, &identity, &bad)), "max_iterations");
-        let bad = NdtAlignConfig { degeneracy_threshold: 1.0, ..config.clone() };
-        assert_eq!(argument_of(map.align(&source, &identity, &bad)), "degeneracy_threshold");
-        let bad = NdtAlignConfig { rotation_degeneracy_threshold: f64::NAN, ..config.clone() };
-        assert_eq!(argument_of(map.align(&source, &identity, &bad)), "rotation_degeneracy_threshold");
+        assert_eq!(
+            argument_of(map.align_matrix(&source, &not_finite, &config)),
+            "initial_transform"
+        );
+        let bad = NdtAlignConfig {
+            outlier_ratio: 1.0,
+            ..config.clone()
+        };
+        assert_eq!(
+            argument_of(map.align(&source, &identity, &bad)),
+            "outlier_ratio"
+        );
+        let bad = NdtAlignConfig {
+            max_iterations: 0,
+            ..config.clone()
+        };
+        assert_eq!(
+            argument_of(map.align(&source, &identity, &bad)),
+            "max_iterations"
+        );
+        let bad = NdtAlignConfig {
+            degeneracy_threshold: 1.0,
+            ..config.clone()
+        };
+        assert_eq!(
+            argument_of(map.align(&source, &identity, &bad)),
+            "degeneracy_threshold"
+        );
+        let bad = NdtAlignConfig {
+            rotation_degeneracy_threshold: f64::NAN,
+            ..config.clone()
+        };
+        assert_eq!(
+            argument_of(map.align(&source, &identity, &bad)),
+            "rotation_degeneracy_threshold"
+        );
         let far_away = motion([500.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
         assert_eq!(
             map.align(&source, &far_away, &config),
-            Err(Error::TooFewPoints { needed: config.min_correspondences, got: 0 })
+            Err(Error::TooFewPoints {
+                needed: config.min_correspondences,
+                got: 0
+            })
         );
     }
 
@@ -611,15 +756,24 @@ mod tests {
         let mut plane = |count: usize| -> Vec<Point3<f64>> {
             (0..count)
                 .map(|_| {
-                    let (x, y, z) = (rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>());
+                    let (x, y, z) = (
+                        rng.random::<f64>(),
+                        rng.random::<f64>(),
+                        rng.random::<f64>(),
+                    );
                     Point3::new(40.0 * x - 20.0, 30.0 * y - 15.0, 0.02 * z - 0.01)
                 })
                 .collect()
         };
         let map = map_of(&plane(40_000));
         let truth = motion([0.0, 0.0, 0.1], [1.0, -0.5, 0.0]);
-        let source: Vec<Point3<f64>> = plane(8_000).iter().map(|p| truth.inverse_transform_point(p)).collect();
-        let result = map.align(&source, &Isometry3::identity(), &NdtAlignConfig::default()).unwrap();
+        let source: Vec<Point3<f64>> = plane(8_000)
+            .iter()
+            .map(|p| truth.inverse_transform_point(p))
+            .collect();
+        let result = map
+            .align(&source, &Isometry3::identity(), &NdtAlignConfig::default())
+            .unwrap();
         let estimate = result.transform;
         assert!(result.converged, "{result:?}");
         assert!((estimate.translation.z - 0.1).abs() < 0.002, "{result:?}");
@@ -631,12 +785,17 @@ mod tests {
         // of z's information there. From a start as close as the odometry's (a few cm) they are found
         // degenerate and held exactly where they started, while z, roll and pitch are still solved.
         let start = truth * motion([0.05, -0.03, 0.01], [0.05, 0.05, 0.1]);
-        let result = map.align(&source, &start, &NdtAlignConfig::default()).unwrap();
+        let result = map
+            .align(&source, &start, &NdtAlignConfig::default())
+            .unwrap();
         assert!(result.converged, "{result:?}");
         assert!(result.degenerate_directions >= 2, "{result:?}");
         let held = result.transform.translation.vector.xy() - start.translation.vector.xy();
         assert!(held.norm() < 1e-3, "{result:?}"); // the split directions are tilted by the 1 cm z offset
-        assert!((result.transform.translation.z - 0.1).abs() < 0.002, "{result:?}");
+        assert!(
+            (result.transform.translation.z - 0.1).abs() < 0.002,
+            "{result:?}"
+        );
         let up = result.transform.rotation * Vector3::z();
         assert!(up.angle(&true_up).to_degrees() < 0.02, "{result:?}");
     }
@@ -650,12 +809,19 @@ mod tests {
         (0..count)
             .map(|_| {
                 let x = x0 + (x1 - x0) * rng.random::<f64>();
-                let noise =
-                    Vector3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()) - Vector3::repeat(0.5);
+                let noise = Vector3::new(
+                    rng.random::<f64>(),
+                    rng.random::<f64>(),
+                    rng.random::<f64>(),
+                ) - Vector3::repeat(0.5);
                 let surface = if rng.random::<f64>() < ground_share {
                     Vector3::new(x, half_width * (2.0 * rng.random::<f64>() - 1.0), 0.0)
                 } else {
-                    let side = if rng.random::<bool>() { half_width } else { -half_width };
+                    let side = if rng.random::<bool>() {
+                        half_width
+                    } else {
+                        -half_width
+                    };
                     Vector3::new(x, side, height * rng.random::<f64>())
                 };
                 Point3::from(surface + noise * 0.02)
@@ -669,21 +835,37 @@ mod tests {
         // wall tells where along x it is. Start 0.3 m off along the axis and a little off across it.
         let map = map_of(&sample_corridor(60_000, (-40.0, 40.0), 1));
         let truth = motion([2.0, 0.1, 0.05], [0.2, -0.3, 1.0]);
-        let source: Vec<Point3<f64>> =
-            sample_corridor(10_000, (-20.0, 20.0), 2).iter().map(|p| truth.inverse_transform_point(p)).collect();
+        let source: Vec<Point3<f64>> = sample_corridor(10_000, (-20.0, 20.0), 2)
+            .iter()
+            .map(|p| truth.inverse_transform_point(p))
+            .collect();
         let along_axis = 0.3;
         let initial = Isometry3::from_parts(
             (truth.translation.vector + Vector3::new(along_axis, -0.08, 0.04)).into(),
-            UnitQuaternion::from_scaled_axis(Vector3::new(0.3f64, -0.2, 0.8).map(f64::to_radians)) * truth.rotation,
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.3f64, -0.2, 0.8).map(f64::to_radians))
+                * truth.rotation,
         );
-        let result = map.align(&source, &initial, &NdtAlignConfig::default()).unwrap();
+        let result = map
+            .align(&source, &initial, &NdtAlignConfig::default())
+            .unwrap();
         let offset = result.transform.translation.vector - truth.translation.vector;
         assert!(result.converged, "{result:?}");
         assert_eq!(result.degenerate_directions, 1, "{result:?}");
-        assert!((offset.x - along_axis).abs() < 0.005, "x pulled off the initial estimate: {result:?}");
-        assert!(offset.y.abs() < 0.005 && offset.z.abs() < 0.005, "{result:?}");
-        let rotation_error = (result.transform.rotation.inverse() * truth.rotation).angle().to_degrees();
-        assert!(rotation_error < 0.02, "rotation error {rotation_error}°: {result:?}");
+        assert!(
+            (offset.x - along_axis).abs() < 0.005,
+            "x pulled off the initial estimate: {result:?}"
+        );
+        assert!(
+            offset.y.abs() < 0.005 && offset.z.abs() < 0.005,
+            "{result:?}"
+        );
+        let rotation_error = (result.transform.rotation.inverse() * truth.rotation)
+            .angle()
+            .to_degrees();
+        assert!(
+            rotation_error < 0.02,
+            "rotation error {rotation_error}°: {result:?}"
+        );
 
         // Without the analysis the weak in-plane information moves x (the old behaviour).
         let unaware = NdtAlignConfig {

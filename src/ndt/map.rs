@@ -29,7 +29,12 @@ pub struct NdtMapConfig {
 
 impl Default for NdtMapConfig {
     fn default() -> Self {
-        NdtMapConfig { voxel_size: 1.0, min_points_per_voxel: 5, max_scans: 10, min_eigenvalue_ratio: 0.01 }
+        NdtMapConfig {
+            voxel_size: 1.0,
+            min_points_per_voxel: 5,
+            max_scans: 10,
+            min_eigenvalue_ratio: 0.01,
+        }
     }
 }
 
@@ -37,12 +42,18 @@ impl NdtMapConfig {
     /// Checks every field, naming the first that is out of range.
     pub fn validate(&self) -> Result<()> {
         if !(self.voxel_size.is_finite() && self.voxel_size > 0.0) {
-            return Err(Error::invalid("voxel_size", format!("must be finite and > 0, got {}", self.voxel_size)));
+            return Err(Error::invalid(
+                "voxel_size",
+                format!("must be finite and > 0, got {}", self.voxel_size),
+            ));
         }
         if self.min_points_per_voxel < 3 {
             return Err(Error::invalid(
                 "min_points_per_voxel",
-                format!("must be at least 3 to fit a covariance, got {}", self.min_points_per_voxel),
+                format!(
+                    "must be at least 3 to fit a covariance, got {}",
+                    self.min_points_per_voxel
+                ),
             ));
         }
         if self.max_scans == 0 {
@@ -73,7 +84,12 @@ impl NdtMap {
     /// An empty map; fails when the configuration is out of range.
     pub fn new(config: NdtMapConfig) -> Result<Self> {
         config.validate()?;
-        Ok(NdtMap { config, voxels: VoxelMap::default(), gaussians: VoxelMap::default(), scans: VecDeque::new() })
+        Ok(NdtMap {
+            config,
+            voxels: VoxelMap::default(),
+            gaussians: VoxelMap::default(),
+            scans: VecDeque::new(),
+        })
     }
 
     /// The map's settings.
@@ -121,7 +137,10 @@ impl NdtMap {
             return Err(Error::invalid("points_world", "is empty"));
         }
         let inverse = 1.0 / self.config.voxel_size;
-        if let Some(row) = points_world.iter().position(|p| VoxelKey::containing(p, inverse).is_none()) {
+        if let Some(row) = points_world
+            .iter()
+            .position(|p| VoxelKey::containing(p, inverse).is_none())
+        {
             return Err(Error::invalid(
                 "points_world",
                 format!(
@@ -131,15 +150,19 @@ impl NdtMap {
             ));
         }
         let (order, mut stats) = voxel_statistics(points_world, self.config.voxel_size);
-        let scan: Vec<(VoxelKey, VoxelStats)> =
-            order.iter().map(|key| (*key, stats.remove(key).unwrap_or_default())).collect();
+        let scan: Vec<(VoxelKey, VoxelStats)> = order
+            .iter()
+            .map(|key| (*key, stats.remove(key).unwrap_or_default()))
+            .collect();
         let mut touched: Vec<VoxelKey> = order;
         for (key, scan_stats) in &scan {
             self.voxels.entry(*key).or_default().merge(scan_stats);
         }
         self.scans.push_back(scan);
         while self.scans.len() > self.config.max_scans {
-            let Some(oldest) = self.scans.pop_front() else { break };
+            let Some(oldest) = self.scans.pop_front() else {
+                break;
+            };
             for (key, scan_stats) in &oldest {
                 if let Some(voxel) = self.voxels.get_mut(key) {
                     voxel.unmerge(scan_stats);
@@ -193,14 +216,21 @@ mod tests {
         (0..count)
             .map(|i| {
                 let t = i as f64;
-                Point3::new(offset + (t * 0.37) % 1.0, (t * 0.61) % 1.0, (t * 0.23) % 1.0)
+                Point3::new(
+                    offset + (t * 0.37) % 1.0,
+                    (t * 0.61) % 1.0,
+                    (t * 0.23) % 1.0,
+                )
             })
             .collect()
     }
 
     #[test]
     fn window_evicts_oldest_scan_and_matches_a_rebuild() {
-        let config = NdtMapConfig { max_scans: 2, ..NdtMapConfig::default() };
+        let config = NdtMapConfig {
+            max_scans: 2,
+            ..NdtMapConfig::default()
+        };
         let mut sliding = NdtMap::new(config.clone()).unwrap();
         sliding.insert(&block(0.0, 20)).unwrap();
         sliding.insert(&block(0.1, 20)).unwrap();
@@ -221,16 +251,58 @@ mod tests {
     #[test]
     fn bad_points_and_configs_are_refused() {
         let mut map = NdtMap::new(NdtMapConfig::default()).unwrap();
-        assert!(matches!(map.insert(&[]), Err(Error::InvalidArgument { argument: "points_world", .. })));
+        assert!(matches!(
+            map.insert(&[]),
+            Err(Error::InvalidArgument {
+                argument: "points_world",
+                ..
+            })
+        ));
         let bad = [Point3::new(0.0, f64::NAN, 0.0)];
-        assert!(matches!(map.insert(&bad), Err(Error::InvalidArgument { argument: "points_world", .. })));
+        assert!(matches!(
+            map.insert(&bad),
+            Err(Error::InvalidArgument {
+                argument: "points_world",
+                ..
+            })
+        ));
         assert!(map.is_empty());
         for (config, argument) in [
-            (NdtMapConfig { voxel_size: 0.0, ..Default::default() }, "voxel_size"),
-            (NdtMapConfig { voxel_size: f64::NAN, ..Default::default() }, "voxel_size"),
-            (NdtMapConfig { min_points_per_voxel: 2, ..Default::default() }, "min_points_per_voxel"),
-            (NdtMapConfig { max_scans: 0, ..Default::default() }, "max_scans"),
-            (NdtMapConfig { min_eigenvalue_ratio: 0.0, ..Default::default() }, "min_eigenvalue_ratio"),
+            (
+                NdtMapConfig {
+                    voxel_size: 0.0,
+                    ..Default::default()
+                },
+                "voxel_size",
+            ),
+            (
+                NdtMapConfig {
+                    voxel_size: f64::NAN,
+                    ..Default::default()
+                },
+                "voxel_size",
+            ),
+            (
+                NdtMapConfig {
+                    min_points_per_voxel: 2,
+                    ..Default::default()
+                },
+                "min_points_per_voxel",
+            ),
+            (
+                NdtMapConfig {
+                    max_scans: 0,
+                    ..Default::default()
+                },
+                "max_scans",
+            ),
+            (
+                NdtMapConfig {
+                    min_eigenvalue_ratio: 0.0,
+                    ..Default::default()
+                },
+                "min_eigenvalue_ratio",
+            ),
         ] {
             match NdtMap::new(config) {
                 Err(Error::InvalidArgument { argument: got, .. }) => assert_eq!(got, argument),

@@ -58,7 +58,15 @@ pub enum NeighbourSearch {
 impl NeighbourSearch {
     /// Voxel offsets searched, the containing voxel first.
     pub fn offsets(self) -> &'static [[i32; 3]] {
-        const DIRECT7: [[i32; 3]; 7] = [[0, 0, 0], [-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]];
+        const DIRECT7: [[i32; 3]; 7] = [
+            [0, 0, 0],
+            [-1, 0, 0],
+            [1, 0, 0],
+            [0, -1, 0],
+            [0, 1, 0],
+            [0, 0, -1],
+            [0, 0, 1],
+        ];
         const DIRECT27: [[i32; 3]; 27] = {
             let mut offsets = [[0i32; 3]; 27];
             offsets[0] = [0, 0, 0];
@@ -130,8 +138,15 @@ pub struct ScoreContext<'a> {
 
 /// The NDT cost, gradient and Hessian of `source` (sensor frame) placed by `pose`, over the increment
 /// `δ = (v, ω)` described in the module docs. Parallel over chunks of points; deterministic.
-pub fn evaluate(context: &ScoreContext<'_>, source: &[Point3<f64>], pose: &Isometry3<f64>) -> Evaluation {
-    let partial: Vec<Evaluation> = source.par_chunks(CHUNK).map(|chunk| evaluate_chunk(context, chunk, pose)).collect();
+pub fn evaluate(
+    context: &ScoreContext<'_>,
+    source: &[Point3<f64>],
+    pose: &Isometry3<f64>,
+) -> Evaluation {
+    let partial: Vec<Evaluation> = source
+        .par_chunks(CHUNK)
+        .map(|chunk| evaluate_chunk(context, chunk, pose))
+        .collect();
     let mut total = Evaluation::zero();
     for part in &partial {
         total.add(part);
@@ -139,7 +154,11 @@ pub fn evaluate(context: &ScoreContext<'_>, source: &[Point3<f64>], pose: &Isome
     total
 }
 
-fn evaluate_chunk(context: &ScoreContext<'_>, chunk: &[Point3<f64>], pose: &Isometry3<f64>) -> Evaluation {
+fn evaluate_chunk(
+    context: &ScoreContext<'_>,
+    chunk: &[Point3<f64>],
+    pose: &Isometry3<f64>,
+) -> Evaluation {
     let ScoreConstants { d1, d2 } = context.constants;
     let inverse_voxel_size = 1.0 / context.voxel_size;
     let rotation = pose.rotation.to_rotation_matrix();
@@ -148,14 +167,22 @@ fn evaluate_chunk(context: &ScoreContext<'_>, chunk: &[Point3<f64>], pose: &Isom
     for point in chunk {
         let rotated = rotation * point.coords;
         let placed = Point3::from(rotated + translation);
-        let Some(key) = VoxelKey::containing(&placed, inverse_voxel_size) else { continue };
+        let Some(key) = VoxelKey::containing(&placed, inverse_voxel_size) else {
+            continue;
+        };
         // ∂x/∂δ = [I | −[y]×]
         let mut jacobian = Matrix3x6::zeros();
-        jacobian.fixed_view_mut::<3, 3>(0, 0).copy_from(&Matrix3::identity());
-        jacobian.fixed_view_mut::<3, 3>(0, 3).copy_from(&-rotated.cross_matrix());
+        jacobian
+            .fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&Matrix3::identity());
+        jacobian
+            .fixed_view_mut::<3, 3>(0, 3)
+            .copy_from(&-rotated.cross_matrix());
         let mut found = false;
         for offset in context.neighbours.offsets() {
-            let Some(gaussian) = context.gaussians.get(&key.offset(*offset)) else { continue };
+            let Some(gaussian) = context.gaussians.get(&key.offset(*offset)) else {
+                continue;
+            };
             found = true;
             let q = placed - gaussian.mean;
             let a = gaussian.inverse_covariance * q;
@@ -174,8 +201,8 @@ fn evaluate_chunk(context: &ScoreContext<'_>, chunk: &[Point3<f64>], pose: &Isom
             sum.hessian_psd += first_order * weight;
             let mut hessian = first_order - g * g.transpose() * d2;
             // qᵀΣ⁻¹ ∂²x/∂ωᵢ∂ωⱼ = ½(aᵢyⱼ + aⱼyᵢ) − (a·y)δᵢⱼ
-            let second_order =
-                (a * rotated.transpose() + rotated * a.transpose()) * 0.5 - Matrix3::identity() * a.dot(&rotated);
+            let second_order = (a * rotated.transpose() + rotated * a.transpose()) * 0.5
+                - Matrix3::identity() * a.dot(&rotated);
             let mut block = hessian.fixed_view_mut::<3, 3>(3, 3);
             block += second_order;
             sum.hessian += hessian * weight;
@@ -248,13 +275,24 @@ mod tests {
             neighbours: NeighbourSearch::Direct7,
             constants: ScoreConstants::new(0.55, 1.0),
         };
-        let pose = Isometry3::new(Vector3::new(0.05, -0.03, 0.04), Vector3::new(0.02, -0.01, 0.03));
+        let pose = Isometry3::new(
+            Vector3::new(0.05, -0.03, 0.04),
+            Vector3::new(0.02, -0.01, 0.03),
+        );
         // Points close to a voxel face would switch neighbours within the finite-difference steps (the
         // cost jumps there); keep those at least 1 cm inside their voxel.
-        let source: Vec<Point3<f64>> =
-            source.into_iter().filter(|p| (pose * p).coords.iter().all(|v| (v - v.round()).abs() > 0.01)).collect();
+        let source: Vec<Point3<f64>> = source
+            .into_iter()
+            .filter(|p| {
+                (pose * p)
+                    .coords
+                    .iter()
+                    .all(|v| (v - v.round()).abs() > 0.01)
+            })
+            .collect();
         let at = evaluate(&context, &source, &pose);
-        let cost = |delta: Vector6<f64>| evaluate(&context, &source, &apply_increment(&pose, &delta)).cost;
+        let cost =
+            |delta: Vector6<f64>| evaluate(&context, &source, &apply_increment(&pose, &delta)).cost;
         let unit = |i: usize| {
             let mut e = Vector6::zeros();
             e[i] = 1.0;
@@ -264,10 +302,14 @@ mod tests {
         for i in 0..6 {
             let numeric_gradient = (cost(unit(i) * h) - cost(-unit(i) * h)) / (2.0 * h);
             let tolerance = 1e-5 * (1.0 + at.gradient[i].abs());
-            assert!((numeric_gradient - at.gradient[i]).abs() < tolerance, "gradient {i}");
+            assert!(
+                (numeric_gradient - at.gradient[i]).abs() < tolerance,
+                "gradient {i}"
+            );
             for j in 0..6 {
                 let (ei, ej) = (unit(i) * h, unit(j) * h);
-                let numeric = (cost(ei + ej) - cost(ei - ej) - cost(ej - ei) + cost(-ei - ej)) / (4.0 * h * h);
+                let numeric = (cost(ei + ej) - cost(ei - ej) - cost(ej - ei) + cost(-ei - ej))
+                    / (4.0 * h * h);
                 let analytic = at.hessian[(i, j)];
                 assert!(
                     (numeric - analytic).abs() < 1e-3 * (1.0 + analytic.abs()),

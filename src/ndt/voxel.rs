@@ -82,7 +82,11 @@ pub struct VoxelStats {
 
 impl Default for VoxelStats {
     fn default() -> Self {
-        VoxelStats { count: 0, sum: Vector3::zeros(), sum_outer: Matrix3::zeros() }
+        VoxelStats {
+            count: 0,
+            sum: Vector3::zeros(),
+            sum_outer: Matrix3::zeros(),
+        }
     }
 }
 
@@ -112,7 +116,12 @@ impl VoxelStats {
     /// points do not spread at all. Small eigenvalues of the covariance are raised to
     /// `min_eigenvalue_ratio` times the largest (Magnusson 2009, §6.2; PCL's `min_covar_eigvalue_mult`),
     /// so that points on a plane or a line still give an invertible covariance.
-    pub fn gaussian(&self, corner: &Vector3<f64>, min_points: usize, min_eigenvalue_ratio: f64) -> Option<Gaussian> {
+    pub fn gaussian(
+        &self,
+        corner: &Vector3<f64>,
+        min_points: usize,
+        min_eigenvalue_ratio: f64,
+    ) -> Option<Gaussian> {
         if self.count < min_points as u64 || self.count < 2 {
             return None;
         }
@@ -127,9 +136,13 @@ impl VoxelStats {
         }
         let floor = largest * min_eigenvalue_ratio;
         let inverse_eigenvalues = eigen.eigenvalues.map(|value| 1.0 / value.max(floor));
-        let inverse_covariance =
-            eigen.eigenvectors * Matrix3::from_diagonal(&inverse_eigenvalues) * eigen.eigenvectors.transpose();
-        Some(Gaussian { mean: Point3::from(corner + local_mean), inverse_covariance })
+        let inverse_covariance = eigen.eigenvectors
+            * Matrix3::from_diagonal(&inverse_eigenvalues)
+            * eigen.eigenvectors.transpose();
+        Some(Gaussian {
+            mean: Point3::from(corner + local_mean),
+            inverse_covariance,
+        })
     }
 }
 
@@ -144,12 +157,17 @@ pub struct Gaussian {
 
 /// Per-voxel statistics of a set of points, plus the voxel keys in order of first appearance so that
 /// anything iterating over the result is deterministic.
-pub fn voxel_statistics(points: &[Point3<f64>], voxel_size: f64) -> (Vec<VoxelKey>, VoxelMap<VoxelStats>) {
+pub fn voxel_statistics(
+    points: &[Point3<f64>],
+    voxel_size: f64,
+) -> (Vec<VoxelKey>, VoxelMap<VoxelStats>) {
     let inverse = 1.0 / voxel_size;
     let mut order = Vec::new();
     let mut stats: VoxelMap<VoxelStats> = VoxelMap::default();
     for point in points {
-        let Some(key) = VoxelKey::containing(point, inverse) else { continue };
+        let Some(key) = VoxelKey::containing(point, inverse) else {
+            continue;
+        };
         let local = point.coords - key.corner(voxel_size);
         stats
             .entry(key)
@@ -184,21 +202,43 @@ mod tests {
 
     #[test]
     fn keys_floor_negative_coordinates() {
-        assert_eq!(VoxelKey::containing(&Point3::new(-0.1, 0.0, 1.99), 1.0), Some(VoxelKey([-1, 0, 1])));
-        assert_eq!(VoxelKey::containing(&Point3::new(f64::NAN, 0.0, 0.0), 1.0), None);
-        assert_eq!(VoxelKey::containing(&Point3::new(1e12, 0.0, 0.0), 1.0), None);
+        assert_eq!(
+            VoxelKey::containing(&Point3::new(-0.1, 0.0, 1.99), 1.0),
+            Some(VoxelKey([-1, 0, 1]))
+        );
+        assert_eq!(
+            VoxelKey::containing(&Point3::new(f64::NAN, 0.0, 0.0), 1.0),
+            None
+        );
+        assert_eq!(
+            VoxelKey::containing(&Point3::new(1e12, 0.0, 0.0), 1.0),
+            None
+        );
     }
 
     #[test]
     fn gaussian_matches_direct_mean_and_covariance_far_from_origin() {
         let offset = Vector3::new(1.0e5, -2.0e5, 30.0);
-        let locals = [[0.1, 0.2, 0.3], [0.9, 0.1, 0.5], [0.4, 0.8, 0.2], [0.5, 0.5, 0.9], [0.2, 0.3, 0.6]];
-        let points: Vec<Point3<f64>> =
-            locals.iter().map(|p| Point3::from(Vector3::new(p[0], p[1], p[2]) + offset)).collect();
+        let locals = [
+            [0.1, 0.2, 0.3],
+            [0.9, 0.1, 0.5],
+            [0.4, 0.8, 0.2],
+            [0.5, 0.5, 0.9],
+            [0.2, 0.3, 0.6],
+        ];
+        let points: Vec<Point3<f64>> = locals
+            .iter()
+            .map(|p| Point3::from(Vector3::new(p[0], p[1], p[2]) + offset))
+            .collect();
         let (order, stats) = voxel_statistics(&points, 1.0);
         assert_eq!(order.len(), 1);
-        let gaussian = stats[&order[0]].gaussian(&order[0].corner(1.0), 5, 1e-9).unwrap();
-        let mean = points.iter().fold(Vector3::zeros(), |acc, p| acc + p.coords) / 5.0;
+        let gaussian = stats[&order[0]]
+            .gaussian(&order[0].corner(1.0), 5, 1e-9)
+            .unwrap();
+        let mean = points
+            .iter()
+            .fold(Vector3::zeros(), |acc, p| acc + p.coords)
+            / 5.0;
         let mut covariance = Matrix3::zeros();
         for p in &points {
             let d = p.coords - mean;
@@ -211,8 +251,9 @@ mod tests {
 
     #[test]
     fn planar_voxel_is_regularised_and_sparse_voxel_skipped() {
-        let points: Vec<Point3<f64>> =
-            (0..10).map(|i| Point3::new(0.05 + 0.09 * i as f64, 0.5 + 0.04 * (i % 3) as f64, 0.5)).collect();
+        let points: Vec<Point3<f64>> = (0..10)
+            .map(|i| Point3::new(0.05 + 0.09 * i as f64, 0.5 + 0.04 * (i % 3) as f64, 0.5))
+            .collect();
         let (order, stats) = voxel_statistics(&points, 1.0);
         let voxel = &stats[&order[0]];
         let gaussian = voxel.gaussian(&order[0].corner(1.0), 5, 0.01).unwrap();
@@ -235,7 +276,11 @@ mod tests {
 
     #[test]
     fn downsample_returns_centroids_in_first_seen_order() {
-        let points = [Point3::new(1.2, 0.1, 0.1), Point3::new(0.2, 0.2, 0.2), Point3::new(1.4, 0.3, 0.3)];
+        let points = [
+            Point3::new(1.2, 0.1, 0.1),
+            Point3::new(0.2, 0.2, 0.2),
+            Point3::new(1.4, 0.3, 0.3),
+        ];
         let thinned = voxel_downsample(&points, 1.0);
         assert_eq!(thinned.len(), 2);
         assert!((thinned[0] - Point3::new(1.3, 0.2, 0.2)).norm() < 1e-12);

@@ -6,7 +6,9 @@
 
 use nalgebra::{Matrix4, Point3};
 use numpy::ndarray::Array2;
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2, PyUntypedArray, PyUntypedArrayMethods};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2, PyUntypedArray, PyUntypedArrayMethods,
+};
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
@@ -26,7 +28,10 @@ pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
 fn describe(value: &Bound<'_, PyAny>) -> String {
     match value.cast::<PyUntypedArray>() {
         Ok(array) => format!("a {} array of shape {:?}", array.dtype(), array.shape()),
-        Err(_) => value.get_type().name().map_or_else(|_| "?".into(), |n| n.to_string()),
+        Err(_) => value
+            .get_type()
+            .name()
+            .map_or_else(|_| "?".into(), |n| n.to_string()),
     }
 }
 
@@ -53,13 +58,19 @@ fn read_points(value: &Bound<'_, PyAny>, argument: &str) -> PyResult<Vec<Point3<
             "{argument}: expected shape (N, 3) or (N, 4), got ({count}, {columns})"
         )));
     }
-    Ok(rows.outer_iter().map(|row| Point3::new(row[0], row[1], row[2])).collect())
+    Ok(rows
+        .outer_iter()
+        .map(|row| Point3::new(row[0], row[1], row[2]))
+        .collect())
 }
 
 fn read_transform(value: &Bound<'_, PyAny>, argument: &str) -> PyResult<Matrix4<f64>> {
     let rows = read_rows(value, argument)?;
     if rows.dim() != (4, 4) {
-        return Err(PyValueError::new_err(format!("{argument}: expected shape (4, 4), got {:?}", rows.dim())));
+        return Err(PyValueError::new_err(format!(
+            "{argument}: expected shape (4, 4), got {:?}",
+            rows.dim()
+        )));
     }
     Ok(Matrix4::from_fn(|r, c| rows[(r, c)]))
 }
@@ -158,13 +169,25 @@ impl PyNdtMap {
         min_points_per_voxel: usize,
         min_eigenvalue_ratio: f64,
     ) -> PyResult<Self> {
-        let config = NdtMapConfig { voxel_size, min_points_per_voxel, max_scans, min_eigenvalue_ratio };
-        Ok(PyNdtMap { inner: NdtMap::new(config)? })
+        let config = NdtMapConfig {
+            voxel_size,
+            min_points_per_voxel,
+            max_scans,
+            min_eigenvalue_ratio,
+        };
+        Ok(PyNdtMap {
+            inner: NdtMap::new(config)?,
+        })
     }
 
     /// Adds a scan in map (world) coordinates, `N×3` or `N×4`; evicts the oldest beyond `max_scans`.
     #[pyo3(signature = (points_world, *, num_threads = None))]
-    fn insert(&mut self, py: Python<'_>, points_world: &Bound<'_, PyAny>, num_threads: Option<usize>) -> PyResult<()> {
+    fn insert(
+        &mut self,
+        py: Python<'_>,
+        points_world: &Bound<'_, PyAny>,
+        num_threads: Option<usize>,
+    ) -> PyResult<()> {
         let points = read_points(points_world, "points_world")?;
         let inner = &mut self.inner;
         run(py, num_threads, move || inner.insert(&points))
@@ -239,7 +262,9 @@ impl PyNdtMap {
         let points = read_points(points, "points")?;
         let initial = read_transform(initial_transform, "initial_transform")?;
         let inner = &self.inner;
-        let result = run(py, num_threads, move || inner.align_matrix(&points, &initial, &config))?;
+        let result = run(py, num_threads, move || {
+            inner.align_matrix(&points, &initial, &config)
+        })?;
         Ok(result.into())
     }
 

@@ -16,11 +16,17 @@ type ProcessPools = (u32, Vec<(usize, Arc<rayon::ThreadPool>)>);
 
 fn thread_pool(num_threads: Option<usize>) -> PyResult<Arc<rayon::ThreadPool>> {
     let threads = match num_threads {
-        Some(0) => return Err(PyValueError::new_err("num_threads: must be >= 1 (or None for all cores)")),
+        Some(0) => {
+            return Err(PyValueError::new_err(
+                "num_threads: must be >= 1 (or None for all cores)",
+            ))
+        }
         Some(n) => n,
         None => std::thread::available_parallelism().map_or(1, |n| n.get()),
     };
-    let mut guard = POOLS.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    let mut guard = POOLS
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
     let pid = std::process::id();
     if guard.as_ref().is_some_and(|(owner, _)| *owner != pid) {
         if let Some((_, pools)) = guard.take() {
@@ -57,7 +63,9 @@ pub(crate) fn run<T: Send>(
                 .cloned()
                 .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
                 .unwrap_or_else(|| "unknown panic".into());
-            Err(PyRuntimeError::new_err(format!("internal error in dmlo_rs (please report): {message}")))
+            Err(PyRuntimeError::new_err(format!(
+                "internal error in dmlo_rs (please report): {message}"
+            )))
         }
     }
 }

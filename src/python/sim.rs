@@ -23,7 +23,12 @@ fn value_error(argument: &str, reason: impl std::fmt::Display) -> PyErr {
     PyValueError::new_err(format!("{argument}: {reason}"))
 }
 
-fn check_columns(argument: &str, array: &ArrayView2<'_, f64>, columns: usize, layout: &str) -> PyResult<()> {
+fn check_columns(
+    argument: &str,
+    array: &ArrayView2<'_, f64>,
+    columns: usize,
+    layout: &str,
+) -> PyResult<()> {
     if array.ncols() != columns {
         return Err(value_error(
             argument,
@@ -138,9 +143,17 @@ impl RayScene {
         let d = directions.as_array();
         check_columns("origins", &o, 3, "x y z")?;
         check_columns("directions", &d, 3, "x y z")?;
-        let origins: Vec<Point3<f64>> = o.outer_iter().map(|r| Point3::new(r[0], r[1], r[2])).collect();
-        let directions: Vec<Vector3<f64>> = d.outer_iter().map(|r| Vector3::new(r[0], r[1], r[2])).collect();
-        let hits = run(py, None, || self.scene.cast(&origins, &directions, max_range))?;
+        let origins: Vec<Point3<f64>> = o
+            .outer_iter()
+            .map(|r| Point3::new(r[0], r[1], r[2]))
+            .collect();
+        let directions: Vec<Vector3<f64>> = d
+            .outer_iter()
+            .map(|r| Vector3::new(r[0], r[1], r[2]))
+            .collect();
+        let hits = run(py, None, || {
+            self.scene.cast(&origins, &directions, max_range)
+        })?;
         let (ranges, primitives, cosines) = unzip_hits(&hits);
         Ok((
             Array1::from(ranges).into_pyarray(py),
@@ -164,7 +177,9 @@ impl RayScene {
         let p = pose.as_array();
         let poses: Vec<Matrix4<f64>> = match p.shape() {
             [4, 4] => vec![Matrix4::from_fn(|r, c| p[[r, c]])],
-            [n, 4, 4] => (0..*n).map(|k| Matrix4::from_fn(|r, c| p[[k, r, c]])).collect(),
+            [n, 4, 4] => (0..*n)
+                .map(|k| Matrix4::from_fn(|r, c| p[[k, r, c]]))
+                .collect(),
             shape => {
                 return Err(value_error(
                     "pose",

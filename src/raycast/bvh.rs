@@ -50,7 +50,12 @@ impl Aabb {
 
     /// Entry distance of the ray into the box if it enters before `t_max` (0 when starting inside).
     #[inline]
-    fn entry(&self, origin: &Point3<f64>, inverse_direction: &Vector3<f64>, t_max: f64) -> Option<f64> {
+    fn entry(
+        &self,
+        origin: &Point3<f64>,
+        inverse_direction: &Vector3<f64>,
+        t_max: f64,
+    ) -> Option<f64> {
         let mut t_near = 0.0_f64;
         let mut t_far = t_max;
         for i in 0..3 {
@@ -177,8 +182,12 @@ impl Bvh {
                 continue;
             }
             let (left, right) = (node.first, node.first + 1);
-            let left_entry = self.nodes[left as usize].bounds.entry(origin, &inverse, best_t);
-            let right_entry = self.nodes[right as usize].bounds.entry(origin, &inverse, best_t);
+            let left_entry = self.nodes[left as usize]
+                .bounds
+                .entry(origin, &inverse, best_t);
+            let right_entry = self.nodes[right as usize]
+                .bounds
+                .entry(origin, &inverse, best_t);
             match (left_entry, right_entry) {
                 (Some(l), Some(r)) => {
                     // Far child first onto the stack so the near one is popped next.
@@ -216,7 +225,8 @@ fn split(
             continue;
         }
         let bin_of = |p: &Point3<f64>| {
-            (((p[axis] - centroid_bounds.min[axis]) / extent[axis] * BINS as f64) as usize).min(BINS - 1)
+            (((p[axis] - centroid_bounds.min[axis]) / extent[axis] * BINS as f64) as usize)
+                .min(BINS - 1)
         };
         let mut bin_bounds = [Aabb::empty(); BINS];
         let mut bin_counts = [0usize; BINS];
@@ -246,7 +256,8 @@ fn split(
                 continue;
             }
             let cost = TRAVERSAL_COST
-                + (acc.half_area() * n as f64 + right_area[plane] * right_count[plane] as f64) / parent_area;
+                + (acc.half_area() * n as f64 + right_area[plane] * right_count[plane] as f64)
+                    / parent_area;
             if best.is_none_or(|(c, _, _)| cost < c) {
                 best = Some((cost, axis, plane));
             }
@@ -255,7 +266,8 @@ fn split(
     match best {
         Some((cost, axis, plane)) if cost < leaf_cost || count > 4 * MAX_LEAF => {
             let threshold = |p: &Point3<f64>| {
-                let b = (((p[axis] - centroid_bounds.min[axis]) / extent[axis] * BINS as f64) as usize)
+                let b = (((p[axis] - centroid_bounds.min[axis]) / extent[axis] * BINS as f64)
+                    as usize)
                     .min(BINS - 1);
                 b < plane
             };

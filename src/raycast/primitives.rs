@@ -138,7 +138,11 @@ impl Primitive {
             }
             Primitive::Cylinder(c) => Aabb {
                 min: Point3::new(c.base.x - c.radius, c.base.y - c.radius, c.base.z),
-                max: Point3::new(c.base.x + c.radius, c.base.y + c.radius, c.base.z + c.height),
+                max: Point3::new(
+                    c.base.x + c.radius,
+                    c.base.y + c.radius,
+                    c.base.z + c.height,
+                ),
             },
             Primitive::Ellipsoid(e) => Aabb {
                 min: e.center - e.radii,
@@ -175,7 +179,8 @@ impl Primitive {
                 // The face is the axis where the point is relatively closest to the boundary.
                 let axis = (0..3)
                     .max_by(|&i, &j| {
-                        (local[i].abs() / b.half_extents[i]).total_cmp(&(local[j].abs() / b.half_extents[j]))
+                        (local[i].abs() / b.half_extents[i])
+                            .total_cmp(&(local[j].abs() / b.half_extents[j]))
                     })
                     .unwrap_or(0);
                 let sign = if local[axis] >= 0.0 { 1.0 } else { -1.0 };
@@ -256,7 +261,11 @@ fn intersect_box(b: &OrientedBox, origin: &Point3<f64>, direction: &Vector3<f64>
     Some(if t_near > T_MIN { t_near } else { t_far })
 }
 
-fn intersect_cylinder(c: &VerticalCylinder, origin: &Point3<f64>, direction: &Vector3<f64>) -> Option<f64> {
+fn intersect_cylinder(
+    c: &VerticalCylinder,
+    origin: &Point3<f64>,
+    direction: &Vector3<f64>,
+) -> Option<f64> {
     let (ox, oy) = (origin.x - c.base.x, origin.y - c.base.y);
     let (z_bottom, z_top) = (c.base.z, c.base.z + c.height);
     let r2 = c.radius * c.radius;
@@ -293,7 +302,11 @@ fn intersect_cylinder(c: &VerticalCylinder, origin: &Point3<f64>, direction: &Ve
 }
 
 /// Scaled to the unit sphere; the scaled direction is not unit but `t` is preserved.
-fn intersect_ellipsoid(e: &Ellipsoid, origin: &Point3<f64>, direction: &Vector3<f64>) -> Option<f64> {
+fn intersect_ellipsoid(
+    e: &Ellipsoid,
+    origin: &Point3<f64>,
+    direction: &Vector3<f64>,
+) -> Option<f64> {
     let o = (origin - e.center).component_div(&e.radii);
     let d = direction.component_div(&e.radii);
     let a = d.norm_squared();

@@ -15,18 +15,25 @@ fn sphere(center: [f64; 3], r: f64) -> Primitive {
 #[test]
 fn ray_hits_sphere_at_analytic_distance() {
     let scene = Scene::new(vec![sphere([10.0, 0.0, 0.0], 2.0)]).unwrap();
-    let hit = scene.cast_ray(&Point3::origin(), &Vector3::x(), 100.0).unwrap();
+    let hit = scene
+        .cast_ray(&Point3::origin(), &Vector3::x(), 100.0)
+        .unwrap();
     assert_relative_eq!(hit.range, 8.0, epsilon = 1e-12);
     assert_eq!(hit.primitive, 0);
     assert_relative_eq!(hit.cos_incidence, 1.0, epsilon = 1e-12);
-    assert!(scene.cast_ray(&Point3::origin(), &-Vector3::x(), 100.0).is_none());
-    assert!(scene.cast_ray(&Point3::origin(), &Vector3::x(), 7.9).is_none());
+    assert!(scene
+        .cast_ray(&Point3::origin(), &-Vector3::x(), 100.0)
+        .is_none());
+    assert!(scene
+        .cast_ray(&Point3::origin(), &Vector3::x(), 7.9)
+        .is_none());
 }
 
 #[test]
 fn oriented_box_face_and_incidence() {
     // A 2 m cube rotated 45° about z, centred 10 m ahead: its near edge is at 10 − √2.
-    let rotation = *Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::FRAC_PI_4).matrix();
+    let rotation =
+        *Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::FRAC_PI_4).matrix();
     let cube = Primitive::Box(OrientedBox {
         center: Point3::new(10.0, 0.0, 0.0),
         rotation,
@@ -35,7 +42,9 @@ fn oriented_box_face_and_incidence() {
     let scene = Scene::new(vec![cube]).unwrap();
     let dir = Vector3::new(1.0, 0.0, 0.05).normalize();
     // The hit point must lie on the cube's surface.
-    let hit = scene.cast_ray(&Point3::new(0.0, 0.2, 0.0), &dir, 50.0).unwrap();
+    let hit = scene
+        .cast_ray(&Point3::new(0.0, 0.2, 0.0), &dir, 50.0)
+        .unwrap();
     let p = Point3::new(0.0, 0.2, 0.0) + dir * hit.range;
     let local = rotation.transpose() * (p - Point3::new(10.0, 0.0, 0.0));
     assert_relative_eq!(local.abs().max(), 1.0, epsilon = 1e-9);
@@ -58,7 +67,9 @@ fn vertical_cylinder_side_and_cap() {
         radius: 0.5,
     });
     let scene = Scene::new(vec![pole]).unwrap();
-    let side = scene.cast_ray(&Point3::origin(), &Vector3::x(), 50.0).unwrap();
+    let side = scene
+        .cast_ray(&Point3::origin(), &Vector3::x(), 50.0)
+        .unwrap();
     assert_relative_eq!(side.range, 4.5, epsilon = 1e-12);
     let from_above = scene
         .cast_ray(&Point3::new(5.2, 0.1, 10.0), &-Vector3::z(), 50.0)
@@ -123,7 +134,8 @@ fn random_scene(rng: &mut ChaCha8Rng, n: usize) -> Vec<Primitive> {
             }),
             1 => Primitive::Box(OrientedBox {
                 center: c,
-                rotation: *Rotation3::from_euler_angles(rng.random(), rng.random(), rng.random()).matrix(),
+                rotation: *Rotation3::from_euler_angles(rng.random(), rng.random(), rng.random())
+                    .matrix(),
                 half_extents: Vector3::new(
                     rng.random_range(0.1..3.0),
                     rng.random_range(0.1..3.0),
@@ -190,7 +202,10 @@ fn scan_is_independent_of_thread_count() {
     let scene = Scene::new(random_scene(&mut rng, 500)).unwrap();
     let pose = Matrix4::identity();
     let elevations: Vec<f64> = (0..16).map(|i| 2.0 - i as f64 * 1.7).collect();
-    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
     let a = one.install(|| scene.cast_scan(&pose, &elevations, 360, 100.0).unwrap());
     let b = scene.cast_scan(&pose, &elevations, 360, 100.0).unwrap();
     assert_eq!(a, b);
@@ -227,7 +242,11 @@ fn scan_directions_follow_the_documented_layout() {
     );
     assert_relative_eq!(
         d[6],
-        Vector3::new((-20f64).to_radians().cos(), 0.0, (-20f64).to_radians().sin()),
+        Vector3::new(
+            (-20f64).to_radians().cos(),
+            0.0,
+            (-20f64).to_radians().sin()
+        ),
         epsilon = 1e-12
     );
     // Column 1 has azimuth 90° (left).
@@ -260,11 +279,19 @@ fn bad_input_is_reported() {
     assert!(scene
         .cast(&[Point3::origin()], &[Vector3::x()], f64::NAN)
         .is_err());
-    assert!(scene.cast_scan(&Matrix4::repeat(1.0), &[0.0], 10, 10.0).is_err());
-    assert!(scene.cast_scan(&Matrix4::identity(), &[], 10, 10.0).is_err());
-    assert!(scene.cast_scan(&Matrix4::identity(), &[0.0], 0, 10.0).is_err());
+    assert!(scene
+        .cast_scan(&Matrix4::repeat(1.0), &[0.0], 10, 10.0)
+        .is_err());
+    assert!(scene
+        .cast_scan(&Matrix4::identity(), &[], 10, 10.0)
+        .is_err());
+    assert!(scene
+        .cast_scan(&Matrix4::identity(), &[0.0], 0, 10.0)
+        .is_err());
     assert_eq!(
-        scene.cast(&[Point3::origin()], &[Vector3::x()], 10.0).unwrap(),
+        scene
+            .cast(&[Point3::origin()], &[Vector3::x()], 10.0)
+            .unwrap(),
         vec![None]
     );
 }
@@ -293,7 +320,10 @@ fn per_column_poses_move_each_column() {
     let still = scene
         .cast_scan_per_column(&poses[..1], &[0.0], columns, 100.0)
         .unwrap();
-    assert_eq!(still, scene.cast_scan(&poses[0], &[0.0], columns, 100.0).unwrap());
+    assert_eq!(
+        still,
+        scene.cast_scan(&poses[0], &[0.0], columns, 100.0).unwrap()
+    );
     assert_relative_eq!(still[4].unwrap().range, 20.0, epsilon = 1e-9);
     assert!(scene
         .cast_scan_per_column(&poses[..3], &[0.0], columns, 100.0)
