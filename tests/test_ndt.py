@@ -169,6 +169,30 @@ def test_sliding_window_keeps_recent_scans() -> None:
     assert (ndt_map.num_scans, ndt_map.num_voxels) == (0, 0)
 
 
+
+def test_a_scan_inserted_at_its_pose_builds_the_map_of_its_transformed_points() -> None:
+    scan = street_scene(20_000, seed=9)
+    pose = rigid([4.0, -1.5, 0.3], [1.0, -2.0, 30.0])
+    placed = dmlo_rs.NdtMap(voxel_size=1.0)
+    placed.insert_scan(scan.astype(np.float32), pose)
+    reference = dmlo_rs.NdtMap(voxel_size=1.0)
+    reference.insert(transform_points(pose, scan.astype(np.float32).astype(np.float64)))
+    # numpy and nalgebra may round a coordinate differently, which can move a point across a voxel face.
+    assert abs(placed.num_voxels - reference.num_voxels) <= 2
+    source = street_scene(20_000, seed=10)
+    start = pose @ rigid([0.25, -0.15, 0.1], [0.8, -0.5, 1.5])
+    got, expected = placed.align(source, start), reference.align(source, start)
+    np.testing.assert_allclose(got.transform, expected.transform, atol=1e-6)
+    np.testing.assert_allclose(got.transform, pose, atol=0.02)
+    with pytest.raises(ValueError, match="transform: expected shape"):
+        placed.insert_scan(scan, np.eye(3))
+    with pytest.raises(ValueError, match="transform: last row"):
+        placed.insert_scan(scan, np.ones((4, 4)))
+    nan_row = scan.copy()
+    nan_row[3] = np.nan
+    with pytest.raises(ValueError, match="points: row 3 is not finite"):
+        placed.insert_scan(nan_row, pose)
+
 # ---- real KITTI scans of a standing car ----------------------------------------------------------------
 
 

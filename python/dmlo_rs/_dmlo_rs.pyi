@@ -285,6 +285,15 @@ class NdtMap:
     ) -> NdtMap: ...
     def insert(self, points_world: npt.NDArray[np.floating], *, num_threads: int | None = None) -> None:
         """Adds a scan in map coordinates (N×3 or N×4 float32/float64); evicts the oldest beyond max_scans."""
+    def insert_scan(
+        self,
+        points: npt.NDArray[np.floating],
+        transform: npt.NDArray[np.floating],
+        *,
+        num_threads: int | None = None,
+    ) -> None:
+        """Adds a scan in its sensor frame at the pose `transform` (T_map_sensor, 4×4): the map `insert`
+        builds from the transformed points, without building them in numpy."""
     def clear(self) -> None: ...
     def align(
         self,

@@ -8,7 +8,7 @@
 
 use std::collections::VecDeque;
 
-use nalgebra::Point3;
+use nalgebra::{Isometry3, Point3};
 use rayon::prelude::*;
 
 use super::voxel::{voxel_statistics, Gaussian, VoxelKey, VoxelMap, VoxelStats};
@@ -133,8 +133,29 @@ impl NdtMap {
     /// Fails without changing the map when `points_world` is empty or holds a non-finite or huge
     /// coordinate.
     pub fn insert(&mut self, points_world: &[Point3<f64>]) -> Result<()> {
+        self.insert_checked(points_world, "points_world")
+    }
+
+    /// Adds a scan given in its sensor frame at the pose `map_from_sensor` (`T_map_sensor`): the same map
+    /// as [`insert`](Self::insert) of the transformed points, without the caller building that copy (from
+    /// Python, a numpy product that large wakes BLAS threads which then spin on the cores the network needs).
+    pub fn insert_scan(
+        &mut self,
+        points_sensor: &[Point3<f64>],
+        map_from_sensor: &Isometry3<f64>,
+    ) -> Result<()> {
+        let points_map: Vec<Point3<f64>> =
+            points_sensor.iter().map(|p| map_from_sensor * p).collect();
+        self.insert_checked(&points_map, "points")
+    }
+
+    fn insert_checked(
+        &mut self,
+        points_world: &[Point3<f64>],
+        argument: &'static str,
+    ) -> Result<()> {
         if points_world.is_empty() {
-            return Err(Error::invalid("points_world", "is empty"));
+            return Err(Error::invalid(argument, "is empty"));
         }
         let inverse = 1.0 / self.config.voxel_size;
         if let Some(row) = points_world
@@ -142,9 +163,9 @@ impl NdtMap {
             .position(|p| VoxelKey::containing(p, inverse).is_none())
         {
             return Err(Error::invalid(
-                "points_world",
+                argument,
                 format!(
-                    "row {row} is not finite or too far from the origin: {:?}",
+                    "row {row} is not finite or too far from the origin (in the map): {:?}",
                     points_world[row].coords.as_slice()
                 ),
             ));
@@ -246,6 +267,37 @@ mod tests {
             assert!((other.mean - gaussian.mean).norm() < 1e-9);
             assert!((other.inverse_covariance - gaussian.inverse_covariance).norm() < 1e-6);
         }
+    }
+
+    #[test]
+    fn a_scan_placed_by_its_pose_builds_the_map_of_its_transformed_points() {
+        let pose = Isometry3::new(
+            nalgebra::Vector3::new(3.0, -2.0, 0.5),
+            nalgebra::Vector3::new(0.02, -0.01, 0.7),
+        );
+        let scan = block(0.0, 60);
+        let mut placed = NdtMap::new(NdtMapConfig::default()).unwrap();
+        placed.insert_scan(&scan, &pose).unwrap();
+        let moved: Vec<Point3<f64>> = scan.iter().map(|p| pose * p).collect();
+        let mut reference = NdtMap::new(NdtMapConfig::default()).unwrap();
+        reference.insert(&moved).unwrap();
+        assert!(reference.num_voxels() > 0);
+        assert_eq!(
+            placed.num_occupied_voxels(),
+            reference.num_occupied_voxels()
+        );
+        assert_eq!(placed.gaussians(), reference.gaussians());
+        let mut bad = scan.clone();
+        bad[7] = Point3::new(f64::INFINITY, 0.0, 0.0);
+        let refused = placed.insert_scan(&bad, &pose);
+        assert!(
+            matches!(&refused, Err(Error::InvalidArgument { argument: "points", reason }) if reason.starts_with("row 7 "))
+        );
+        assert_eq!(
+            placed.num_scans(),
+            1,
+            "a refused scan leaves the map as it was"
+        );
     }
 
     #[test]

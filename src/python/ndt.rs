@@ -12,7 +12,9 @@ use numpy::{
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
-use crate::ndt::{NdtAlignConfig, NdtMap, NdtMapConfig, NdtResult, NeighbourSearch};
+use crate::ndt::{
+    isometry_from_matrix4, NdtAlignConfig, NdtMap, NdtMapConfig, NdtResult, NeighbourSearch,
+};
 
 use super::pool::run;
 
@@ -191,6 +193,25 @@ impl PyNdtMap {
         let points = read_points(points_world, "points_world")?;
         let inner = &mut self.inner;
         run(py, num_threads, move || inner.insert(&points))
+    }
+
+    /// Adds a scan in its sensor frame (`N×3` or `N×4`) at the pose `transform` (`T_map_sensor`, 4×4):
+    /// the same map as `insert` of the transformed points, without building them in numpy.
+    #[pyo3(signature = (points, transform, *, num_threads = None))]
+    fn insert_scan(
+        &mut self,
+        py: Python<'_>,
+        points: &Bound<'_, PyAny>,
+        transform: &Bound<'_, PyAny>,
+        num_threads: Option<usize>,
+    ) -> PyResult<()> {
+        let points = read_points(points, "points")?;
+        let transform =
+            isometry_from_matrix4(&read_transform(transform, "transform")?, "transform")?;
+        let inner = &mut self.inner;
+        run(py, num_threads, move || {
+            inner.insert_scan(&points, &transform)
+        })
     }
 
     /// Forgets every scan.

@@ -163,7 +163,7 @@ class Odometry:
                 watch.lap("ndt")
             self._update_velocity(previous.pose, pose, diagnostics.index - self._reference_index)
         if self._map is not None:
-            self._map.insert(_transform(cloud[:, :3], pose))
+            self._map.insert_scan(cloud, pose)
             watch.lap("map_update")
 
         self._reference = _Scan(range=ranges, features=output.features, pose=pose)
@@ -360,7 +360,3 @@ def _as_mask(mask: npt.ArrayLike, count: int) -> npt.NDArray[np.bool_]:
     if values.shape != (count,):
         raise ValueError(f"moving: expected a mask of {count} booleans, got shape {values.shape}")
     return values.astype(bool)
-
-
-def _transform(xyz: npt.NDArray[np.floating], T: Matrix4) -> npt.NDArray[np.float64]:
-    return xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
