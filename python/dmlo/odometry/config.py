@@ -40,7 +40,11 @@ class MappingConfig:
 
     enabled: bool = False
     voxel_size: float = 1.0
-    max_scans: int = 10
+    max_scans: int = 10  # keyframes the local map keeps
+    # A scan enters the map only once it moved this far (metres) or turned this much (degrees) from the
+    # newest map scan; 0 and 0 put every scan in.
+    keyframe_distance: float = 2.0
+    keyframe_angle_deg: float = 5.0
     downsample: float = 0.5
     max_iterations: int = 30
     # Translations (rotations) with less than this fraction of the best-constrained translation's

@@ -50,6 +50,7 @@ class FrameDiagnostics:
     fallback: str | None = None  # "constant_velocity" when RANSAC found too few inliers
     ndt_converged: bool | None = None
     ndt_degenerate_directions: int | None = None  # pose directions the map did not constrain (kept as DMLO's)
+    map_keyframe: bool | None = None  # with mapping: the scan entered the map (it moved far enough from the last)
     image_fill: float | None = None  # fraction of the cylinder image's cells holding a point
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -63,6 +64,7 @@ class FrameDiagnostics:
             "fallback": self.fallback,
             "ndt_converged": self.ndt_converged,
             "ndt_degenerate_directions": self.ndt_degenerate_directions,
+            "map_keyframe": self.map_keyframe,
             "image_fill": None if self.image_fill is None else round(self.image_fill, 4),
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
         }
@@ -120,6 +122,7 @@ class Odometry:
         self._reference_index = -1
         self._velocity = np.eye(4)  # T_tgt_ref per frame, for the constant-velocity model
         self._map = self._make_map() if self.config.mapping.enabled else None
+        self._last_keyframe: Matrix4 | None = None  # pose of the newest scan in the map
         self._wide: Matcher | None = None  # loaded on the first large-motion pair
         self._warned_sensor = False
 
@@ -163,7 +166,10 @@ class Odometry:
                 watch.lap("ndt")
             self._update_velocity(previous.pose, pose, diagnostics.index - self._reference_index)
         if self._map is not None:
-            self._map.insert_scan(cloud, pose)
+            diagnostics.map_keyframe = self._is_keyframe(pose)
+            if diagnostics.map_keyframe:
+                self._map.insert_scan(cloud, pose)
+                self._last_keyframe = pose
             watch.lap("map_update")
 
         self._reference = _Scan(range=ranges, features=output.features, pose=pose)
@@ -320,7 +326,27 @@ class Odometry:
 
     def _make_map(self) -> Any:
         c = self.config.mapping
+        for name in ("keyframe_distance", "keyframe_angle_deg"):
+            value = getattr(c, name)
+            if not (isinstance(value, (int, float)) and value >= 0):
+                raise ValueError(f"mapping.{name}: must be a number >= 0, got {value!r}")
         return dmlo_rs.NdtMap(voxel_size=c.voxel_size, max_scans=c.max_scans)
+
+    def _is_keyframe(self, pose: Matrix4) -> bool:
+        """Whether the scan moved or turned far enough from the newest map scan to enter the map.
+
+        Scans drawn from nearly the same place add the same ground rings again and again, all behind
+        the next scan, and NDT then pulls that scan's rings back onto them (a standing or slow car
+        drifted backwards); keyframes spaced in distance keep the map's samples spread out.
+        """
+        if self._last_keyframe is None:
+            return True
+        c = self.config.mapping
+        step = np.linalg.inv(self._last_keyframe) @ pose
+        cosine = np.clip((np.trace(step[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+        return bool(
+            np.linalg.norm(step[:3, 3]) >= c.keyframe_distance or np.degrees(np.arccos(cosine)) >= c.keyframe_angle_deg
+        )
 
     def _refine_with_map(
         self, cloud: npt.NDArray[np.float32], pose: Matrix4, diagnostics: FrameDiagnostics
