@@ -45,7 +45,7 @@ class MappingConfig:
     # newest map scan; 0 and 0 put every scan in.
     keyframe_distance: float = 2.0
     keyframe_angle_deg: float = 5.0
-    downsample: float = 0.5
+    downsample: float = 0.75
     max_iterations: int = 30
     # Translations (rotations) with less than this fraction of the best-constrained translation's
     # (rotation's) information keep the DMLO estimate instead of the map's pull; 0 turns the test off.
