@@ -28,7 +28,7 @@ DRIVES = (
 
 TRAIN_ARGUMENTS = (
     "--preset fast --coarse-window 15 --optimizer adam --lr 0.001 --lr-step 8 --epochs 24 --batch-size 4 "
-    "--crop-width 448 --val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume"
+    "--crop-width 448 --val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume --mirror"
 ).split()
 
 
