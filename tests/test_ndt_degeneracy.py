@@ -215,3 +215,39 @@ def test_bad_keyframe_spacing_is_refused_up_front(name: str) -> None:
     setattr(config.mapping, name, -1.0)
     with pytest.raises(ValueError, match=rf"mapping\.{name}: must be a number >= 0, got -1.0"):
         Odometry.from_default(config)
+
+
+def test_a_wrong_dmlo_pose_is_caught_by_aligning_from_the_motion_model_too(straight_drive: Path) -> None:
+    from dmlo.odometry import Odometry, OdometryConfig
+
+    class OneWrongPair(Odometry):
+        """Fault injection: the DMLO motion of frame 15 is 1.2 m off, like a wrong RANSAC consensus."""
+
+        def _motion_from_flow(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+            motion = super()._motion_from_flow(*args, **kwargs)
+            if len(self.poses) == 15:
+                motion = motion @ rigid([1.2, 0.4, 0.0], [0.0, 0.0, 0.0])
+            return motion
+
+    sequence = open_sequence(straight_drive)
+    frames = [sequence[i] for i in range(20)]
+    step_errors = {}
+    for distance in (0.3, np.inf):  # the default, and never a second start
+        config = OdometryConfig()
+        config.mapping.enabled = True
+        config.mapping.motion_model_start_distance = distance
+        config.mapping.motion_model_start_angle_deg = np.inf
+        odometry = OneWrongPair.from_default(config)
+        for frame in frames:
+            odometry.register(frame.points, moving=(frame.labels & 0xFFFF) >= 252)
+        truth_step = np.linalg.inv(frames[14].pose) @ frames[15].pose
+        step = np.linalg.inv(odometry.poses[14]) @ odometry.poses[15]
+        step_errors[distance] = np.linalg.norm((np.linalg.inv(truth_step) @ step)[:3, 3])
+        starts = [d.ndt_start for d in odometry.diagnostics[1:]]
+        if distance == 0.3:
+            # Only the corrupted frame leaves the prediction behind; elsewhere NDT starts from DMLO alone.
+            assert starts == ["dmlo"] * 14 + ["motion_model"] + ["dmlo"] * 4, starts
+        else:
+            assert set(starts) == {"dmlo"}
+    assert step_errors[0.3] < 0.01, step_errors
+    assert step_errors[np.inf] > 0.3, step_errors

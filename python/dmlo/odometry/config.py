@@ -45,6 +45,10 @@ class MappingConfig:
     # newest map scan; 0 and 0 put every scan in.
     keyframe_distance: float = 2.0
     keyframe_angle_deg: float = 5.0
+    # When the DMLO pose is this far (m, °) from the constant-velocity prediction, NDT also starts from the
+    # prediction and the better-scoring alignment wins (a wrong RANSAC consensus is caught by the map).
+    motion_model_start_distance: float = 0.3
+    motion_model_start_angle_deg: float = 1.5
     downsample: float = 0.75
     max_iterations: int = 30
     # Translations (rotations) with less than this fraction of the best-constrained translation's

@@ -51,6 +51,7 @@ class FrameDiagnostics:
     ndt_converged: bool | None = None
     ndt_degenerate_directions: int | None = None  # pose directions the map did not constrain (kept as DMLO's)
     map_keyframe: bool | None = None  # with mapping: the scan entered the map (it moved far enough from the last)
+    ndt_start: str | None = None  # the NDT start that won: "dmlo", or "motion_model" when DMLO's pose was off
     image_fill: float | None = None  # fraction of the cylinder image's cells holding a point
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -65,6 +66,7 @@ class FrameDiagnostics:
             "ndt_converged": self.ndt_converged,
             "ndt_degenerate_directions": self.ndt_degenerate_directions,
             "map_keyframe": self.map_keyframe,
+            "ndt_start": self.ndt_start,
             "image_fill": None if self.image_fill is None else round(self.image_fill, 4),
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
         }
@@ -121,6 +123,7 @@ class Odometry:
         self._reference: _Scan | None = None  # the last usable scan, matched against the next one
         self._reference_index = -1
         self._velocity = np.eye(4)  # T_tgt_ref per frame, for the constant-velocity model
+        self._velocity_measured = False  # until then the prediction is "standing still", a guess
         self._map = self._make_map() if self.config.mapping.enabled else None
         self._last_keyframe: Matrix4 | None = None  # pose of the newest scan in the map
         self._wide: Matcher | None = None  # loaded on the first large-motion pair
@@ -312,6 +315,7 @@ class Odometry:
         # before the gap stays the better per-frame estimate.
         if frames == 1:
             self._velocity = np.linalg.inv(pose) @ reference_pose
+            self._velocity_measured = True
 
     def _skip(self, diagnostics: FrameDiagnostics, reason: str) -> Matrix4:
         diagnostics.fallback = reason
@@ -326,7 +330,7 @@ class Odometry:
 
     def _make_map(self) -> Any:
         c = self.config.mapping
-        for name in ("keyframe_distance", "keyframe_angle_deg"):
+        for name in ("keyframe_distance", "keyframe_angle_deg", "motion_model_start_distance", "motion_model_start_angle_deg"):
             value = getattr(c, name)
             if not (isinstance(value, (int, float)) and value >= 0):
                 raise ValueError(f"mapping.{name}: must be a number >= 0, got {value!r}")
@@ -342,32 +346,59 @@ class Odometry:
         if self._last_keyframe is None:
             return True
         c = self.config.mapping
-        step = np.linalg.inv(self._last_keyframe) @ pose
-        cosine = np.clip((np.trace(step[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-        return bool(
-            np.linalg.norm(step[:3, 3]) >= c.keyframe_distance or np.degrees(np.arccos(cosine)) >= c.keyframe_angle_deg
-        )
+        moved, turned = _pose_difference(self._last_keyframe, pose)
+        return moved >= c.keyframe_distance or turned >= c.keyframe_angle_deg
 
     def _refine_with_map(
         self, cloud: npt.NDArray[np.float32], pose: Matrix4, diagnostics: FrameDiagnostics
     ) -> Matrix4:
-        assert self._map is not None
-        try:
-            c = self.config.mapping
-            result = self._map.align(
-                cloud[:, :3],
-                pose,
-                max_iterations=c.max_iterations,
-                source_voxel_size=c.downsample,
-                degeneracy_threshold=c.degeneracy_threshold,
-                rotation_degeneracy_threshold=c.rotation_degeneracy_threshold,
-            )
-        except dmlo_rs.RegistrationError:  # too few correspondences with the map: keep the DMLO pose
-            diagnostics.ndt_converged = False
+        """NDT from the DMLO pose and, when that pose leaves the motion model far behind, also from the
+        constant-velocity prediction: a wrong RANSAC consensus (a metre off, seen on a simulated drive)
+        lies outside NDT's basin, and the start whose alignment scores higher wins."""
+        c = self.config.mapping
+        starts = {"dmlo": pose}
+        if self._velocity_measured:
+            # Before any velocity is measured the prediction is "standing still", and the map's ground
+            # rings, which move with the sensor, score that wrong start highly.
+            predicted = self._predict()
+            moved, turned = _pose_difference(pose, predicted)
+            if moved > c.motion_model_start_distance or turned > c.motion_model_start_angle_deg:
+                starts["motion_model"] = predicted
+        results = {}
+        for name, start in starts.items():
+            try:
+                results[name] = self._align(cloud, start)
+            except dmlo_rs.RegistrationError:  # too few correspondences with the map from this start
+                pass
+        converged = {name: result for name, result in results.items() if result.converged}
+        diagnostics.ndt_converged = bool(converged)
+        if not converged:
+            if "dmlo" in results:
+                diagnostics.ndt_degenerate_directions = int(results["dmlo"].degenerate_directions)
             return pose
-        diagnostics.ndt_converged = bool(result.converged)
-        diagnostics.ndt_degenerate_directions = int(result.degenerate_directions)
-        return np.asarray(result.transform, dtype=np.float64) if result.converged else pose
+        name = max(converged, key=lambda n: converged[n].score)
+        diagnostics.ndt_start = name
+        diagnostics.ndt_degenerate_directions = int(converged[name].degenerate_directions)
+        return np.asarray(converged[name].transform, dtype=np.float64)
+
+    def _align(self, cloud: npt.NDArray[np.float32], start: Matrix4) -> Any:
+        assert self._map is not None
+        c = self.config.mapping
+        return self._map.align(
+            cloud[:, :3],
+            start,
+            max_iterations=c.max_iterations,
+            source_voxel_size=c.downsample,
+            degeneracy_threshold=c.degeneracy_threshold,
+            rotation_degeneracy_threshold=c.rotation_degeneracy_threshold,
+        )
+
+
+def _pose_difference(a: Matrix4, b: Matrix4) -> tuple[float, float]:
+    """Distance (m) and angle (°) between two poses."""
+    step = np.linalg.inv(a) @ b
+    cosine = np.clip((np.trace(step[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.linalg.norm(step[:3, 3])), float(np.degrees(np.arccos(cosine)))
 
 
 def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
