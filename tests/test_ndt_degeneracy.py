@@ -206,14 +206,23 @@ def test_a_standing_car_adds_no_keyframes(straight_drive: Path) -> None:
     assert [d.map_keyframe for d in odometry.diagnostics] == [True, False, False, False]
 
 
-@pytest.mark.parametrize("name", ["keyframe_distance", "keyframe_angle_deg"])
-def test_bad_keyframe_spacing_is_refused_up_front(name: str) -> None:
+@pytest.mark.parametrize(
+    ("section", "name"),
+    [
+        ("mapping", "keyframe_distance"),
+        ("mapping", "keyframe_angle_deg"),
+        ("mapping", "motion_model_start_distance"),
+        ("mapping", "motion_model_start_angle_deg"),
+        ("motion_model", "max_deviation"),
+        ("motion_model", "max_deviation_deg"),
+    ],
+)
+def test_bad_distance_and_angle_limits_are_refused_up_front(section: str, name: str) -> None:
     from dmlo.odometry import Odometry, OdometryConfig
 
     config = OdometryConfig()
-    config.mapping.enabled = True
-    setattr(config.mapping, name, -1.0)
-    with pytest.raises(ValueError, match=rf"mapping\.{name}: must be a number >= 0, got -1.0"):
+    setattr(getattr(config, section), name, -1.0)
+    with pytest.raises(ValueError, match=rf"{section}\.{name}: must be a number >= 0, got -1.0"):
         Odometry.from_default(config)
 
 
@@ -234,6 +243,7 @@ def test_a_wrong_dmlo_pose_is_caught_by_aligning_from_the_motion_model_too(strai
     step_errors = {}
     for distance in (0.3, np.inf):  # the default, and never a second start
         config = OdometryConfig()
+        config.motion_model.max_deviation = np.inf  # the pure-DMLO gate would catch it first
         config.mapping.enabled = True
         config.mapping.motion_model_start_distance = distance
         config.mapping.motion_model_start_angle_deg = np.inf

@@ -3,6 +3,7 @@ diagnostics, the motion model, and bad input."""
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from pathlib import Path
 
@@ -58,6 +59,52 @@ def test_too_few_inliers_fall_back_to_constant_velocity(scans: list[np.ndarray])
     # With no motion measured yet the constant-velocity model predicts standing still.
     assert np.allclose(poses[2], np.eye(4))
 
+
+
+class CorruptedPair(Odometry):
+    """Fault injection: the RANSAC motion of one frame is 1 m off, like a wrong consensus."""
+
+    corrupt_frame = 3
+
+    def _match(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        pair = super()._match(*args, **kwargs)
+        if len(self.poses) == self.corrupt_frame:
+            shifted = pair.T_tgt_ref.copy()
+            shifted[:3, 3] += [1.0, 0.0, 0.0]
+            pair = dataclasses.replace(pair, T_tgt_ref=shifted)
+        return pair
+
+
+def test_a_motion_far_from_the_prediction_is_replaced_by_it(scans: list[np.ndarray]) -> None:
+    steps = {}
+    for limit in (0.3, np.inf):
+        config = OdometryConfig()
+        config.motion_model.max_deviation = limit
+        odometry = CorruptedPair.from_default(config)
+        poses = [odometry.register(p) for p in scans]
+        steps[limit] = [np.linalg.inv(a) @ b for a, b in zip(poses, poses[1:])]
+        fallbacks = [d.fallback for d in odometry.diagnostics]
+        assert fallbacks == ([None, None, None, "implausible_motion", None] if limit == 0.3 else [None] * 5)
+    # Gated, frame 3 moves exactly as the constant-velocity model predicts from frame 2; ungated, 1 m off.
+    np.testing.assert_allclose(steps[0.3][2], steps[0.3][1], atol=1e-9)
+    assert np.linalg.norm(steps[np.inf][2][:3, 3] - steps[0.3][2][:3, 3]) > 0.9
+
+
+def test_a_wrong_motion_before_any_velocity_costs_at_most_one_more_frame(scans: list[np.ndarray]) -> None:
+    CorruptedPair.corrupt_frame = 1
+    try:
+        odometry = CorruptedPair.from_default()
+        poses = [odometry.register(p) for p in scans]
+    finally:
+        CorruptedPair.corrupt_frame = 3
+    # Frame 1 is taken (nothing to compare with) and poisons the prediction for frame 2, which is replaced;
+    # frame 3 disagrees with it again, so the prediction is the suspect one and DMLO is trusted again.
+    assert [d.fallback for d in odometry.diagnostics] == [None, None, "implausible_motion", None, None]
+    reference = Odometry.from_default()
+    truth_like = [reference.register(p) for p in scans]
+    late_steps = [np.linalg.inv(a) @ b for a, b in zip(poses[2:], poses[3:])]
+    expected = [np.linalg.inv(a) @ b for a, b in zip(truth_like[2:], truth_like[3:])]
+    np.testing.assert_allclose(late_steps, expected, atol=1e-9)
 
 
 def test_a_wrong_ransac_setting_stops_instead_of_falling_back_on_every_pair(scans: list[np.ndarray]) -> None:

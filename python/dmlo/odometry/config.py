@@ -29,9 +29,13 @@ class RansacConfig:
 
 @dataclass
 class MotionModelConfig:
-    """Constant-velocity fallback when too few matches agree (§III-D-c)."""
+    """Constant-velocity fallback when too few matches agree (§III-D-c) or their motion is implausible."""
 
     min_inliers: int = 10  # the paper's 10
+    # Beyond the paper: a RANSAC motion further than this (m, °; per frame, at 10 Hz a 3 g change of speed)
+    # from the constant-velocity prediction is a wrong consensus and is replaced by the prediction.
+    max_deviation: float = 0.3
+    max_deviation_deg: float = 3.0
 
 
 @dataclass

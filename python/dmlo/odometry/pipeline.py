@@ -47,7 +47,9 @@ class FrameDiagnostics:
     num_matches: int = 0
     num_inliers: int = 0
     inlier_ratio: float = 0.0
-    fallback: str | None = None  # "constant_velocity" when RANSAC found too few inliers
+    # "constant_velocity" when RANSAC found too few inliers, "implausible_motion" when its motion was far from
+    # the prediction, "too_few_points" / "unreadable_scan" for scans not matched
+    fallback: str | None = None
     ndt_converged: bool | None = None
     ndt_degenerate_directions: int | None = None  # pose directions the map did not constrain (kept as DMLO's)
     map_keyframe: bool | None = None  # with mapping: the scan entered the map (it moved far enough from the last)
@@ -116,6 +118,7 @@ class Odometry:
 
     def __init__(self, model_path: str | Path, config: OdometryConfig | None = None) -> None:
         self.config = config or OdometryConfig()
+        _check_limits(self.config)
         self.matcher: Matcher = OnnxMatcher(Path(model_path), threads=self.config.threads)
         self.cylinder = self.matcher.cylinder
         self.poses: list[Matrix4] = []
@@ -124,6 +127,7 @@ class Odometry:
         self._reference_index = -1
         self._velocity = np.eye(4)  # T_tgt_ref per frame, for the constant-velocity model
         self._velocity_measured = False  # until then the prediction is "standing still", a guess
+        self._gated_last = False  # the previous matched frame's motion was replaced as implausible
         self._map = self._make_map() if self.config.mapping.enabled else None
         self._last_keyframe: Matrix4 | None = None  # pose of the newest scan in the map
         self._wide: Matcher | None = None  # loaded on the first large-motion pair
@@ -298,10 +302,23 @@ class Odometry:
         diagnostics.num_matches = pair.num_matches
         diagnostics.num_inliers = pair.num_inliers
         diagnostics.inlier_ratio = pair.inlier_ratio
+        gap = diagnostics.index - self._reference_index
+        predicted = np.linalg.matrix_power(self._velocity, gap)
         if pair.num_inliers < self.config.motion_model.min_inliers:
             diagnostics.fallback = "constant_velocity"  # the motion model of §III-D-c
-            gap = diagnostics.index - self._reference_index
-            return np.linalg.matrix_power(self._velocity, gap)
+            return predicted
+        gated_before, self._gated_last = self._gated_last, False
+        if self._velocity_measured and not gated_before:
+            # A car cannot change its per-frame motion by metres: a wrong RANSAC consensus (a metre off on
+            # a simulated drive) is replaced by the prediction rather than chained into the trajectory.
+            # Never twice in a row: then the prediction is the stale one (say, measured from a wrong
+            # pair before any velocity was known), and DMLO is trusted again.
+            moved, turned = _pose_difference(pair.T_tgt_ref, predicted)
+            limits = self.config.motion_model
+            if moved > limits.max_deviation * gap or turned > limits.max_deviation_deg * gap:
+                diagnostics.fallback = "implausible_motion"
+                self._gated_last = True
+                return predicted
         return pair.T_tgt_ref
 
     # -- motion model ---------------------------------------------------------------------------
@@ -330,10 +347,6 @@ class Odometry:
 
     def _make_map(self) -> Any:
         c = self.config.mapping
-        for name in ("keyframe_distance", "keyframe_angle_deg", "motion_model_start_distance", "motion_model_start_angle_deg"):
-            value = getattr(c, name)
-            if not (isinstance(value, (int, float)) and value >= 0):
-                raise ValueError(f"mapping.{name}: must be a number >= 0, got {value!r}")
         return dmlo_rs.NdtMap(voxel_size=c.voxel_size, max_scans=c.max_scans)
 
     def _is_keyframe(self, pose: Matrix4) -> bool:
@@ -392,6 +405,19 @@ class Odometry:
             degeneracy_threshold=c.degeneracy_threshold,
             rotation_degeneracy_threshold=c.rotation_degeneracy_threshold,
         )
+
+
+def _check_limits(config: OdometryConfig) -> None:
+    """The distance and angle limits only Python reads (Rust checks its own settings)."""
+    limits = {
+        "motion_model": ("max_deviation", "max_deviation_deg"),
+        "mapping": ("keyframe_distance", "keyframe_angle_deg", "motion_model_start_distance", "motion_model_start_angle_deg"),
+    }
+    for section, names in limits.items():
+        for name in names:
+            value = getattr(getattr(config, section), name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+                raise ValueError(f"{section}.{name}: must be a number >= 0, got {value!r}")
 
 
 def _pose_difference(a: Matrix4, b: Matrix4) -> tuple[float, float]:
