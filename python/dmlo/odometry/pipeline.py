@@ -411,7 +411,12 @@ def _check_limits(config: OdometryConfig) -> None:
     """The distance and angle limits only Python reads (Rust checks its own settings)."""
     limits = {
         "motion_model": ("max_deviation", "max_deviation_deg"),
-        "mapping": ("keyframe_distance", "keyframe_angle_deg", "motion_model_start_distance", "motion_model_start_angle_deg"),
+        "mapping": (
+            "keyframe_distance",
+            "keyframe_angle_deg",
+            "motion_model_start_distance",
+            "motion_model_start_angle_deg",
+        ),
     }
     for section, names in limits.items():
         for name in names:
