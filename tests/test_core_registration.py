@@ -245,19 +245,24 @@ def test_nms_bad_input() -> None:
 # ---- decode_matches ------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def moved_pair(shared_data: Path):
+def project_moved_static_scan(shared_data: Path, T: np.ndarray, config: CylinderConfig):
+    """A real KITTI scan of a standing car and its copy moved by T, both projected with `config`."""
     path = shared_data / "kitti_raw_static" / "0000000000.bin"
     if not path.is_file():
         pytest.skip(f"{path} is absent")
     scan = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    moved = scan.copy()
+    moved[:, :3] = apply(T, scan[:, :3].astype(np.float64)).astype(np.float32)
+    return dmlo_rs.project(scan, config), dmlo_rs.project(moved, config)
+
+
+@pytest.fixture(scope="module")
+def moved_pair(shared_data: Path):
     T = np.eye(4)
     T[:3, :3] = Rotation.from_euler("z", 2.0, degrees=True).as_matrix()
     T[:3, 3] = [-0.8, 0.1, 0.0]
-    moved = scan.copy()
-    moved[:, :3] = apply(T, scan[:, :3].astype(np.float64)).astype(np.float32)
     config = CylinderConfig.kitti()
-    return dmlo_rs.project(scan, config), dmlo_rs.project(moved, config), T, config
+    return (*project_moved_static_scan(shared_data, T, config), T, config)
 
 
 def test_decoding_ground_truth_flow_gives_matches_consistent_with_the_motion(moved_pair) -> None:
@@ -300,16 +305,10 @@ def test_fused_nms_equals_decoding_then_nms(moved_pair) -> None:
 
 def test_fused_nms_equals_decoding_then_nms_on_a_360_image(shared_data: Path) -> None:
     """On the full ring the fused NMS suppresses across the azimuth seam, like nms(..., config=...)."""
-    path = shared_data / "kitti_raw_static" / "0000000000.bin"
-    if not path.is_file():
-        pytest.skip(f"{path} is absent")
-    scan = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
     T = np.eye(4)
     T[:3, :3] = Rotation.from_euler("z", 1.0, degrees=True).as_matrix()
-    moved = scan.copy()
-    moved[:, :3] = apply(T, scan[:, :3].astype(np.float64)).astype(np.float32)
     config = FULL_RING
-    ref, tgt = dmlo_rs.project(scan, config), dmlo_rs.project(moved, config)
+    ref, tgt = project_moved_static_scan(shared_data, T, config)
     flow, valid = dmlo_rs.ground_truth_flow(ref.range, tgt.range, T, config)
     rng = np.random.default_rng(19)
     flow += rng.normal(scale=1.0, size=flow.shape).astype(np.float32)
