@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
@@ -9,6 +14,24 @@ from scipy.spatial.transform import Rotation
 from dmlo.metrics import registration_errors
 
 FloatArray = npt.NDArray[np.float64]
+
+
+def assert_simulation_reproducible(tmp_path: Path, same: list[str], differing: list[str], **options: str) -> None:
+    """Seed 5 gives the same bytes in `same` in-process and from `dmlo simulate` on one thread (the options
+    passed as `--name value`), and seed 6 different bytes in `differing`."""
+    from dmlo.simulator import simulate_sequence
+
+    first, second, other = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    simulate_sequence(first, 2, seed=5, progress=False, **options)  # type: ignore[arg-type]
+    flags = [part for name, value in options.items() for part in (f"--{name}", value)]
+    command = [sys.executable, "-m", "dmlo", "simulate", "--frames", "2", "--seed", "5", *flags]
+    env = dict(os.environ, RAYON_NUM_THREADS="1")
+    subprocess.run([*command, "--out", str(second), "--quiet"], check=True, env=env)
+    simulate_sequence(other, 2, seed=6, progress=False, **options)  # type: ignore[arg-type]
+    for name in same:
+        assert (first / name).read_bytes() == (second / name).read_bytes(), name
+    for name in differing:
+        assert (first / name).read_bytes() != (other / name).read_bytes(), name
 
 
 def rigid(translation: list[float], rotvec_deg: list[float]) -> FloatArray:

@@ -3,9 +3,6 @@ moving objects, trajectories and bad input."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +17,7 @@ from dmlo.simulator import (
     read_kitti_poses,
     simulate_sequence,
 )
-from support import gicp_departure_from_truth
+from support import assert_simulation_reproducible, gicp_departure_from_truth
 
 FRAMES = 6
 MOVING_CAR = 252
@@ -202,37 +199,11 @@ def test_trajectory_poses_are_the_kitti_relative_motion(kitti_drive: tuple[Path,
 
 
 def test_same_seed_gives_identical_bytes_even_with_one_thread(tmp_path: Path) -> None:
-    first, second, other = tmp_path / "a", tmp_path / "b", tmp_path / "c"
-    simulate_sequence(first, 2, seed=5, progress=False)
-    env = dict(os.environ, RAYON_NUM_THREADS="1")
-    subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "dmlo",
-            "simulate",
-            "--frames",
-            "2",
-            "--seed",
-            "5",
-            "--out",
-            str(second),
-            "--quiet",
-        ],
-        check=True,
-        env=env,
+    assert_simulation_reproducible(
+        tmp_path,
+        same=["velodyne/000000.bin", "velodyne/000001.bin", "labels/000001.label", "poses.txt", "calib.txt"],
+        differing=["velodyne/000001.bin", "poses.txt"],
     )
-    simulate_sequence(other, 2, seed=6, progress=False)
-    for name in [
-        "velodyne/000000.bin",
-        "velodyne/000001.bin",
-        "labels/000001.label",
-        "poses.txt",
-        "calib.txt",
-    ]:
-        assert (first / name).read_bytes() == (second / name).read_bytes(), name
-    assert (first / "velodyne/000001.bin").read_bytes() != (other / "velodyne/000001.bin").read_bytes()
-    assert (first / "poses.txt").read_bytes() != (other / "poses.txt").read_bytes()
 
 
 def test_generated_drive_is_kitti_like() -> None:

@@ -5,9 +5,6 @@ mounts against a real AV1 sweep, the round trip through `dmlo.datasets.open_sequ
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import dmlo_rs
@@ -22,7 +19,7 @@ from dmlo.simulator import (
     vlp32c_elevations,
 )
 from dmlo.simulator.sensor import HDL64E
-from support import gicp_departure_from_truth
+from support import assert_simulation_reproducible, gicp_departure_from_truth
 
 FRAMES = 4
 REAL_SWEEP = "argoverse1_layout/real_sweep_PC_315971347819783000.ply"
@@ -215,31 +212,18 @@ def test_ground_lies_below_the_ego_origin_at_the_mount_height(
 
 
 def test_same_seed_same_bytes_and_one_thread(tmp_path: Path) -> None:
-    first, second, other = tmp_path / "a", tmp_path / "b", tmp_path / "c"
-    simulate_sequence(first, 2, seed=5, sensor="argoverse", traffic="mixed", progress=False)
-    env = dict(os.environ, RAYON_NUM_THREADS="1")
-    command = [
-        sys.executable,
-        "-m",
-        "dmlo",
-        "simulate",
-        "--frames",
-        "2",
-        "--seed",
-        "5",
-        "--sensor",
-        "argoverse",
-    ]
-    subprocess.run([*command, "--traffic", "mixed", "--out", str(second), "--quiet"], check=True, env=env)
-    simulate_sequence(other, 2, seed=6, sensor="argoverse", traffic="mixed", progress=False)
     names = [
         "lidar/PC_100000000.ply",
         "labels/PC_100000000.label",
         "poses/city_SE3_egovehicle_100000000.json",
     ]
-    for name in [*names, "vehicle_calibration_info.json"]:
-        assert (first / name).read_bytes() == (second / name).read_bytes(), name
-    assert (first / names[0]).read_bytes() != (other / names[0]).read_bytes()
+    assert_simulation_reproducible(
+        tmp_path,
+        same=[*names, "vehicle_calibration_info.json"],
+        differing=names[:1],
+        sensor="argoverse",
+        traffic="mixed",
+    )
 
 
 def test_kitti_layout_of_the_argoverse_rig_and_switching_layouts(tmp_path: Path) -> None:
