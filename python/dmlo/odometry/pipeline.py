@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 import dmlo_rs
+from dmlo.metrics.trajectory import rotation_angle_deg
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.matcher import (
     Features,
@@ -428,8 +429,7 @@ def _check_limits(config: OdometryConfig) -> None:
 def _pose_difference(a: Matrix4, b: Matrix4) -> tuple[float, float]:
     """Distance (m) and angle (°) between two poses."""
     step = np.linalg.inv(a) @ b
-    cosine = np.clip((np.trace(step[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.linalg.norm(step[:3, 3])), float(np.degrees(np.arccos(cosine)))
+    return float(np.linalg.norm(step[:3, 3])), float(rotation_angle_deg(step[:3, :3]))
 
 
 def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
