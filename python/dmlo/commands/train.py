@@ -50,6 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     optim.add_argument("--checkpoint-every", type=int, default=50, help="steps between mid-epoch checkpoints")
     optim.add_argument("--max-steps", type=int, default=None, help="stop after this many steps (smoke runs)")
     optim.add_argument("--resume", action="store_true", help="continue from RUNDIR/last.pt when it exists")
+    optim.add_argument("--init", metavar="CKPT", help="start a new run from these weights and their model config (fine-tuning)")
+    optim.add_argument("--pose-loss-weight", type=float, default=0.0,
+                       help="add the pose loss (the motion error the predicted matches imply) with this weight; 0 = off")
     optim.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -106,14 +109,21 @@ def run(args: argparse.Namespace) -> int:
             crop_height=args.crop_height or None, crop_width=args.crop_width or None, yaw_roll=not args.no_yaw_roll,
             mirror=args.mirror, max_gap=args.max_gap, val_max_pairs=args.val_max_pairs, val_width=args.val_width or None,
             seed=args.seed, workers=args.workers, device=args.device, checkpoint_every=args.checkpoint_every,
-            max_steps=args.max_steps,
+            max_steps=args.max_steps, pose_loss_weight=args.pose_loss_weight,
+            init=str(args.init) if args.init else None,
         )
+        if config.init is not None and not Path(config.init).is_file():
+            raise UserError(f"--init checkpoint not found: {config.init}")
+        pose_jacobian = config.pose_loss_weight > 0
         augmentation = Augmentation(config.crop_height, config.crop_width, config.yaw_roll, mirror=config.mirror)
-        train_set = PairDataset.from_paths(config.data, augmentation=augmentation, max_gap=config.max_gap, seed=config.seed)
+        train_set = PairDataset.from_paths(
+            config.data, augmentation=augmentation, max_gap=config.max_gap, seed=config.seed, pose_jacobian=pose_jacobian
+        )
         val_set = None
         if config.val:
             val_set = PairDataset.from_paths(
-                config.val, augmentation=Augmentation(None, config.val_width, yaw_roll=False, random=False), max_gap=1
+                config.val, augmentation=Augmentation(None, config.val_width, yaw_roll=False, random=False), max_gap=1,
+                pose_jacobian=pose_jacobian,
             )
     except (ValueError, FileNotFoundError) as err:
         raise UserError(str(err)) from err

@@ -43,6 +43,11 @@ class TrainConfig:
     """Also checkpoint every this many steps inside an epoch (resume loses at most this many)."""
     max_steps: int | None = None
     """Stop after this many optimiser steps in total (tests, smoke runs)."""
+    pose_loss_weight: float = 0.0
+    """Weight of the pose loss (`dmlo.model.pose_loss`, beyond the paper) next to the flow loss; 0: off.
+    When on, the best checkpoint is the one with the smallest validation pose error instead of EPE."""
+    init: str | None = None
+    """A checkpoint whose weights (and model config) a new run starts from: fine-tuning."""
 
     def __post_init__(self) -> None:
         positive = ("epochs", "batch_size", "lr_step_epochs", "checkpoint_every", "max_gap")
@@ -51,6 +56,8 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.optimizer not in ("sgd", "adam"):
             raise ValueError(f"optimizer must be 'sgd' or 'adam', got {self.optimizer!r}")
+        if self.pose_loss_weight < 0:
+            raise ValueError(f"pose_loss_weight must be >= 0, got {self.pose_loss_weight}")
         if self.lr <= 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
         if self.val_width is not None and (self.val_width <= 0 or self.val_width % 8):

@@ -15,6 +15,11 @@ Augmentations keep the geometry honest:
 - *mirror* (optional): both images flipped left–right — the scans of the mirror world (y → −y), whose
   flow is the column-negated flow. Every drive then also turns the other way, so the network cannot learn
   a preferred turning direction (a yaw bias that drifts the odometry).
+
+With ``pose_jacobian=True`` a sample also holds ``pose_jacobian`` float32 (6, 2, H, W): how the ground-truth
+flow of every cell moves when the pose changes (see :func:`flow_pose_jacobian`), NaN where a perturbed pose
+loses the cell's ground truth. The augmentations move it with the flow (mirror negates its Δcol part), so
+the pose loss of `dmlo.model.pose_loss` stays exact on rolled, mirrored and cropped samples.
 """
 
 from __future__ import annotations
@@ -55,6 +60,8 @@ def mirror_columns(sample: Sample) -> Sample:
     """Both scans of the mirror world (left–right flip): Δcol negated, every match kept."""
     mirrored = {key: np.ascontiguousarray(value[..., ::-1]) for key, value in sample.items()}
     mirrored["flow"][1] *= -1
+    if "pose_jacobian" in mirrored:
+        mirrored["pose_jacobian"][:, 1] *= -1
     return mirrored
 
 
@@ -112,7 +119,12 @@ class Geometry(Protocol):
     def project(self, points: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]: ...
 
     def ground_truth(
-        self, ref_range: NDArray[np.float32], tgt_range: NDArray[np.float32], T_tgt_ref: NDArray[np.float64]
+        self,
+        ref_range: NDArray[np.float32],
+        tgt_range: NDArray[np.float32],
+        T_tgt_ref: NDArray[np.float64],
+        *,
+        max_range_error: float | None = None,
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]: ...
 
 
@@ -133,15 +145,60 @@ class RustGeometry:
         return np.asarray(image.range, dtype=np.float32), np.asarray(image.reflectance, dtype=np.float32)
 
     def ground_truth(
-        self, ref_range: NDArray[np.float32], tgt_range: NDArray[np.float32], T_tgt_ref: NDArray[np.float64]
+        self,
+        ref_range: NDArray[np.float32],
+        tgt_range: NDArray[np.float32],
+        T_tgt_ref: NDArray[np.float64],
+        *,
+        max_range_error: float | None = None,
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """Eq. 5–8; ``max_range_error`` (metres) overrides this geometry's for one call."""
         import dmlo_rs
 
         flow, valid = dmlo_rs.ground_truth_flow(
             ref_range, tgt_range, np.ascontiguousarray(T_tgt_ref, dtype=np.float64), self.config,
-            max_range_error=self.max_range_error,
+            max_range_error=self.max_range_error if max_range_error is None else max_range_error,
         )
         return np.asarray(flow, dtype=np.float32), np.asarray(valid, dtype=bool)
+
+
+# Perturbation steps of the finite-difference Jacobian, in its units (mrad, mm): large enough that float32
+# flows resolve the change (~0.1 px), small enough that the flow is linear in them.
+_JACOBIAN_STEP = 1.0
+
+
+def flow_pose_jacobian(
+    geometry: Geometry, ref_range: NDArray[np.float32], tgt_range: NDArray[np.float32], T_tgt_ref: NDArray[np.float64]
+) -> NDArray[np.float32]:
+    """d(ground-truth flow)/dξ at ``T_tgt_ref``, float32 (6, 2, H, W) in pixels per unit of ξ.
+
+    ξ = (ω in mrad, t in mm) perturbs the motion on the left, T(ξ) = exp(ξ)·T_tgt_ref: an error of the
+    estimated motion expressed in the target frame. Forward differences of the ground-truth flow itself
+    (Eq. 5–8), so the Jacobian holds whatever the projection does (crops, wrap-around, virtual points).
+    NaN where the cell has no ground truth or a perturbed motion moves its match off the image or onto an
+    empty cell.
+    """
+    from scipy.spatial.transform import Rotation
+
+    flow, valid = geometry.ground_truth(ref_range, tgt_range, T_tgt_ref)
+    jacobian = np.empty((6, *flow.shape), dtype=np.float32)
+    for k in range(6):
+        perturbation = np.eye(4)
+        if k < 3:
+            perturbation[:3, :3] = Rotation.from_rotvec(np.eye(3)[k] * _JACOBIAN_STEP * 1e-3).as_matrix()
+        else:
+            perturbation[k - 3, 3] = _JACOBIAN_STEP * 1e-3
+        # The location Φ(T p'_r) moves smoothly with the pose; the range check of the ground truth does not
+        # (a step can move the match onto a neighbour cell of another range), so it is off here: it would
+        # drop the cells near cell boundaries, which on the ground are most of them.
+        moved, moved_valid = geometry.ground_truth(ref_range, tgt_range, perturbation @ T_tgt_ref, max_range_error=1e9)
+        change = moved - flow
+        # A match crossing the 360° seam changes Δcol by the image width; a 1 mrad / 1 mm step moves it by
+        # well under half of it, so the remainder is the true change.
+        width = flow.shape[-1]
+        change[1] = (change[1] + width / 2) % width - width / 2
+        jacobian[k] = np.where(valid & moved_valid, change / _JACOBIAN_STEP, np.nan)
+    return jacobian
 
 
 class PairDataset:
@@ -159,6 +216,7 @@ class PairDataset:
         max_gap: int = 2,
         seed: int = 0,
         cache_frames: int = 64,
+        pose_jacobian: bool = False,
     ) -> None:
         if max_gap < 1:
             raise ValueError(f"max_gap must be >= 1, got {max_gap}")
@@ -166,6 +224,7 @@ class PairDataset:
         self.geometry = geometry
         self.augmentation = augmentation or Augmentation()
         self.seed = seed
+        self.pose_jacobian = pose_jacobian
         self.epoch = 0
         self.pairs: list[tuple[int, int, int]] = []
         for number, sequence in enumerate(self.sequences):
@@ -208,9 +267,12 @@ class PairDataset:
         sequence, ref_index, tgt_index = self.pairs[index]
         ref, T_world_ref = self._scan(sequence, ref_index)
         tgt, T_world_tgt = self._scan(sequence, tgt_index)
-        T_tgt_ref = np.linalg.solve(T_world_tgt, T_world_ref)
-        flow, valid = self.geometry.ground_truth(ref[0], tgt[0], T_tgt_ref.astype(np.float64))
-        return {"ref": ref, "tgt": tgt, "flow": flow.astype(np.float32), "valid": valid.astype(bool)}
+        T_tgt_ref = np.linalg.solve(T_world_tgt, T_world_ref).astype(np.float64)
+        flow, valid = self.geometry.ground_truth(ref[0], tgt[0], T_tgt_ref)
+        sample = {"ref": ref, "tgt": tgt, "flow": flow.astype(np.float32), "valid": valid.astype(bool)}
+        if self.pose_jacobian:
+            sample["pose_jacobian"] = flow_pose_jacobian(self.geometry, ref[0], tgt[0], T_tgt_ref)
+        return sample
 
     def __getitem__(self, index: int) -> Sample:
         rng = np.random.default_rng([self.seed, self.epoch, index])

@@ -37,3 +37,26 @@ class FlowErrorSums:
     @property
     def fl_all(self) -> float:
         return 100.0 * self.outliers / self.cells if self.cells else float("nan")
+
+
+@dataclass
+class PoseErrorSums:
+    """Mean size of the motion errors (B, 6) — (ω mrad, t mm) — that `dmlo.model.pose_loss` implies."""
+
+    rotation_sum: float = 0.0
+    translation_sum: float = 0.0
+    pairs: int = 0
+
+    def add(self, errors: Tensor) -> None:
+        finite = torch.isfinite(errors).all(dim=1)
+        self.rotation_sum += float(errors[finite, :3].norm(dim=1).sum())
+        self.translation_sum += float(errors[finite, 3:].norm(dim=1).sum())
+        self.pairs += int(finite.sum())
+
+    @property
+    def rotation(self) -> float:
+        return self.rotation_sum / self.pairs if self.pairs else float("nan")
+
+    @property
+    def translation(self) -> float:
+        return self.translation_sum / self.pairs if self.pairs else float("nan")

@@ -13,11 +13,12 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
 from dmlo.model import Matcher, MatcherConfig, matching_loss
+from dmlo.model.pose_loss import pose_loss
 from dmlo.train import checkpoint
 from dmlo.train.config import TrainConfig
 from dmlo.train.dataset import collate
 from dmlo.train.distributed import DistributedContext, convert_batchnorm, resolve_device
-from dmlo.train.metrics import FlowErrorSums
+from dmlo.train.metrics import FlowErrorSums, PoseErrorSums
 
 LAST = "last.pt"
 BEST = "best.pt"
@@ -62,13 +63,18 @@ class Trainer:
             raise ValueError(
                 f"{len(train_set)} training pairs are fewer than one batch of {config.batch_size} per process"
             )
-        state = None
+        state, initial = None, None
         if resume and (self.out / LAST).is_file():
             state = checkpoint.load(self.out / LAST, "cpu")
             model_config = MatcherConfig.from_dict(state["model_config"])
+        elif config.init is not None:
+            initial = checkpoint.load(config.init, "cpu")
+            model_config = MatcherConfig.from_dict(initial["model_config"])
         torch.manual_seed(config.seed)
         self.model_config = model_config
         self.model: torch.nn.Module = Matcher(model_config).to(self.device)
+        if initial is not None:
+            self.model.load_state_dict(initial["model"])
         if self.context.enabled:
             # Before the optimiser: the conversion replaces the BatchNorm modules and their parameters.
             self.model = convert_batchnorm(self.model, self.device)
@@ -81,13 +87,14 @@ class Trainer:
             )
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, config.lr_step_epochs, config.lr_gamma)
         self.epoch, self.step_in_epoch, self.global_step = 0, 0, 0
-        self.best_epe = math.inf
+        self.best_metric = math.inf
         if state is not None:
             self.model.load_state_dict(state["model"])
             self.optimizer.load_state_dict(state["optimizer"])
             self.scheduler.load_state_dict(state["scheduler"])
             self.epoch, self.step_in_epoch = state["epoch"], state["step_in_epoch"]
-            self.global_step, self.best_epe = state["global_step"], state["best_epe"]
+            self.global_step = state["global_step"]
+            self.best_metric = state.get("best_metric", state.get("best_epe", math.inf))
             checkpoint.set_rng_state(state["rng"])
         self.network: torch.nn.Module = self.model
         if self.context.enabled:
@@ -109,7 +116,7 @@ class Trainer:
             "epoch": self.epoch,
             "step_in_epoch": self.step_in_epoch,
             "global_step": self.global_step,
-            "best_epe": self.best_epe,
+            "best_metric": self.best_metric,
             "rng": checkpoint.rng_state(),
             "model_config": self.model_config.to_dict(),
             "train_config": self.config.to_dict(),
@@ -132,6 +139,11 @@ class Trainer:
         batch = {key: value.to(self.device, non_blocking=True) for key, value in batch.items()}
         output = self.network(batch["ref"], batch["tgt"])
         loss, metrics = matching_loss(output, batch["flow"], batch["valid"], self.model_config)
+        if self.config.pose_loss_weight > 0:
+            pose, _ = pose_loss(output.flow, output.confidence, batch["flow"], batch["valid"], batch["pose_jacobian"])
+            loss = loss + self.config.pose_loss_weight * pose
+            metrics["pose_loss"] = float(pose.detach())
+            metrics["loss"] = float(loss.detach())
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
@@ -176,10 +188,15 @@ class Trainer:
             row = {"epoch": self.epoch, "step": self.global_step, "lr": self.optimizer.param_groups[0]["lr"],
                    "train_loss": loss_sum / max(steps, 1), "train_epe": errors.epe, "train_fl_all": errors.fl_all}
             if self.val_set is not None:
-                val = self.validate()
+                val, val_pose = self.validate()
                 row.update({"val_epe": val.epe, "val_fl_all": val.fl_all, "val_cells": val.cells})
-                if val.cells and val.epe < self.best_epe:
-                    self.best_epe = val.epe
+                selection = val.epe if val.cells else math.nan
+                if val_pose.pairs:
+                    row.update({"val_rotation_mrad": val_pose.rotation, "val_translation_mm": val_pose.translation})
+                    if self.config.pose_loss_weight > 0:
+                        selection = val_pose.rotation
+                if selection < self.best_metric:
+                    self.best_metric = selection
                     self.save(BEST)
             self.save()
             if self.context.is_main:
@@ -190,12 +207,13 @@ class Trainer:
         return row
 
     @torch.no_grad()
-    def validate(self) -> FlowErrorSums:
-        """EPE and Fl-all of the current weights over (up to ``val_max_pairs``, evenly spaced) held-out pairs.
+    def validate(self) -> tuple[FlowErrorSums, PoseErrorSums]:
+        """EPE and Fl-all of the current weights over (up to ``val_max_pairs``, evenly spaced) held-out pairs,
+        and the implied motion errors when the pairs carry pose Jacobians.
 
         Runs on the main process with the plain module (no collectives); the others wait.
         """
-        errors = FlowErrorSums()
+        errors, pose_errors = FlowErrorSums(), PoseErrorSums()
         if self.context.is_main:
             self.model.eval()
             size = len(self.val_set)  # type: ignore[arg-type]
@@ -206,7 +224,10 @@ class Trainer:
                 batch = {key: value.to(self.device) for key, value in batch.items()}
                 output = self.model(batch["ref"], batch["tgt"])
                 errors.add(output.flow, batch["flow"], batch["valid"])
+                if "pose_jacobian" in batch:
+                    _, pose = pose_loss(output.flow, output.confidence, batch["flow"], batch["valid"], batch["pose_jacobian"])
+                    pose_errors.add(pose)
             self.model.train()
         if self.context.enabled:
             torch.distributed.barrier()
-        return errors
+        return errors, pose_errors
