@@ -215,6 +215,7 @@ def test_a_standing_car_adds_no_keyframes(straight_drive: Path) -> None:
         ("mapping", "motion_model_start_angle_deg"),
         ("motion_model", "max_deviation"),
         ("motion_model", "max_deviation_deg"),
+        ("motion_model", "guided_fraction"),
     ],
 )
 def test_bad_distance_and_angle_limits_are_refused_up_front(section: str, name: str) -> None:

@@ -62,9 +62,11 @@ def test_too_few_inliers_fall_back_to_constant_velocity(scans: list[np.ndarray])
 
 
 class CorruptedPair(Odometry):
-    """Fault injection: the RANSAC motion of one frame is 1 m off, like a wrong consensus."""
+    """Fault injection: the RANSAC motion of one frame is 1 m off, like a wrong consensus; with
+    `shift_matches` every match moves with it, so that none still agrees with the true motion."""
 
     corrupt_frame = 3
+    shift_matches = False
 
     def _match(self, *args, **kwargs):  # type: ignore[no-untyped-def]
         pair = super()._match(*args, **kwargs)
@@ -72,22 +74,43 @@ class CorruptedPair(Odometry):
             shifted = pair.T_tgt_ref.copy()
             shifted[:3, 3] += [1.0, 0.0, 0.0]
             pair = dataclasses.replace(pair, T_tgt_ref=shifted)
+            if self.shift_matches:
+                pair = dataclasses.replace(pair, target_points=np.asarray(pair.target_points) + [1.0, 0.0, 0.0])
         return pair
 
 
-def test_a_motion_far_from_the_prediction_is_replaced_by_it(scans: list[np.ndarray]) -> None:
-    steps = {}
+class CorruptedMatches(CorruptedPair):
+    shift_matches = True
+
+
+def steps_of(poses: list[np.ndarray]) -> list[np.ndarray]:
+    return [np.linalg.inv(a) @ b for a, b in zip(poses, poses[1:])]
+
+
+def test_a_wrong_consensus_is_replaced_by_the_matches_that_agree_with_the_prediction(scans: list[np.ndarray]) -> None:
+    reference = Odometry.from_default()
+    honest = steps_of([reference.register(p) for p in scans])
+    steps, fallbacks = {}, {}
     for limit in (0.3, np.inf):
         config = OdometryConfig()
         config.motion_model.max_deviation = limit
         odometry = CorruptedPair.from_default(config)
-        poses = [odometry.register(p) for p in scans]
-        steps[limit] = [np.linalg.inv(a) @ b for a, b in zip(poses, poses[1:])]
-        fallbacks = [d.fallback for d in odometry.diagnostics]
-        assert fallbacks == ([None, None, None, "implausible_motion", None] if limit == 0.3 else [None] * 5)
-    # Gated, frame 3 moves exactly as the constant-velocity model predicts from frame 2; ungated, 1 m off.
-    np.testing.assert_allclose(steps[0.3][2], steps[0.3][1], atol=1e-9)
-    assert np.linalg.norm(steps[np.inf][2][:3, 3] - steps[0.3][2][:3, 3]) > 0.9
+        steps[limit] = steps_of([odometry.register(p) for p in scans])
+        fallbacks[limit] = [d.fallback for d in odometry.diagnostics]
+    assert fallbacks[0.3] == [None, None, None, "guided_consensus", None]
+    assert fallbacks[np.inf] == [None] * 5
+    # Ungated, frame 3 is 1 m off; gated, the true matches are solved again: the honest motion within 1 cm.
+    assert np.linalg.norm(steps[np.inf][2][:3, 3] - honest[2][:3, 3]) > 0.9
+    assert np.linalg.norm(steps[0.3][2][:3, 3] - honest[2][:3, 3]) < 0.01
+    np.testing.assert_allclose(steps[0.3][3:], honest[3:], atol=0.01)
+
+
+def test_a_motion_no_match_supports_is_replaced_by_the_prediction(scans: list[np.ndarray]) -> None:
+    odometry = CorruptedMatches.from_default()
+    steps = steps_of([odometry.register(p) for p in scans])
+    assert [d.fallback for d in odometry.diagnostics] == [None, None, None, "implausible_motion", None]
+    # Frame 3 moves exactly as the constant-velocity model predicts from frame 2.
+    np.testing.assert_allclose(steps[2], steps[1], atol=1e-9)
 
 
 def test_a_wrong_motion_before_any_velocity_costs_at_most_one_more_frame(scans: list[np.ndarray]) -> None:

@@ -33,9 +33,14 @@ class MotionModelConfig:
 
     min_inliers: int = 10  # the paper's 10
     # Beyond the paper: a RANSAC motion further than this (m, °; per frame, at 10 Hz a 3 g change of speed)
-    # from the constant-velocity prediction is a wrong consensus and is replaced by the prediction.
+    # from the constant-velocity prediction is a wrong consensus. The matches that agree with the
+    # prediction (within twice the RANSAC threshold) are solved instead when they are a consensus of their
+    # own — at least `min_inliers` and `guided_fraction` of RANSAC's — otherwise the prediction is taken.
     max_deviation: float = 0.3
     max_deviation_deg: float = 3.0
+    # A prediction measured from a wrong pair still finds a few agreeing matches (ground rings look
+    # stationary); a true static scene outvoted by a passing car or a repeated facade is nearly as large.
+    guided_fraction: float = 0.5
 
 
 @dataclass

@@ -48,8 +48,9 @@ class FrameDiagnostics:
     num_matches: int = 0
     num_inliers: int = 0
     inlier_ratio: float = 0.0
-    # "constant_velocity" when RANSAC found too few inliers, "implausible_motion" when its motion was far from
-    # the prediction, "too_few_points" / "unreadable_scan" for scans not matched
+    # "constant_velocity" when RANSAC found too few inliers; when its motion was far from the prediction,
+    # "guided_consensus" (the matches agreeing with the prediction were solved) or "implausible_motion" (too
+    # few agreed: the prediction was taken); "too_few_points" / "unreadable_scan" for scans not matched
     fallback: str | None = None
     ndt_converged: bool | None = None
     ndt_degenerate_directions: int | None = None  # pose directions the map did not constrain (kept as DMLO's)
@@ -317,10 +318,43 @@ class Odometry:
             moved, turned = _pose_difference(pair.T_tgt_ref, predicted)
             limits = self.config.motion_model
             if moved > limits.max_deviation * gap or turned > limits.max_deviation_deg * gap:
+                guided = self._consensus_near(pair, predicted)
+                if guided is not None:
+                    # The static scene usually still agrees with the prediction: a larger wrong consensus
+                    # (a passing car, a repeated facade) outvoted it. Its own solve beats the prediction.
+                    diagnostics.fallback = "guided_consensus"
+                    return guided
                 diagnostics.fallback = "implausible_motion"
                 self._gated_last = True
                 return predicted
         return pair.T_tgt_ref
+
+    def _consensus_near(self, pair: PairResult, predicted: Matrix4) -> Matrix4 | None:
+        """The SVD solve (Eq. 12–14) of the matches that agree with a predicted motion, refined once on its
+        own inliers at the RANSAC threshold; None when they are no consensus of their own (fewer than
+        `min_inliers` or `guided_fraction` of RANSAC's inliers)."""
+        source = np.asarray(pair.source_points, dtype=np.float64)
+        target = np.asarray(pair.target_points, dtype=np.float64)
+        limits = self.config.motion_model
+        threshold = self.config.ransac.threshold
+        needed = max(limits.min_inliers, limits.guided_fraction * pair.num_inliers)
+
+        def agreeing(transform: Matrix4, radius: float) -> npt.NDArray[np.bool_]:
+            moved = source @ transform[:3, :3].T + transform[:3, 3]
+            return np.linalg.norm(moved - target, axis=1) < radius
+
+        # Twice the threshold: the prediction is itself a few centimetres off the true motion.
+        near = agreeing(predicted, 2 * threshold)
+        if near.sum() < needed:
+            return None
+        try:
+            transform = np.asarray(dmlo_rs.rigid_transform(source[near], target[near]), dtype=np.float64)
+            inliers = agreeing(transform, threshold)
+            if inliers.sum() < needed:
+                return None
+            return np.asarray(dmlo_rs.rigid_transform(source[inliers], target[inliers]), dtype=np.float64)
+        except dmlo_rs.RegistrationError:  # the agreeing matches are degenerate (collinear, coincident)
+            return None
 
     # -- motion model ---------------------------------------------------------------------------
 
@@ -411,7 +445,7 @@ class Odometry:
 def _check_limits(config: OdometryConfig) -> None:
     """The distance and angle limits only Python reads (Rust checks its own settings)."""
     limits = {
-        "motion_model": ("max_deviation", "max_deviation_deg"),
+        "motion_model": ("max_deviation", "max_deviation_deg", "guided_fraction"),
         "mapping": (
             "keyframe_distance",
             "keyframe_angle_deg",
