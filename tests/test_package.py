@@ -57,3 +57,7 @@ def test_every_command_has_help_with_examples() -> None:
             [sys.executable, "-m", "dmlo", command, "--help"], capture_output=True, text=True, check=True
         )
         assert "\nexamples:\n  " in out.stdout, command
+        # A default is shown only when it says something, and once.
+        text = " ".join(out.stdout.split())
+        assert "(default: None)" not in text and "(default: [])" not in text, command
+        assert ") (default:" not in text, command

@@ -14,6 +14,13 @@ import dmlo
 class DefaultsAndExamplesFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
     """Shows each option's default and keeps the examples in the epilog as written."""
 
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        # "(default: None)" says nothing, and a help text that names its default already says it better.
+        text = action.help or ""
+        if action.default in (None, False, []) or "default" in text:
+            return action.help
+        return super()._get_help_string(action)
+
 
 class UserError(Exception):
     """A mistake in what the user asked for: printed as one line, no traceback."""

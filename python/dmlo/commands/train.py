@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--mirror", action="store_true",
                       help="flip half of the pairs left-right (the mirror world): no learned turning preference")
     data.add_argument("--max-gap", type=int, default=2, help="pairs 1..N frames apart (default 2: the paper's triplets)")
-    data.add_argument("--val-max-pairs", type=int, default=64)
+    data.add_argument("--val-max-pairs", type=int, default=64, help="held-out pairs validated after each epoch, evenly spaced")
     data.add_argument("--val-width", type=int, default=0, help="centred validation crop; 0 = full width")
     data.add_argument("--workers", type=int, default=0, help="data loader processes")
 
