@@ -20,9 +20,10 @@ from dmlo.simulator import simulate_sequence
 TRAJECTORIES = ("07", "05", "00")  # KITTI sequences whose ground truth the drives follow, by seed
 
 
-def _dmlo(model: Path | None, mapping: bool) -> Odometry:
+def _dmlo(model: Path | None, mapping: bool, symmetric: bool = False) -> Odometry:
     config = OdometryConfig()
     config.mapping.enabled = mapping
+    config.matching.symmetric = symmetric
     return Odometry(model, config) if model else Odometry.from_default(config)
 
 
@@ -36,6 +37,7 @@ def main() -> None:
                         help="KITTI sequence each seed's drive follows, in order (cycled; default: 07 05 00)")
     parser.add_argument("--model", type=Path, default=None)
     parser.add_argument("--peers", nargs="*", default=["KISS-ICP", "small_gicp GICP", "Open3D GICP"])
+    parser.add_argument("--symmetric", action="store_true", help="add a row for DMLO with symmetric matching")
     parser.add_argument("--out", type=Path, default=Path("runs/bench_odometry"))
     args = parser.parse_args()
 
@@ -47,6 +49,8 @@ def main() -> None:
                               trajectory=trajectory if trajectory.is_file() else None)
         sequence = open_sequence(drive)
         variants = {"DMLO": lambda: _dmlo(args.model, False), "DMLO + mapping": lambda: _dmlo(args.model, True)}
+        if args.symmetric:
+            variants["DMLO (symmetric)"] = lambda: _dmlo(args.model, False, symmetric=True)
         rows = benchmark_sequence(sequence, variants, args.out / drive.name, peers=args.peers, max_frames=args.frames)
         source = f"KITTI {trajectory.stem}" if trajectory.is_file() else "generated"
         print(f"\n### {drive.name} ({source} trajectory, {len(sequence)} frames)\n")

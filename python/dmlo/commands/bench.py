@@ -43,9 +43,10 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(err)) from err
     if sequence.poses is None:
         raise UserError(f"{args.path} has no ground-truth poses to compare against")
-    variants = {"DMLO": lambda: build_odometry(args, mapping=False)}
+    name = "DMLO (symmetric)" if args.symmetric else "DMLO"
+    variants = {name: lambda: build_odometry(args, mapping=False)}
     if args.mapping:
-        variants["DMLO + mapping"] = lambda: build_odometry(args, mapping=True)
+        variants[f"{name} + mapping"] = lambda: build_odometry(args, mapping=True)
     try:
         rows = benchmark_sequence(sequence, variants, args.out, peers=args.peers, max_frames=args.max_frames)
     except UnknownPeerError as err:

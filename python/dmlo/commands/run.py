@@ -49,6 +49,9 @@ def add_odometry_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None, help="odometry config JSON (see config.json of a run)")
     parser.add_argument("--mapping", action="store_true",
                         help="refine every pose by scan-to-map NDT (bench: add a DMLO + mapping row)")
+    parser.add_argument("--symmetric", action="store_true",
+                        help="also match every scan back against the previous one and take the midpoint "
+                        "motion: less drift, one more matching pass per frame")
 
 
 def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # type: ignore[no-untyped-def]
@@ -62,6 +65,8 @@ def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # ty
         raise UserError(f"cannot read config {args.config}: {err}") from err
     if args.mapping if mapping is None else mapping:
         config.mapping.enabled = True
+    if args.symmetric:
+        config.matching.symmetric = True
     model = args.model or default_model_path()
     try:
         return Odometry(model, config)

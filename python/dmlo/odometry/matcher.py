@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -20,6 +20,7 @@ import dmlo_rs
 
 FRAME_GRAPH = "frame.onnx"
 WIDE_FRAME_GRAPH = "frame_wide.onnx"  # the same weights with the wide coarse window of §IV-D
+MATCH_GRAPH = "match.onnx"  # any pair of cached features, e.g. the new scan back against the previous one
 INTERFACE_VERSION = "1"
 _CYLINDER_KEYS = (
     "fov_up_deg",
@@ -56,6 +57,10 @@ class Matcher(Protocol):
 
     def frame(self, image: npt.NDArray[np.float32], previous: Features | None) -> FrameOutput: ...
 
+    def match(
+        self, reference: Features, target: Features
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...
+
 
 def default_model_path() -> Path:
     """The bundled default model: a folder with `frame.onnx` inside the installed package."""
@@ -74,9 +79,12 @@ def wide_graph_path(frame_graph: Path) -> Path:
 
 
 class OnnxMatcher:
-    """Runs an exported `frame.onnx` (or a folder holding one) on the CPU, or CUDA when available."""
+    """Runs an exported `frame.onnx` (or a folder holding one) on the CPU, or CUDA when available.
 
-    def __init__(self, path: Path, threads: int = 0) -> None:
+    `match_graph` opens the `match.onnx` beside it at once (a missing one is an error here rather than
+    on the first `match`)."""
+
+    def __init__(self, path: Path, threads: int = 0, match_graph: bool = False) -> None:
         import onnxruntime as ort
 
         graph = path / FRAME_GRAPH if path.is_dir() else path
@@ -109,6 +117,8 @@ class OnnxMatcher:
             coarse=np.zeros(shapes["prev_coarse_features"], np.float32),
             refine=np.zeros(shapes["prev_refine_features"], np.float32),
         )
+        self._options, self._providers = options, providers
+        self._match_session: Any = self._open_match_graph() if match_graph else None  # else on the first `match`
 
     def frame(self, image: npt.NDArray[np.float32], previous: Features | None) -> FrameOutput:
         if image.shape != (2, self.height, self.width):
@@ -128,6 +138,44 @@ class OnnxMatcher:
         if previous is None:  # matched against zeros: only the features mean anything
             return FrameOutput(features, None, None)
         return FrameOutput(features, flow[0], confidence[0])
+
+    def match(
+        self, reference: Features, target: Features
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """Flow `[2, H, W]` and confidence `[H, W]` from `reference` to `target`, both scans' cached
+        features (`match.onnx` beside `frame.onnx`, the same weights): no scan is encoded again."""
+        if self._match_session is None:
+            self._match_session = self._open_match_graph()
+        flow, confidence = self._match_session.run(
+            None,
+            {
+                "ref_coarse_features": reference.coarse,
+                "ref_refine_features": reference.refine,
+                "tgt_coarse_features": target.coarse,
+                "tgt_refine_features": target.refine,
+            },
+        )
+        return flow[0], confidence[0]
+
+    def _open_match_graph(self) -> Any:
+        import onnxruntime as ort
+
+        graph = self.path.with_name(MATCH_GRAPH)
+        if not graph.is_file():
+            raise ModelError(
+                f"{self.path.parent} has no {MATCH_GRAPH} to match a scan back against the previous one; export "
+                "one with `dmlo export CHECKPOINT --out DIR` (it writes all three graphs)"
+            )
+        try:
+            session = ort.InferenceSession(str(graph), self._options, providers=self._providers)
+        except Exception as err:  # onnxruntime raises its own exception types for unreadable files
+            raise ModelError(f"{graph}: not a readable ONNX model ({err})") from err
+        metadata = session.get_modelmeta().custom_metadata_map
+        if metadata.get("dmlo.graph") != "match" or json.loads(metadata.get("dmlo.model_config", "null")) != self.model_config:
+            raise ModelError(f"{graph}: not the match graph of {self.path.name}'s model")
+        if (int(metadata.get("dmlo.height", -1)), int(metadata.get("dmlo.width", -1))) != (self.height, self.width):
+            raise ModelError(f"{graph}: input size differs from {self.path.name}'s {self.height}×{self.width}")
+        return session
 
 
 def _cylinder_from_metadata(values: dict[str, object], graph: Path) -> dmlo_rs.CylinderConfig:

@@ -52,6 +52,8 @@ class FrameDiagnostics:
     # "guided_consensus" (the matches agreeing with the prediction were solved) or "implausible_motion" (too
     # few agreed: the prediction was taken); "too_few_points" / "unreadable_scan" for scans not matched
     fallback: str | None = None
+    # with matching.symmetric: RANSAC inliers of the new scan matched back against the previous one
+    backward_inliers: int | None = None
     ndt_converged: bool | None = None
     ndt_degenerate_directions: int | None = None  # pose directions the map did not constrain (kept as DMLO's)
     map_keyframe: bool | None = None  # with mapping: the scan entered the map (it moved far enough from the last)
@@ -67,6 +69,7 @@ class FrameDiagnostics:
             "num_inliers": self.num_inliers,
             "inlier_ratio": round(self.inlier_ratio, 4),
             "fallback": self.fallback,
+            "backward_inliers": self.backward_inliers,
             "ndt_converged": self.ndt_converged,
             "ndt_degenerate_directions": self.ndt_degenerate_directions,
             "map_keyframe": self.map_keyframe,
@@ -121,7 +124,9 @@ class Odometry:
     def __init__(self, model_path: str | Path, config: OdometryConfig | None = None) -> None:
         self.config = config or OdometryConfig()
         _check_limits(self.config)
-        self.matcher: Matcher = OnnxMatcher(Path(model_path), threads=self.config.threads)
+        self.matcher: Matcher = OnnxMatcher(
+            Path(model_path), threads=self.config.threads, match_graph=self.config.matching.symmetric
+        )
         self.cylinder = self.matcher.cylinder
         self.poses: list[Matrix4] = []
         self.diagnostics: list[FrameDiagnostics] = []
@@ -168,7 +173,7 @@ class Odometry:
         if previous is None:
             pose = self._predict()
         else:
-            motion = self._motion_from_flow(previous.range, ranges, output, diagnostics, watch)
+            motion = self._motion_from_flow(previous, ranges, output, diagnostics, watch)
             pose = previous.pose @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
             if self._map is not None:
                 pose = self._refine_with_map(cloud, pose, diagnostics)
@@ -208,7 +213,8 @@ class Odometry:
         """The motion `T_tgt_ref` between two scans, with no motion model, map or initial guess.
 
         `large_motion` matches with the model's wide-window graph (the paper's D = 40 at inference,
-        §IV-D) for scans far apart, e.g. several frames or metres.
+        §IV-D) for scans far apart, e.g. several frames or metres; it matches one way only, whatever
+        `matching.symmetric` says.
         """
         matcher = self._wide_matcher() if large_motion else self.matcher
         ref_image, ref_range = self._project(_as_scan(reference, "reference"))
@@ -216,7 +222,11 @@ class Odometry:
         ref_features = matcher.frame(ref_image, None).features
         output = matcher.frame(tgt_image, ref_features)
         assert output.flow is not None and output.confidence is not None
-        return self._match(ref_range, tgt_range, output.flow, output.confidence)
+        forward = self._match(ref_range, tgt_range, output.flow, output.confidence)
+        if large_motion or not self.config.matching.symmetric:
+            return forward
+        backward = self._match_back(tgt_range, ref_range, output.features, ref_features)
+        return _symmetric(forward, backward, self.config.motion_model.min_inliers)
 
     def _wide_matcher(self) -> Matcher:
         if self._wide is None:
@@ -291,19 +301,35 @@ class Odometry:
             inliers=np.asarray(inliers, dtype=bool),
         )
 
+    def _match_back(
+        self,
+        range_now: npt.NDArray[np.float32],
+        range_before: npt.NDArray[np.float32],
+        features_now: Features,
+        features_before: Features,
+    ) -> PairResult:
+        """The newer scan matched back against the older one (`T_before_now`), from their cached features."""
+        flow, confidence = self.matcher.match(features_now, features_before)
+        return self._match(range_now, range_before, flow, confidence)
+
     def _motion_from_flow(
         self,
-        ref_range: npt.NDArray[np.float32],
+        previous: _Scan,
         tgt_range: npt.NDArray[np.float32],
         output: FrameOutput,
         diagnostics: FrameDiagnostics,
         watch: _Stopwatch,
     ) -> Matrix4:
         assert output.flow is not None and output.confidence is not None
-        pair = self._match(ref_range, tgt_range, output.flow, output.confidence, watch)
+        pair = self._match(previous.range, tgt_range, output.flow, output.confidence, watch)
         diagnostics.num_matches = pair.num_matches
         diagnostics.num_inliers = pair.num_inliers
         diagnostics.inlier_ratio = pair.inlier_ratio
+        if self.config.matching.symmetric:
+            backward = self._match_back(tgt_range, previous.range, output.features, previous.features)
+            diagnostics.backward_inliers = backward.num_inliers
+            pair = _symmetric(pair, backward, self.config.motion_model.min_inliers)
+            watch.lap("backward")
         gap = diagnostics.index - self._reference_index
         predicted = np.linalg.matrix_power(self._velocity, gap)
         if pair.num_inliers < self.config.motion_model.min_inliers:
@@ -458,6 +484,46 @@ def _check_limits(config: OdometryConfig) -> None:
             value = getattr(getattr(config, section), name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
                 raise ValueError(f"{section}.{name}: must be a number >= 0, got {value!r}")
+
+
+def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> PairResult:
+    """One motion from a pair matched both ways: the midpoint of the forward motion and the inverted
+    backward one, with both directions' matches (the backward ones turned round). A direction with fewer
+    than `min_inliers` inliers is left out; with neither, the forward pair goes on to the motion model.
+
+    The network's errors in the two directions are only partly the same, so the midpoint cancels part of
+    them (beyond the paper; measured in the README).
+    """
+    reverse = PairResult(
+        T_tgt_ref=np.linalg.inv(backward.T_tgt_ref).astype(np.float64),
+        num_matches=backward.num_matches,
+        num_inliers=backward.num_inliers,
+        source_points=backward.target_points,
+        target_points=backward.source_points,
+        inliers=backward.inliers,
+    )
+    usable = [pair for pair in (forward, reverse) if pair.num_inliers >= min_inliers]
+    if len(usable) < 2:
+        return usable[0] if usable else forward
+    return PairResult(
+        T_tgt_ref=_midpoint(forward.T_tgt_ref, reverse.T_tgt_ref),
+        num_matches=forward.num_matches + reverse.num_matches,
+        num_inliers=forward.num_inliers + reverse.num_inliers,
+        source_points=np.concatenate([forward.source_points, reverse.source_points]),
+        target_points=np.concatenate([forward.target_points, reverse.target_points]),
+        inliers=np.concatenate([forward.inliers, reverse.inliers]),
+    )
+
+
+def _midpoint(a: Matrix4, b: Matrix4) -> Matrix4:
+    """The rigid motion halfway between two: the rotation is the projection of R_a + R_b onto SO(3)
+    (for two rotations their geodesic midpoint), the translation the mean."""
+    u, _, vt = np.linalg.svd(a[:3, :3] + b[:3, :3])
+    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    middle = np.eye(4)
+    middle[:3, :3] = u @ fix @ vt
+    middle[:3, 3] = (a[:3, 3] + b[:3, 3]) / 2
+    return middle
 
 
 def _pose_difference(a: Matrix4, b: Matrix4) -> tuple[float, float]:

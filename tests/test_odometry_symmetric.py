@@ -1,0 +1,129 @@
+"""Symmetric matching (beyond the paper): every pair matched both ways, the midpoint of the two motions."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation, Slerp
+
+from dmlo.datasets import open_sequence
+from dmlo.odometry import Odometry, OdometryConfig, PairResult
+from dmlo.odometry.matcher import ModelError, default_model_path
+from dmlo.odometry.pipeline import _midpoint, _symmetric
+from dmlo.simulator import simulate_sequence
+
+
+@pytest.fixture(scope="module")
+def scans(tmp_path_factory: pytest.TempPathFactory) -> list[np.ndarray]:
+    out = tmp_path_factory.mktemp("drive")
+    simulate_sequence(out, frames=4, seed=5, progress=False)
+    sequence = open_sequence(out)
+    return [sequence[i].points for i in range(len(sequence))]
+
+
+def symmetric_config() -> OdometryConfig:
+    config = OdometryConfig()
+    config.matching.symmetric = True
+    return config
+
+
+def rigid(rotvec_deg: list[float], translation: list[float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec_deg, degrees=True).as_matrix()
+    T[:3, 3] = translation
+    return T
+
+
+def test_midpoint_is_the_geodesic_middle_of_two_motions() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        a = rigid(list(rng.normal(0, 20, 3)), list(rng.normal(0, 2, 3)))
+        b = rigid(list(rng.normal(0, 20, 3)), list(rng.normal(0, 2, 3)))
+        middle = _midpoint(a, b)
+        halfway = Slerp([0, 1], Rotation.from_matrix([a[:3, :3], b[:3, :3]]))([0.5]).as_matrix()[0]
+        np.testing.assert_allclose(middle[:3, :3], halfway, atol=1e-9)
+        np.testing.assert_allclose(middle[:3, 3], (a[:3, 3] + b[:3, 3]) / 2, atol=1e-12)
+        np.testing.assert_allclose(middle[3], [0, 0, 0, 1])
+    same = rigid([1, 2, 3], [4, 5, 6])
+    np.testing.assert_allclose(_midpoint(same, same), same, atol=1e-12)
+
+
+def pair(T: np.ndarray, inliers: int, matches: int = 50) -> PairResult:
+    source = np.arange(3 * matches, dtype=np.float64).reshape(matches, 3)
+    return PairResult(
+        T_tgt_ref=T, num_matches=matches, num_inliers=inliers, source_points=source,
+        target_points=source @ T[:3, :3].T + T[:3, 3], inliers=np.arange(matches) < inliers,
+    )
+
+
+def test_a_direction_with_too_few_inliers_is_left_out() -> None:
+    forward = rigid([0, 0, 1], [1, 0, 0])
+    backward_of_forward = np.linalg.inv(rigid([0, 0, 1.2], [1.1, 0, 0]))
+    both = _symmetric(pair(forward, 40), pair(backward_of_forward, 30), min_inliers=10)
+    np.testing.assert_allclose(both.T_tgt_ref, _midpoint(forward, np.linalg.inv(backward_of_forward)), atol=1e-12)
+    assert (both.num_inliers, both.num_matches, len(both.source_points)) == (70, 100, 100)
+    # The backward matches enter turned round: they too map reference points onto target points.
+    turned = both.source_points[50:] @ both.T_tgt_ref[:3, :3].T + both.T_tgt_ref[:3, 3]
+    assert np.abs(turned - both.target_points[50:]).max() < 0.1 * np.abs(both.target_points[50:]).max()
+
+    only_forward = _symmetric(pair(forward, 40), pair(backward_of_forward, 5), min_inliers=10)
+    np.testing.assert_array_equal(only_forward.T_tgt_ref, forward)
+    only_backward = _symmetric(pair(forward, 5), pair(backward_of_forward, 30), min_inliers=10)
+    np.testing.assert_allclose(only_backward.T_tgt_ref, np.linalg.inv(backward_of_forward), atol=1e-12)
+    assert only_backward.num_inliers == 30
+    neither = _symmetric(pair(forward, 5), pair(backward_of_forward, 5), min_inliers=10)
+    assert neither.num_inliers == 5  # the forward pair, so that the motion model takes over
+
+
+def test_symmetric_pair_is_the_midpoint_of_both_one_way_pairs(scans: list[np.ndarray]) -> None:
+    one_way = Odometry.from_default()
+    forward = one_way.register_pair(scans[0], scans[1]).T_tgt_ref
+    backward = one_way.register_pair(scans[1], scans[0]).T_tgt_ref  # the frame graph, not match.onnx
+    symmetric = Odometry.from_default(symmetric_config()).register_pair(scans[0], scans[1])
+    expected = _midpoint(forward, np.linalg.inv(backward))
+    # The backward flow comes from match.onnx here, from frame.onnx above: the same weights, float noise.
+    assert np.linalg.norm(symmetric.T_tgt_ref[:3, 3] - expected[:3, 3]) < 2e-3
+    angle = Rotation.from_matrix(symmetric.T_tgt_ref[:3, :3] @ expected[:3, :3].T).magnitude()
+    assert np.degrees(angle) < 0.01
+    assert np.linalg.norm(forward[:3, 3] - expected[:3, 3]) > 0  # the two directions really differ
+
+
+def test_symmetric_odometry_records_both_directions(scans: list[np.ndarray]) -> None:
+    odometry = Odometry.from_default(symmetric_config())
+    poses = [odometry.register(points) for points in scans]
+    assert all(np.isfinite(pose).all() for pose in poses)
+    first, *later = odometry.diagnostics
+    assert first.backward_inliers is None
+    for diagnostics in later:
+        assert diagnostics.fallback is None
+        assert diagnostics.backward_inliers is not None and diagnostics.backward_inliers >= 10
+        assert "backward" in diagnostics.timings_ms
+        assert diagnostics.to_dict()["backward_inliers"] == diagnostics.backward_inliers
+    # The one-way odometry on the same scans records no backward pass.
+    one_way = Odometry.from_default()
+    for points in scans:
+        one_way.register(points)
+    assert all(d.backward_inliers is None and "backward" not in d.timings_ms for d in one_way.diagnostics)
+
+
+def test_symmetric_matching_without_a_match_graph_is_refused_at_once(tmp_path: Path) -> None:
+    shutil.copy(default_model_path() / "frame.onnx", tmp_path / "frame.onnx")
+    Odometry(tmp_path)  # one-way matching needs only the frame graph
+    with pytest.raises(ModelError, match="no match.onnx.*dmlo export"):
+        Odometry(tmp_path, symmetric_config())
+
+
+def test_a_match_graph_of_another_model_is_refused(tmp_path: Path) -> None:
+    import onnx
+
+    shutil.copy(default_model_path() / "frame.onnx", tmp_path / "frame.onnx")
+    match = onnx.load(str(default_model_path() / "match.onnx"))
+    for entry in match.metadata_props:
+        if entry.key == "dmlo.model_config":
+            entry.value = entry.value.replace('"refine_channels": 8', '"refine_channels": 16')
+    onnx.save(match, str(tmp_path / "match.onnx"))
+    with pytest.raises(ModelError, match="not the match graph of frame.onnx's model"):
+        Odometry(tmp_path, symmetric_config())
