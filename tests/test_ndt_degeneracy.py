@@ -216,6 +216,7 @@ def test_a_standing_car_adds_no_keyframes(straight_drive: Path) -> None:
         ("motion_model", "max_deviation"),
         ("motion_model", "max_deviation_deg"),
         ("motion_model", "guided_fraction"),
+        ("matching", "consistency_px"),
     ],
 )
 def test_bad_distance_and_angle_limits_are_refused_up_front(section: str, name: str) -> None:

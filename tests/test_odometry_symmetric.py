@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig, PairResult
 from dmlo.odometry.matcher import ModelError, default_model_path
-from dmlo.odometry.pipeline import _midpoint, _symmetric
+from dmlo.odometry.pipeline import _midpoint, _round_trip_error, _symmetric
 from dmlo.simulator import simulate_sequence
 
 
@@ -24,9 +24,10 @@ def scans(tmp_path_factory: pytest.TempPathFactory) -> list[np.ndarray]:
     return [sequence[i].points for i in range(len(sequence))]
 
 
-def symmetric_config() -> OdometryConfig:
+def symmetric_config(consistency_px: float | None = 1.0) -> OdometryConfig:
     config = OdometryConfig()
     config.matching.symmetric = True
+    config.matching.consistency_px = consistency_px
     return config
 
 
@@ -78,11 +79,61 @@ def test_a_direction_with_too_few_inliers_is_left_out() -> None:
     assert neither.num_inliers == 5  # the forward pair, so that the motion model takes over
 
 
+def reference_round_trip(flow: np.ndarray, back: np.ndarray, wraps: bool) -> np.ndarray:
+    height, width = flow.shape[1:]
+    error = np.full((height, width), np.inf)
+    for row in range(height):
+        for col in range(width):
+            r = int(np.floor(row + flow[0, row, col] + 0.5))
+            c = int(np.floor(col + flow[1, row, col] + 0.5))
+            if wraps:
+                c %= width
+            if 0 <= r < height and 0 <= c < width:
+                error[row, col] = np.hypot(flow[0, row, col] + back[0, r, c], flow[1, row, col] + back[1, r, c])
+    return error
+
+
+@pytest.mark.parametrize("wraps", [False, True])
+def test_round_trip_error_against_a_loop(wraps: bool) -> None:
+    rng = np.random.default_rng(1)
+    flow = rng.normal(0, 3, (2, 12, 20)).astype(np.float32)
+    back = (-np.roll(flow, (1, 2), axis=(1, 2)) + rng.normal(0, 0.3, flow.shape)).astype(np.float32)
+    np.testing.assert_allclose(_round_trip_error(flow, back, wraps), reference_round_trip(flow, back, wraps), rtol=1e-6)
+    # A flow that the backward flow undoes exactly is consistent everywhere its matches stay in the image.
+    shift = np.broadcast_to(np.array([1.0, 2.0], np.float32)[:, None, None], (2, 12, 20)).copy()
+    error = _round_trip_error(shift, -shift, wraps)
+    assert (error[:11, :18] == 0).all() and np.isinf(error[11]).all()
+    assert (error[:11, 18:] == 0).all() if wraps else np.isinf(error[:, 18:]).all()
+
+
+def test_symmetric_pair_leaves_out_the_cells_the_backward_flow_does_not_lead_back(scans: list[np.ndarray]) -> None:
+    import dmlo_rs
+
+    odometry = Odometry.from_default(symmetric_config(consistency_px=1.0))
+    symmetric = odometry.register_pair(scans[0], scans[1])
+    # The same from the public pieces, with the round trip checked by a loop.
+    (ref_image, ref_range), (tgt_image, tgt_range) = odometry.project(scans[0]), odometry.project(scans[1])
+    ref_features = odometry.matcher.frame(ref_image, None).features
+    forward = odometry.matcher.frame(tgt_image, ref_features)
+    back_flow, back_confidence = odometry.matcher.match(forward.features, ref_features)
+    assert forward.flow is not None and forward.confidence is not None
+
+    def solve(a, b, flow, confidence, other):  # type: ignore[no-untyped-def]
+        leave_out = reference_round_trip(flow, other, False) > 1.0
+        assert 0.05 < leave_out.mean() < 0.95  # the check really removes cells, and not all of them
+        m = dmlo_rs.decode_matches(a, b, flow, confidence, odometry.cylinder, mask=leave_out, top_n=1000, nms_radius=1)
+        return dmlo_rs.ransac_rigid(m.source, m.target, threshold=0.1, seed=0).transform
+
+    T_forward = solve(ref_range, tgt_range, forward.flow, forward.confidence, back_flow)
+    T_backward = solve(tgt_range, ref_range, back_flow, back_confidence, forward.flow)
+    np.testing.assert_allclose(symmetric.T_tgt_ref, _midpoint(T_forward, np.linalg.inv(T_backward)), atol=1e-9)
+
+
 def test_symmetric_pair_is_the_midpoint_of_both_one_way_pairs(scans: list[np.ndarray]) -> None:
     one_way = Odometry.from_default()
     forward = one_way.register_pair(scans[0], scans[1]).T_tgt_ref
     backward = one_way.register_pair(scans[1], scans[0]).T_tgt_ref  # the frame graph, not match.onnx
-    symmetric = Odometry.from_default(symmetric_config()).register_pair(scans[0], scans[1])
+    symmetric = Odometry.from_default(symmetric_config(consistency_px=None)).register_pair(scans[0], scans[1])
     expected = _midpoint(forward, np.linalg.inv(backward))
     # The backward flow comes from match.onnx here, from frame.onnx above: the same weights, float noise.
     assert np.linalg.norm(symmetric.T_tgt_ref[:3, 3] - expected[:3, 3]) < 2e-3

@@ -20,6 +20,9 @@ class MatchingConfig:
     # the two directions, so part of its error cancels; it costs one more matching pass (~50 ms at 64×1792
     # on 2 cores), so pure DMLO runs below 10 Hz with it.
     symmetric: bool = False
+    # With `symmetric`: a cell whose match, followed back by the other direction's flow, lands more than
+    # this many pixels from where it started is left out (optical flow's forward–backward check); None: keep all.
+    consistency_px: float | None = 1.0
 
 
 @dataclass

@@ -222,10 +222,9 @@ class Odometry:
         ref_features = matcher.frame(ref_image, None).features
         output = matcher.frame(tgt_image, ref_features)
         assert output.flow is not None and output.confidence is not None
-        forward = self._match(ref_range, tgt_range, output.flow, output.confidence)
         if large_motion or not self.config.matching.symmetric:
-            return forward
-        backward = self._match_back(tgt_range, ref_range, output.features, ref_features)
+            return self._match(ref_range, tgt_range, output.flow, output.confidence)
+        forward, backward = self._match_both_ways(ref_range, tgt_range, output, ref_features)
         return _symmetric(forward, backward, self.config.motion_model.min_inliers)
 
     def _wide_matcher(self) -> Matcher:
@@ -267,6 +266,7 @@ class Odometry:
         flow: npt.NDArray[np.float32],
         confidence: npt.NDArray[np.float32],
         watch: _Stopwatch | None = None,
+        leave_out: npt.NDArray[np.bool_] | None = None,
     ) -> PairResult:
         m, r = self.config.matching, self.config.ransac
         # Network output → 3D pairs (p'_r, p̂_t), sampling D_t at the sub-pixel match (§III-D), with NMS
@@ -274,7 +274,7 @@ class Odometry:
         # those are lifted to 3D.
         matches = dmlo_rs.decode_matches(
             ref_range, tgt_range, flow, confidence, self.cylinder, min_confidence=m.min_confidence,
-            top_n=m.max_matches, nms_radius=m.nms_radius,
+            mask=leave_out, top_n=m.max_matches, nms_radius=m.nms_radius,
         )
         src, dst = matches.source, matches.target
         if watch:
@@ -301,16 +301,28 @@ class Odometry:
             inliers=np.asarray(inliers, dtype=bool),
         )
 
-    def _match_back(
+    def _match_both_ways(
         self,
-        range_now: npt.NDArray[np.float32],
-        range_before: npt.NDArray[np.float32],
-        features_now: Features,
-        features_before: Features,
-    ) -> PairResult:
-        """The newer scan matched back against the older one (`T_before_now`), from their cached features."""
-        flow, confidence = self.matcher.match(features_now, features_before)
-        return self._match(range_now, range_before, flow, confidence)
+        ref_range: npt.NDArray[np.float32],
+        tgt_range: npt.NDArray[np.float32],
+        output: FrameOutput,
+        ref_features: Features,
+        watch: _Stopwatch | None = None,
+    ) -> tuple[PairResult, PairResult]:
+        """The forward pair of `output` (reference → target) and the target matched back against the
+        reference (`T_ref_tgt`, from the cached features), each without the cells whose flow the other
+        direction's flow does not lead back (`matching.consistency_px`)."""
+        assert output.flow is not None and output.confidence is not None
+        back_flow, back_confidence = self.matcher.match(output.features, ref_features)
+        limit = self.config.matching.consistency_px
+        wraps = self.cylinder.wraps_azimuth
+        forward_out = backward_out = None
+        if limit is not None:
+            forward_out = _round_trip_error(output.flow, back_flow, wraps) > limit
+            backward_out = _round_trip_error(back_flow, output.flow, wraps) > limit
+        forward = self._match(ref_range, tgt_range, output.flow, output.confidence, watch, forward_out)
+        backward = self._match(tgt_range, ref_range, back_flow, back_confidence, None, backward_out)
+        return forward, backward
 
     def _motion_from_flow(
         self,
@@ -321,15 +333,17 @@ class Odometry:
         watch: _Stopwatch,
     ) -> Matrix4:
         assert output.flow is not None and output.confidence is not None
-        pair = self._match(previous.range, tgt_range, output.flow, output.confidence, watch)
+        if self.config.matching.symmetric:
+            pair, backward = self._match_both_ways(previous.range, tgt_range, output, previous.features, watch)
+            watch.lap("backward")
+        else:
+            pair = self._match(previous.range, tgt_range, output.flow, output.confidence, watch)
         diagnostics.num_matches = pair.num_matches
         diagnostics.num_inliers = pair.num_inliers
         diagnostics.inlier_ratio = pair.inlier_ratio
         if self.config.matching.symmetric:
-            backward = self._match_back(tgt_range, previous.range, output.features, previous.features)
             diagnostics.backward_inliers = backward.num_inliers
             pair = _symmetric(pair, backward, self.config.motion_model.min_inliers)
-            watch.lap("backward")
         gap = diagnostics.index - self._reference_index
         predicted = np.linalg.matrix_power(self._velocity, gap)
         if pair.num_inliers < self.config.motion_model.min_inliers:
@@ -471,6 +485,7 @@ class Odometry:
 def _check_limits(config: OdometryConfig) -> None:
     """The distance and angle limits only Python reads (Rust checks its own settings)."""
     limits = {
+        "matching": ("consistency_px",),
         "motion_model": ("max_deviation", "max_deviation_deg", "guided_fraction"),
         "mapping": (
             "keyframe_distance",
@@ -482,6 +497,8 @@ def _check_limits(config: OdometryConfig) -> None:
     for section, names in limits.items():
         for name in names:
             value = getattr(getattr(config, section), name)
+            if value is None and name == "consistency_px":  # the check is off
+                continue
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
                 raise ValueError(f"{section}.{name}: must be a number >= 0, got {value!r}")
 
@@ -513,6 +530,25 @@ def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> P
         target_points=np.concatenate([forward.target_points, reverse.target_points]),
         inliers=np.concatenate([forward.inliers, reverse.inliers]),
     )
+
+
+def _round_trip_error(
+    flow: npt.NDArray[np.float32], back_flow: npt.NDArray[np.float32], wraps_azimuth: bool
+) -> npt.NDArray[np.float32]:
+    """Per cell, how far (pixels) following `flow` and then `back_flow` (read at the nearest cell of the
+    match) lands from where it started: optical flow's forward–backward consistency check. Infinite where
+    the match leaves the image."""
+    height, width = flow.shape[1:]
+    rows = np.arange(height, dtype=np.float32)[:, None] + flow[0]
+    cols = np.arange(width, dtype=np.float32)[None, :] + flow[1]
+    at_row = np.rint(rows).astype(np.int64)
+    at_col = np.rint(cols).astype(np.int64)
+    if wraps_azimuth:
+        at_col %= width
+    inside = (at_row >= 0) & (at_row < height) & (at_col >= 0) & (at_col < width)
+    at_row, at_col = np.clip(at_row, 0, height - 1), np.clip(at_col, 0, width - 1)
+    error = np.hypot(flow[0] + back_flow[0, at_row, at_col], flow[1] + back_flow[1, at_row, at_col])
+    return np.where(inside, error, np.inf).astype(np.float32)
 
 
 def _midpoint(a: Matrix4, b: Matrix4) -> Matrix4:
