@@ -314,6 +314,8 @@ class Odometry:
         direction's flow does not lead back (`matching.consistency_px`)."""
         assert output.flow is not None and output.confidence is not None
         back_flow, back_confidence = self.matcher.match(output.features, ref_features)
+        if watch:
+            watch.lap("network_backward")
         limit = self.config.matching.consistency_px
         wraps = self.cylinder.wraps_azimuth
         forward_out = backward_out = None
