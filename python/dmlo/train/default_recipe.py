@@ -1,10 +1,12 @@
 """The recipe of the bundled default model: its simulated drives and its training command, in one place.
 
-    python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR]
+    python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR] [--finetune]
 
 simulates the drives (skipping those already written; deterministic per seed) and then trains, resuming
-from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. Afterwards
-`dmlo export RUN_DIR --out python/dmlo/models/default --wide-window 41` refreshes the bundled model.
+from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. `--finetune` runs
+the second stage instead: from `RUN_DIR/best.pt`, full-width pairs with the pose loss (beyond the paper),
+into `RUN_DIR/finetune`. Afterwards `dmlo export RUN_DIR/finetune --out python/dmlo/models/default
+--wide-window 41` refreshes the bundled model.
 """
 
 from __future__ import annotations
@@ -31,6 +33,13 @@ TRAIN_ARGUMENTS = (
     "--crop-width 448 --val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume --mirror"
 ).split()
 
+# The second stage: the whole 64×1792 image, as the odometry sees it, and a small pose-loss weight (a larger
+# one, 1.0, lowered the confidence ranking: fewer RANSAC inliers and a few wrong consensuses).
+FINETUNE_ARGUMENTS = (
+    "--pose-loss-weight 0.2 --optimizer adam --lr 1e-4 --lr-step 1 --epochs 2 --batch-size 2 --crop-width 0 "
+    "--val-max-pairs 32 --val-width 0 --checkpoint-every 50 --resume --mirror"
+).split()
+
 
 def simulate_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Path]]:
     from dmlo.simulator import simulate_sequence
@@ -54,12 +63,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="training run folder")
     parser.add_argument("--poses", type=Path, default=Path(__file__).resolve().parents[4] / "shared/data/kitti_gt_poses",
                         help="KITTI ground-truth pose files to drive along (default: ../shared/data/kitti_gt_poses)")
+    parser.add_argument("--finetune", action="store_true",
+                        help="the second stage: fine-tune OUT/best.pt with the pose loss into OUT/finetune")
     args = parser.parse_args(argv)
     train, val = simulate_drives(args.data, args.poses if args.poses.is_dir() else None)
 
     from dmlo.train.__main__ import main as train_main
 
-    return train_main(["--data", *map(str, train), "--val", *map(str, val), "--out", str(args.out), *TRAIN_ARGUMENTS])
+    data = ["--data", *map(str, train), "--val", *map(str, val)]
+    if args.finetune:
+        start = args.out / "best.pt"
+        if not start.is_file():
+            parser.error(f"--finetune starts from {start}, which does not exist: run the first stage first")
+        return train_main([*data, "--out", str(args.out / "finetune"), "--init", str(start), *FINETUNE_ARGUMENTS])
+    return train_main([*data, "--out", str(args.out), *TRAIN_ARGUMENTS])
 
 
 if __name__ == "__main__":

@@ -1,0 +1,61 @@
+"""The bundled model's recipe: the training command of each stage, and the committed training state it made."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from dmlo.train import default_recipe
+from dmlo.train.config import TrainConfig
+
+TRAINING_STATE = Path(default_recipe.__file__).resolve().parents[1] / "models" / "default" / "training"
+
+
+@pytest.fixture
+def captured(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> list[list[str]]:
+    calls: list[list[str]] = []
+    drives = ([tmp_path / "train_00"], [tmp_path / "val_07"])
+    monkeypatch.setattr(default_recipe, "simulate_drives", lambda data, poses: drives)
+    import dmlo.train.__main__ as train_entry
+
+    monkeypatch.setattr(train_entry, "main", lambda argv: calls.append(list(argv)) or 0)
+    return calls
+
+
+def option(argv: list[str], name: str) -> str:
+    return argv[argv.index(name) + 1]
+
+
+def test_first_stage_trains_into_the_run_folder(captured: list[list[str]], tmp_path: Path) -> None:
+    assert default_recipe.main(["--data", str(tmp_path), "--out", str(tmp_path / "run")]) == 0
+    (argv,) = captured
+    assert option(argv, "--out") == str(tmp_path / "run")
+    assert "--init" not in argv and "--pose-loss-weight" not in argv
+    assert option(argv, "--crop-width") == "448"
+
+
+def test_finetune_starts_from_the_first_stages_best_checkpoint(captured: list[list[str]], tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    with pytest.raises(SystemExit):
+        default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--finetune"])
+    assert captured == []
+    run.mkdir()
+    (run / "best.pt").write_bytes(b"")
+    assert default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--finetune"]) == 0
+    (argv,) = captured
+    assert option(argv, "--init") == str(run / "best.pt")
+    assert option(argv, "--out") == str(run / "finetune")
+    assert float(option(argv, "--pose-loss-weight")) > 0 and option(argv, "--crop-width") == "0"
+
+
+@pytest.mark.skipif(not (TRAINING_STATE / "finetune" / "train.json").is_file(), reason="no fine-tune state committed")
+def test_committed_finetune_state_was_made_by_the_recipe() -> None:
+    config = TrainConfig.from_dict(json.loads((TRAINING_STATE / "finetune" / "train.json").read_text()))
+    arguments = default_recipe.FINETUNE_ARGUMENTS
+    assert config.pose_loss_weight == float(option(arguments, "--pose-loss-weight"))
+    assert config.crop_width is None and config.val_width is None  # "--crop-width 0": the whole image
+    assert config.lr == float(option(arguments, "--lr")) and config.epochs == int(option(arguments, "--epochs"))
+    assert config.batch_size == int(option(arguments, "--batch-size")) and config.mirror
+    assert config.init is not None and Path(config.init).name == "best.pt"
