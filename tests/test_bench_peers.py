@@ -32,3 +32,20 @@ def test_peers_are_optional() -> None:
     # Listing the peers never imports them: `dmlo` works without any of them installed.
     assert {p.name for p in PEERS} >= {"KISS-ICP", "small_gicp GICP", "Open3D GICP", "Open3D FPFH+RANSAC"}
     assert all(isinstance(p.available, bool) for p in PEERS)
+
+
+def test_a_peer_whose_package_is_missing_or_does_not_load_is_unavailable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from dmlo.bench.peers import Peer
+
+    # An installed package that fails on import, as Open3D's wheel does without the system's libusb.
+    (tmp_path / "broken_peer_package").mkdir()
+    (tmp_path / "broken_peer_package" / "__init__.py").write_text(
+        "raise ImportError('libusb-1.0.so.0: cannot open shared object file')\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    broken = Peer("broken", "broken_peer_package", lambda: None)  # type: ignore[arg-type, return-value]
+    assert not broken.available
+    assert "does not load: libusb-1.0.so.0" in str(broken.unavailable_reason)
+    missing = Peer("missing", "no_such_peer_package_here", lambda: None)  # type: ignore[arg-type, return-value]
+    assert not missing.available and "not installed" in str(missing.unavailable_reason)
+    assert next(p for p in PEERS if p.name == "KISS-ICP").unavailable_reason is None

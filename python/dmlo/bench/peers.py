@@ -7,6 +7,8 @@ constant-velocity guess, as an odometry would; KISS-ICP keeps its own local map 
 
 from __future__ import annotations
 
+import functools
+import importlib
 import importlib.util
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -151,7 +153,24 @@ class Peer:
 
     @property
     def available(self) -> bool:
-        return importlib.util.find_spec(self.package) is not None
+        return self.unavailable_reason is None
+
+    @property
+    def unavailable_reason(self) -> str | None:
+        """Why the peer cannot run here (its package is missing or does not load), or None."""
+        return _import_problem(self.package)
+
+
+@functools.cache
+def _import_problem(package: str) -> str | None:
+    # An installed package can still fail to load, e.g. Open3D's wheel without the system's libusb.
+    if importlib.util.find_spec(package) is None:
+        return f"{package} is not installed (pip install 'dmlo[bench]')"
+    try:
+        importlib.import_module(package)
+    except (ImportError, OSError) as err:
+        return f"{package} is installed but does not load: {err}"
+    return None
 
 
 PEERS: tuple[Peer, ...] = (

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +17,10 @@ from dmlo.datasets import ScanSequence
 from dmlo.poses import write_kitti_poses
 
 REFERENCE_PEER = "KISS-ICP"
+
+
+class PeerUnavailableWarning(UserWarning):
+    """A peer that was asked for cannot run here; its row is left out."""
 
 
 class UnknownPeerError(ValueError):
@@ -47,6 +52,9 @@ def benchmark_sequence(
     unknown = wanted - {p.name for p in PEERS}
     if unknown:
         raise UnknownPeerError(f"unknown peer(s): {', '.join(sorted(unknown))}; known: {', '.join(p.name for p in PEERS)}")
+    for peer in PEERS:
+        if peer.name in wanted and peer.unavailable_reason is not None and peers is not None:
+            warnings.warn(f"skipping {peer.name}: {peer.unavailable_reason}", PeerUnavailableWarning, stacklevel=2)
     methods += [(p.name, p.make) for p in PEERS if p.name in wanted and p.available]
 
     total = len(sequence) if max_frames is None else min(max_frames, len(sequence))
