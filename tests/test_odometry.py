@@ -101,7 +101,7 @@ def test_a_wrong_consensus_is_replaced_by_the_matches_that_agree_with_the_predic
     assert fallbacks[np.inf] == [None] * 5
     # Ungated, frame 3 is 1 m off; gated, the true matches are solved again: the honest motion within 3 cm
     # (the guided solve keeps other inliers than RANSAC did, and a pair's motion is good to ~1–2 cm; measured
-    # 0.5 cm with the epoch-9 model, 2.2 cm with the fine-tuned one), far from the injected metre.
+    # under 1 cm with the epoch-9 model, 2.2 cm with the fine-tuned one), far from the injected metre.
     assert np.linalg.norm(steps[np.inf][2][:3, 3] - honest[2][:3, 3]) > 0.9
     assert np.linalg.norm(steps[0.3][2][:3, 3] - honest[2][:3, 3]) < 0.03
     np.testing.assert_allclose(steps[0.3][3:], honest[3:], atol=0.01)
