@@ -96,10 +96,7 @@ class OnnxMatcher:
         if threads > 0:
             options.intra_op_num_threads = threads
         providers = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
-        try:
-            self._session = ort.InferenceSession(str(graph), options, providers=providers)
-        except Exception as err:  # onnxruntime raises its own exception types for unreadable files
-            raise ModelError(f"{graph}: not a readable ONNX model ({err})") from err
+        self._session = _open_session(graph, options, providers)
         metadata = self._session.get_modelmeta().custom_metadata_map
         if metadata.get("dmlo.interface_version") != INTERFACE_VERSION or metadata.get("dmlo.graph") != "frame":
             raise ModelError(f"{graph}: not a dmlo frame graph (interface {INTERFACE_VERSION} expected)")
@@ -158,24 +155,28 @@ class OnnxMatcher:
         return flow[0], confidence[0]
 
     def _open_match_graph(self) -> Any:
-        import onnxruntime as ort
-
         graph = self.path.with_name(MATCH_GRAPH)
         if not graph.is_file():
             raise ModelError(
                 f"{self.path.parent} has no {MATCH_GRAPH} to match a scan back against the previous one; export "
                 "one with `dmlo export CHECKPOINT --out DIR` (it writes all three graphs)"
             )
-        try:
-            session = ort.InferenceSession(str(graph), self._options, providers=self._providers)
-        except Exception as err:  # onnxruntime raises its own exception types for unreadable files
-            raise ModelError(f"{graph}: not a readable ONNX model ({err})") from err
+        session = _open_session(graph, self._options, self._providers)
         metadata = session.get_modelmeta().custom_metadata_map
         if metadata.get("dmlo.graph") != "match" or json.loads(metadata.get("dmlo.model_config", "null")) != self.model_config:
             raise ModelError(f"{graph}: not the match graph of {self.path.name}'s model")
         if (int(metadata.get("dmlo.height", -1)), int(metadata.get("dmlo.width", -1))) != (self.height, self.width):
             raise ModelError(f"{graph}: input size differs from {self.path.name}'s {self.height}×{self.width}")
         return session
+
+
+def _open_session(graph: Path, options: Any, providers: list[str]) -> Any:
+    import onnxruntime as ort
+
+    try:
+        return ort.InferenceSession(str(graph), options, providers=providers)
+    except Exception as err:  # onnxruntime raises its own exception types for unreadable files
+        raise ModelError(f"{graph}: not a readable ONNX model ({err})") from err
 
 
 def _cylinder_from_metadata(values: dict[str, object], graph: Path) -> dmlo_rs.CylinderConfig:
