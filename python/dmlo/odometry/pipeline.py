@@ -221,11 +221,11 @@ class Odometry:
         tgt_image, tgt_range = self._project(_as_scan(target, "target"))
         ref_features = matcher.frame(ref_image, None).features
         output = matcher.frame(tgt_image, ref_features)
-        assert output.flow is not None and output.confidence is not None
-        if large_motion or not self.config.matching.symmetric:
+        if large_motion:
+            assert output.flow is not None and output.confidence is not None
             return self._match(ref_range, tgt_range, output.flow, output.confidence)
-        forward, backward = self._match_both_ways(ref_range, tgt_range, output, ref_features)
-        return _symmetric(forward, backward, self.config.motion_model.min_inliers)
+        pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features)
+        return pair
 
     def _wide_matcher(self) -> Matcher:
         if self._wide is None:
@@ -301,13 +301,32 @@ class Odometry:
             inliers=np.asarray(inliers, dtype=bool),
         )
 
-    def _match_both_ways(
+    def _pair(
         self,
         ref_range: npt.NDArray[np.float32],
         tgt_range: npt.NDArray[np.float32],
         output: FrameOutput,
         ref_features: Features,
         watch: _Stopwatch | None = None,
+    ) -> tuple[PairResult, PairResult, PairResult | None]:
+        """The pair's motion from the frame graph's `output`, and the one-way pairs it came from: the
+        forward pair alone, or with `matching.symmetric` the forward and the backward pair combined."""
+        assert output.flow is not None and output.confidence is not None
+        if not self.config.matching.symmetric:
+            forward = self._match(ref_range, tgt_range, output.flow, output.confidence, watch)
+            return forward, forward, None
+        forward, backward = self._match_both_ways(ref_range, tgt_range, output, ref_features, watch)
+        if watch:
+            watch.lap("backward")
+        return _symmetric(forward, backward, self.config.motion_model.min_inliers), forward, backward
+
+    def _match_both_ways(
+        self,
+        ref_range: npt.NDArray[np.float32],
+        tgt_range: npt.NDArray[np.float32],
+        output: FrameOutput,
+        ref_features: Features,
+        watch: _Stopwatch | None,
     ) -> tuple[PairResult, PairResult]:
         """The forward pair of `output` (reference → target) and the target matched back against the
         reference (`T_ref_tgt`, from the cached features), each without the cells whose flow the other
@@ -334,18 +353,11 @@ class Odometry:
         diagnostics: FrameDiagnostics,
         watch: _Stopwatch,
     ) -> Matrix4:
-        assert output.flow is not None and output.confidence is not None
-        if self.config.matching.symmetric:
-            pair, backward = self._match_both_ways(previous.range, tgt_range, output, previous.features, watch)
-            watch.lap("backward")
-        else:
-            pair = self._match(previous.range, tgt_range, output.flow, output.confidence, watch)
-        diagnostics.num_matches = pair.num_matches
-        diagnostics.num_inliers = pair.num_inliers
-        diagnostics.inlier_ratio = pair.inlier_ratio
-        if self.config.matching.symmetric:
-            diagnostics.backward_inliers = backward.num_inliers
-            pair = _symmetric(pair, backward, self.config.motion_model.min_inliers)
+        pair, forward, backward = self._pair(previous.range, tgt_range, output, previous.features, watch)
+        diagnostics.num_matches = forward.num_matches
+        diagnostics.num_inliers = forward.num_inliers
+        diagnostics.inlier_ratio = forward.inlier_ratio
+        diagnostics.backward_inliers = None if backward is None else backward.num_inliers
         gap = diagnostics.index - self._reference_index
         predicted = np.linalg.matrix_power(self._velocity, gap)
         if pair.num_inliers < self.config.motion_model.min_inliers:
@@ -484,6 +496,10 @@ class Odometry:
         )
 
 
+# Limits that None turns off.
+_OPTIONAL_LIMITS = {("matching", "consistency_px")}
+
+
 def _check_limits(config: OdometryConfig) -> None:
     """The distance and angle limits only Python reads (Rust checks its own settings)."""
     limits = {
@@ -499,7 +515,7 @@ def _check_limits(config: OdometryConfig) -> None:
     for section, names in limits.items():
         for name in names:
             value = getattr(getattr(config, section), name)
-            if value is None and name == "consistency_px":  # the check is off
+            if value is None and (section, name) in _OPTIONAL_LIMITS:
                 continue
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
                 raise ValueError(f"{section}.{name}: must be a number >= 0, got {value!r}")
