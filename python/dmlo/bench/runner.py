@@ -53,9 +53,12 @@ def benchmark_sequence(
     if unknown:
         raise UnknownPeerError(f"unknown peer(s): {', '.join(sorted(unknown))}; known: {', '.join(p.name for p in PEERS)}")
     for peer in PEERS:
-        if peer.name in wanted and peer.unavailable_reason is not None and peers is not None:
+        if peer.name not in wanted:
+            continue
+        if peer.available:
+            methods.append((peer.name, peer.make))
+        elif peers is not None:  # asked for by name: say why its row is missing
             warnings.warn(f"skipping {peer.name}: {peer.unavailable_reason}", PeerUnavailableWarning, stacklevel=2)
-    methods += [(p.name, p.make) for p in PEERS if p.name in wanted and p.available]
 
     total = len(sequence) if max_frames is None else min(max_frames, len(sequence))
     scans = [sequence[i].points for i in tqdm(range(total), desc="reading", unit="scan")]
