@@ -9,19 +9,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig, PairResult
 from dmlo.odometry.matcher import ModelError, default_model_path
 from dmlo.odometry.pipeline import _midpoint, _round_trip_error, _symmetric
-from dmlo.simulator import simulate_sequence
 
-
-@pytest.fixture(scope="module")
-def scans(tmp_path_factory: pytest.TempPathFactory) -> list[np.ndarray]:
-    out = tmp_path_factory.mktemp("drive")
-    simulate_sequence(out, frames=4, seed=5, progress=False)
-    sequence = open_sequence(out)
-    return [sequence[i].points for i in range(len(sequence))]
+from test_odometry import drive, scans  # noqa: F401  (the 5-scan simulated drive the odometry tests use)
 
 
 def symmetric_config(consistency_px: float | None = 1.0) -> OdometryConfig:
