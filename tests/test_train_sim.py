@@ -45,10 +45,12 @@ def test_pair_dataset_on_simulated_sequence(simulated) -> None:
 def test_train_command_runs_and_resumes(simulated, tmp_path) -> None:
     run = tmp_path / "run"
     common = ["train", "--data", str(simulated), "--val", str(simulated), "--out", str(run), "--crop-width", "64",
-              "--batch-size", "1", "--preset", "fast", "--val-max-pairs", "1", "--val-width", "64", "--no-progress"]
+              "--batch-size", "1", "--preset", "fast", "--val-max-pairs", "1", "--val-width", "64", "--no-progress",
+              "--confidence-loss-weight", "0.25"]
     assert dmlo_main([*common, "--epochs", "1", "--max-steps", "2"]) == 0
     assert not (run / "log.jsonl").exists()
     assert dmlo_main([*common, "--epochs", "1", "--resume", "--workers", "1"]) == 0  # a loader process
     row = json.loads((run / "log.jsonl").read_text().splitlines()[-1])
     assert row["epoch"] == 1 and row["step"] == 5 and np.isfinite(row["val_epe"])
     assert (run / "best.pt").is_file()
+    assert json.loads((run / "train.json").read_text())["confidence_loss_weight"] == 0.25

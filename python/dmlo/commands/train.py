@@ -53,6 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     optim.add_argument("--init", metavar="CKPT", help="start a new run from these weights and their model config (fine-tuning)")
     optim.add_argument("--pose-loss-weight", type=float, default=0.0,
                        help="add the pose loss (the motion error the predicted matches imply) with this weight; 0 = off")
+    optim.add_argument("--confidence-loss-weight", type=float, default=0.0,
+                       help="add the confidence loss (Q* trained as the chance that the match is within 1 px) with this weight; 0 = off")
     optim.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -110,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
             mirror=args.mirror, max_gap=args.max_gap, val_max_pairs=args.val_max_pairs, val_width=args.val_width or None,
             seed=args.seed, workers=args.workers, device=args.device, checkpoint_every=args.checkpoint_every,
             max_steps=args.max_steps, pose_loss_weight=args.pose_loss_weight,
+            confidence_loss_weight=args.confidence_loss_weight,
             init=str(args.init) if args.init else None,
         )
         if config.init is not None and not Path(config.init).is_file():

@@ -359,7 +359,7 @@ class Odometry:
         diagnostics.inlier_ratio = forward.inlier_ratio
         diagnostics.backward_inliers = None if backward is None else backward.num_inliers
         gap = diagnostics.index - self._reference_index
-        predicted = np.linalg.matrix_power(self._velocity, gap)
+        predicted = self._predicted_motion(gap)
         if pair.num_inliers < self.config.motion_model.min_inliers:
             diagnostics.fallback = "constant_velocity"  # the motion model of §III-D-c
             return predicted
@@ -412,9 +412,13 @@ class Odometry:
 
     # -- motion model ---------------------------------------------------------------------------
 
+    def _predicted_motion(self, frames: int) -> Matrix4:
+        """The constant-velocity motion `T_tgt_ref` across `frames` frames."""
+        return np.linalg.matrix_power(self._velocity, frames)
+
     def _predict(self) -> Matrix4:
         """The constant-velocity pose of the next scan; the first scan defines the world."""
-        return self.poses[-1] @ np.linalg.inv(self._velocity) if self.poses else np.eye(4)
+        return self.poses[-1] @ np.linalg.inv(self._predicted_motion(1)) if self.poses else np.eye(4)
 
     def _update_velocity(self, reference_pose: Matrix4, pose: Matrix4, frames: int) -> None:
         # Across a gap left by skipped scans the motion spans several frames; the velocity measured

@@ -46,6 +46,9 @@ class TrainConfig:
     pose_loss_weight: float = 0.0
     """Weight of the pose loss (`dmlo.model.pose_loss`, beyond the paper) next to the flow loss; 0: off.
     When on, the best checkpoint is the one with the smallest validation pose error instead of EPE."""
+    confidence_loss_weight: float = 0.0
+    """Weight of the confidence loss (`dmlo.model.confidence_loss`, beyond the paper): Q* trained as the
+    probability that the match lies within 1 px of the truth; 0: off."""
     init: str | None = None
     """A checkpoint whose weights (and model config) a new run starts from: fine-tuning."""
 
@@ -56,8 +59,9 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.optimizer not in ("sgd", "adam"):
             raise ValueError(f"optimizer must be 'sgd' or 'adam', got {self.optimizer!r}")
-        if self.pose_loss_weight < 0:
-            raise ValueError(f"pose_loss_weight must be >= 0, got {self.pose_loss_weight}")
+        for name in ("pose_loss_weight", "confidence_loss_weight"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.lr <= 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
         if self.val_width is not None and (self.val_width <= 0 or self.val_width % 8):

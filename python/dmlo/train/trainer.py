@@ -13,6 +13,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
 from dmlo.model import Matcher, MatcherConfig, matching_loss
+from dmlo.model.confidence_loss import confidence_loss
 from dmlo.model.pose_loss import pose_loss
 from dmlo.train import checkpoint
 from dmlo.train.config import TrainConfig
@@ -143,7 +144,11 @@ class Trainer:
             pose, _ = pose_loss(output.flow, output.confidence, batch["flow"], batch["valid"], batch["pose_jacobian"])
             loss = loss + self.config.pose_loss_weight * pose
             metrics["pose_loss"] = float(pose.detach())
-            metrics["loss"] = float(loss.detach())
+        if self.config.confidence_loss_weight > 0:
+            confidence = confidence_loss(output.confidence, output.flow, batch["flow"], batch["valid"])
+            loss = loss + self.config.confidence_loss_weight * confidence
+            metrics["confidence_loss"] = float(confidence.detach())
+        metrics["loss"] = float(loss.detach())
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
