@@ -7,6 +7,7 @@
 //! | [`projection`] | Eq. 1, 4 | cylinder image of a scan and its inverse Φ⁻¹ |
 //! | [`ground_truth`] | Eq. 5–8 | per-cell training flow and validity for a pair with known motion |
 //! | [`matches`] | §III-D | network output (flow + confidence) → 3D point pairs |
+//! | [`coherence`] | — | confidence weighted by how well a match agrees with its neighbours |
 //! | [`nms`] | §III-D-a | greedy non-maximum suppression on the cylinder grid |
 //! | [`rigid`] | Eq. 12–14 | closed-form weighted rigid solve (faer SVD, reflection fixed) |
 //! | [`ransac`] | §III-D-b | seeded RANSAC with rayon-parallel hypothesis scoring |
@@ -20,6 +21,7 @@
 //! The Python bindings (`import dmlo_rs`) live in the `python` module behind the `python` cargo
 //! feature, which maturin enables.
 
+pub mod coherence;
 pub mod error;
 pub mod ground_truth;
 pub mod matches;

@@ -39,7 +39,7 @@ def test_first_pose_is_the_world_and_every_scan_gets_a_pose(scans: list[np.ndarr
         assert np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-6)
     later = odometry.diagnostics[1]
     assert 0 < later.num_matches <= OdometryConfig().matching.max_matches
-    assert {"network", "decode_nms", "ransac"} <= set(later.timings_ms)
+    assert {"network", "coherence", "decode_nms", "ransac"} <= set(later.timings_ms)
 
 
 def test_same_scans_give_identical_poses(scans: list[np.ndarray]) -> None:

@@ -113,7 +113,11 @@ def test_symmetric_pair_leaves_out_the_cells_the_backward_flow_does_not_lead_bac
     def solve(a, b, flow, confidence, other):  # type: ignore[no-untyped-def]
         leave_out = reference_round_trip(flow, other, False) > 1.0
         assert 0.05 < leave_out.mean() < 0.95  # the check really removes cells, and not all of them
-        m = dmlo_rs.decode_matches(a, b, flow, confidence, odometry.cylinder, mask=leave_out, top_n=1000, nms_radius=1)
+        settings = odometry.config.matching
+        weighted = dmlo_rs.coherent_confidence(
+            flow, confidence, a, odometry.cylinder, radius=settings.coherence_radius, scale_px=settings.coherence_px
+        )
+        m = dmlo_rs.decode_matches(a, b, flow, weighted, odometry.cylinder, mask=leave_out, top_n=1000, nms_radius=1)
         return dmlo_rs.ransac_rigid(m.source, m.target, threshold=0.1, seed=0).transform
 
     T_forward = solve(ref_range, tgt_range, forward.flow, forward.confidence, back_flow)

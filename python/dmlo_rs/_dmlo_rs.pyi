@@ -27,6 +27,7 @@ __all__ += [
     "ransac_rigid",
     "nms",
     "decode_matches",
+    "coherent_confidence",
 ]
 
 @final
@@ -198,6 +199,20 @@ def decode_matches(
     """Network output (flow[2, H, W], confidence[H, W]) → 3D matches; mask True = exclude the cell.
     With top_n, NMS (nms_radius) is fused in: only the kept matches are decoded, best first, exactly
     nms(..., config=config) of the full output (wrapping round the seam of a 360° image)."""
+
+def coherent_confidence(
+    flow: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    confidence: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    ref_range: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    config: CylinderConfig,
+    *,
+    radius: int = 2,
+    scale_px: float = 0.5,
+    num_threads: int | None = None,
+) -> npt.NDArray[np.float32]:
+    """confidence[H, W] × exp(−d / scale_px), d the pixel distance of a cell's flow from the median flow of
+    the (2·radius+1)² cells around it with a range (a 360° image's columns wrap); 0 without a range or
+    finite flow. Beyond the paper: lowers matches that disagree with their neighbours."""
 
 
 

@@ -16,6 +16,7 @@ use numpy::{
 use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
+use crate::coherence::{self, CoherenceConfig};
 use crate::ground_truth;
 use crate::matches::{self, DecodeConfig};
 use crate::nms;
@@ -701,6 +702,43 @@ fn decode_matches(
     })
 }
 
+/// The confidence `[H, W]` weighted by flow coherence (beyond the paper): each cell's times
+/// `exp(−d / scale_px)`, `d` the pixel distance of its flow from the component-wise median flow of the
+/// `(2·radius+1)²` cells around it that have a range in `ref_range` (columns wrap on a 360° image).
+/// Cells without a range or with a non-finite flow get 0. → float32 `[H, W]`.
+#[pyfunction]
+#[pyo3(signature = (flow, confidence, ref_range, config, *, radius = 2, scale_px = 0.5, num_threads = None))]
+#[allow(clippy::too_many_arguments)]
+fn coherent_confidence<'py>(
+    py: Python<'py>,
+    flow: &Bound<'py, PyAny>,
+    confidence: &Bound<'py, PyAny>,
+    ref_range: &Bound<'py, PyAny>,
+    config: &PyCylinderConfig,
+    radius: usize,
+    scale_px: f32,
+    num_threads: Option<usize>,
+) -> PyResult<Bound<'py, PyArray2<f32>>> {
+    let cylinder = config.inner;
+    let (h, w) = (cylinder.height, cylinder.width);
+    let reference = image("ref_range", ref_range, &cylinder)?;
+    let confidence = image("confidence", confidence, &cylinder)?;
+    let flow = floats("flow", flow)?;
+    if flow.shape() != [2, h, w] {
+        return Err(shape_error("flow", &format!("(2, {h}, {w})"), flow.shape()));
+    }
+    let (reference, confidence, flow) =
+        (reference.f32_data(), confidence.f32_data(), flow.f32_data());
+    let (reference, confidence, flow): (&[f32], &[f32], &[f32]) = (&reference, &confidence, &flow);
+    let settings = CoherenceConfig { radius, scale_px };
+    let weighted = run(py, num_threads, || {
+        coherence::coherent_confidence(flow, confidence, reference, &cylinder, &settings)
+    })?;
+    let weighted = Array2::from_shape_vec((h, w), weighted)
+        .map_err(|e| PyRuntimeError::new_err(format!("internal error in dmlo_rs: {e}")))?;
+    Ok(weighted.into_pyarray(py))
+}
+
 pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyCylinderConfig>()?;
     m.add_class::<PyProjection>()?;
@@ -713,5 +751,6 @@ pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(ransac_rigid, m)?)?;
     m.add_function(wrap_pyfunction!(non_maximum_suppression, m)?)?;
     m.add_function(wrap_pyfunction!(decode_matches, m)?)?;
+    m.add_function(wrap_pyfunction!(coherent_confidence, m)?)?;
     Ok(())
 }

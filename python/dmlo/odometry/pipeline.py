@@ -269,6 +269,12 @@ class Odometry:
         leave_out: npt.NDArray[np.bool_] | None = None,
     ) -> PairResult:
         m, r = self.config.matching, self.config.ransac
+        if m.coherence_px is not None:
+            confidence = dmlo_rs.coherent_confidence(
+                flow, confidence, ref_range, self.cylinder, radius=m.coherence_radius, scale_px=m.coherence_px
+            )
+            if watch:
+                watch.lap("coherence")
         # Network output → 3D pairs (p'_r, p̂_t), sampling D_t at the sub-pixel match (§III-D), with NMS
         # fused in: the most confident match of every radius-r neighbourhood, top N (§III-D-a); only
         # those are lifted to 3D.
@@ -501,13 +507,13 @@ class Odometry:
 
 
 # Limits that None turns off.
-_OPTIONAL_LIMITS = {("matching", "consistency_px")}
+_OPTIONAL_LIMITS = {("matching", "consistency_px"), ("matching", "coherence_px")}
 
 
 def _check_limits(config: OdometryConfig) -> None:
     """The distance and angle limits only Python reads (Rust checks its own settings)."""
     limits = {
-        "matching": ("consistency_px",),
+        "matching": ("consistency_px", "coherence_px"),
         "motion_model": ("max_deviation", "max_deviation_deg", "guided_fraction"),
         "mapping": (
             "keyframe_distance",
@@ -523,6 +529,11 @@ def _check_limits(config: OdometryConfig) -> None:
                 continue
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
                 raise ValueError(f"{section}.{name}: must be a number >= 0, got {value!r}")
+    matching = config.matching
+    if matching.coherence_px is not None and not matching.coherence_px > 0:
+        raise ValueError(f"matching.coherence_px: must be > 0 (None turns it off), got {matching.coherence_px!r}")
+    if isinstance(matching.coherence_radius, bool) or not isinstance(matching.coherence_radius, int) or matching.coherence_radius < 0:
+        raise ValueError(f"matching.coherence_radius: must be an integer >= 0, got {matching.coherence_radius!r}")
 
 
 def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> PairResult:
