@@ -47,6 +47,19 @@ def test_run_command_writes_poses_diagnostics_config_and_metrics(drive: Path, tm
     assert (out / "trajectory.png").stat().st_size > 0
 
 
+def test_matching_flags_reach_the_config_and_the_diagnostics(drive: Path, tmp_path: Path) -> None:
+    default, changed = tmp_path / "default", tmp_path / "changed"
+    assert dmlo("run", str(drive), "--out", str(default), "--max-frames", "3").returncode == 0
+    result = dmlo("run", str(drive), "--out", str(changed), "--max-frames", "3", "--symmetric", "--no-coherence")
+    assert result.returncode == 0, result.stderr
+    for out, symmetric, coherence in ((default, False, 0.5), (changed, True, None)):
+        matching = json.loads((out / "config.json").read_text())["matching"]
+        assert matching["symmetric"] is symmetric and matching["coherence_px"] == coherence
+        timings = json.loads((out / "diagnostics.jsonl").read_text().splitlines()[1])["timings_ms"]
+        assert ("coherence" in timings) is (coherence is not None)
+        assert ("network_backward" in timings) is symmetric
+
+
 def test_interrupted_run_leaves_valid_poses_for_the_frames_done(drive: Path, tmp_path: Path) -> None:
     def stop_after_three(index: int, _pose: np.ndarray) -> None:
         if index == 2:

@@ -18,11 +18,14 @@ import numpy as np
 import dmlo_rs
 from dmlo.datasets import open_sequence
 from dmlo.metrics import flow_errors, registration_errors
-from dmlo.odometry import Odometry
+from dmlo.odometry import Odometry, OdometryConfig
 
 
-def evaluate(model: Path, drives: list[Path], pairs_per_drive: int) -> dict[str, float]:
-    odometry = Odometry(model)
+def evaluate(model: Path, drives: list[Path], pairs_per_drive: int, coherence: bool = True) -> dict[str, float]:
+    config = OdometryConfig()
+    if not coherence:
+        config.matching.coherence_px = None
+    odometry = Odometry(model, config)
     cylinder = odometry.cylinder
     epe, fl, kept_epe, kept_fl, network_ms, pair_ms = [], [], [], [], [], []
     estimates, truths = [], []
@@ -81,13 +84,19 @@ def main() -> None:
     parser.add_argument("drives", type=Path, nargs="+", help="held-out sequences with ground truth")
     parser.add_argument("--models", type=Path, nargs="+", required=True, help="model folders (frame.onnx inside)")
     parser.add_argument("--pairs", type=int, default=10, help="consecutive pairs per drive")
+    parser.add_argument("--without-coherence", action="store_true",
+                        help="also a row per model with the network's confidence as it is (matching.coherence_px off)")
     args = parser.parse_args()
     print("| model | EPE px | Fl-all % | EPE kept px | Fl kept % | rot. err ° | transl. err m | network ms | network + decode + NMS + RANSAC ms |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for model in args.models:
-        r = evaluate(model, args.drives, args.pairs)
+    variants = [(model, True) for model in args.models]
+    if args.without_coherence:
+        variants += [(model, False) for model in args.models]
+    for model, coherence in variants:
+        r = evaluate(model, args.drives, args.pairs, coherence)
+        name = model if coherence else f"{model}, no coherence"
         print(
-            f"| {model} | {r['epe']:.2f} | {r['fl_all']:.1f} | {r['kept_epe']:.2f} | {r['kept_fl_all']:.1f} | "
+            f"| {name} | {r['epe']:.2f} | {r['fl_all']:.1f} | {r['kept_epe']:.2f} | {r['kept_fl_all']:.1f} | "
             f"{r['rotation_deg']:.3f} | {r['translation_m']:.3f} | {r['network_ms']:.0f} | {r['pair_ms']:.0f} |"
         )
 

@@ -52,6 +52,9 @@ def add_odometry_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--symmetric", action="store_true",
                         help="also match every scan back against the previous one and take the midpoint "
                         "motion: less drift, one more matching pass per frame")
+    parser.add_argument("--no-coherence", action="store_true",
+                        help="rank the matches by the network's confidence alone, as the paper does, instead of "
+                        "also by how well each agrees with its neighbours' flow")
 
 
 def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # type: ignore[no-untyped-def]
@@ -67,6 +70,8 @@ def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # ty
         config.mapping.enabled = True
     if args.symmetric:
         config.matching.symmetric = True
+    if args.no_coherence:
+        config.matching.coherence_px = None
     model = args.model or default_model_path()
     try:
         return Odometry(model, config)
