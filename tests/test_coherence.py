@@ -15,21 +15,28 @@ from dmlo.simulator import simulate_sequence
 
 
 def reference(flow, confidence, ref_range, radius, scale_px, wraps):
-    """The module's definition written out: masked component-wise median of the (2r+1)² window."""
+    """The module's definition written out: per component, the median down each window column over the
+    usable cells (a range, a finite flow), then the median of those column medians across the window."""
     height, width = confidence.shape
+    usable = (ref_range > 0) & np.isfinite(flow).all(axis=0)
+    column_median = np.full((2, height, width), np.nan)
+    for row in range(height):
+        rows = slice(max(row - radius, 0), min(row + radius, height - 1) + 1)
+        for col in range(width):
+            keep = usable[rows, col]
+            if keep.any():
+                column_median[:, row, col] = [np.median(flow[k, rows, col][keep]) for k in (0, 1)]
     out = np.zeros_like(confidence)
-    finite = np.isfinite(flow).all(axis=0)
     for row in range(height):
         for col in range(width):
-            if ref_range[row, col] <= 0 or not finite[row, col]:
+            if not usable[row, col]:
                 continue
-            rows = np.arange(max(row - radius, 0), min(row + radius, height - 1) + 1)
             cols = np.arange(col - radius, col + radius + 1)
             cols = cols % width if wraps else cols[(cols >= 0) & (cols < width)]
-            window = np.ix_(rows, cols)
-            keep = (ref_range[window] > 0) & finite[window]
-            median = [np.median(flow[k][window][keep]) for k in (0, 1)]
-            distance = np.hypot(flow[0, row, col] - median[0], flow[1, row, col] - median[1])
+            medians = column_median[:, row, cols]
+            medians = medians[:, ~np.isnan(medians[0])]
+            centre = np.median(medians, axis=1)
+            distance = np.hypot(*(flow[:, row, col] - centre))
             out[row, col] = confidence[row, col] * np.exp(-distance / scale_px)
     return out
 
@@ -80,6 +87,8 @@ def test_bad_input_names_the_argument() -> None:
         dmlo_rs.coherent_confidence(flow.astype(np.int32), confidence, ref_range, config)
     with pytest.raises(ValueError, match="scale_px"):
         dmlo_rs.coherent_confidence(flow, confidence, ref_range, config, scale_px=0.0)
+    with pytest.raises(ValueError, match="radius"):
+        dmlo_rs.coherent_confidence(flow, confidence, ref_range, config, radius=16)
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +140,7 @@ def test_the_odometry_keeps_coherent_matches_over_confident_jumps(pair: dict[str
 
 
 def test_settings_are_checked() -> None:
-    for name, value in (("coherence_px", 0.0), ("coherence_px", -1.0), ("coherence_radius", -1), ("coherence_radius", 1.5)):
+    for name, value in (("coherence_px", 0.0), ("coherence_px", -1.0), ("coherence_radius", -1), ("coherence_radius", 16), ("coherence_radius", 1.5)):
         config = OdometryConfig()
         setattr(config.matching, name, value)
         with pytest.raises(ValueError, match=f"matching.{name}"):

@@ -210,9 +210,10 @@ def coherent_confidence(
     scale_px: float = 0.5,
     num_threads: int | None = None,
 ) -> npt.NDArray[np.float32]:
-    """confidence[H, W] × exp(−d / scale_px), d the pixel distance of a cell's flow from the median flow of
-    the (2·radius+1)² cells around it with a range (a 360° image's columns wrap); 0 without a range or
-    finite flow. Beyond the paper: lowers matches that disagree with their neighbours."""
+    """confidence[H, W] × exp(−d / scale_px), d the pixel distance of a cell's flow from the separable median
+    flow of the (2·radius+1)² cells around it (per component: medians down the window's columns over cells
+    with a range, then their median across; a 360° image's columns wrap); 0 without a range or finite
+    flow; radius ≤ 15. Beyond the paper: lowers matches that disagree with their neighbours."""
 
 
 

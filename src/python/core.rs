@@ -703,9 +703,10 @@ fn decode_matches(
 }
 
 /// The confidence `[H, W]` weighted by flow coherence (beyond the paper): each cell's times
-/// `exp(−d / scale_px)`, `d` the pixel distance of its flow from the component-wise median flow of the
-/// `(2·radius+1)²` cells around it that have a range in `ref_range` (columns wrap on a 360° image).
-/// Cells without a range or with a non-finite flow get 0. → float32 `[H, W]`.
+/// `exp(−d / scale_px)`, `d` the pixel distance of its flow from the separable median flow of the
+/// `(2·radius+1)²` cells around it (per component, the median down each window column over the cells with
+/// a range in `ref_range`, then the median of those across the columns; they wrap on a 360° image).
+/// Cells without a range or with a non-finite flow get 0; `radius` ≤ 15. → float32 `[H, W]`.
 #[pyfunction]
 #[pyo3(signature = (flow, confidence, ref_range, config, *, radius = 2, scale_px = 0.5, num_threads = None))]
 #[allow(clippy::too_many_arguments)]

@@ -24,7 +24,7 @@ class MatchingConfig:
     # this many pixels from where it started is left out (optical flow's forward–backward check); None: keep all.
     consistency_px: float | None = 1.0
     # Beyond the paper: before NMS, each cell's confidence is multiplied by exp(−d / coherence_px), d the
-    # distance (pixels) of its flow from the median flow of the (2·coherence_radius+1)² cells around it
+    # distance (pixels) of its flow from the (separable) median flow of the (2·coherence_radius+1)² cells around it
     # (`dmlo_rs.coherent_confidence`): the scene moves rigidly, a wrong match jumps away from its
     # neighbours. None: the network's confidence as it is (the paper).
     coherence_px: float | None = 0.5

@@ -532,8 +532,9 @@ def _check_limits(config: OdometryConfig) -> None:
     matching = config.matching
     if matching.coherence_px is not None and not matching.coherence_px > 0:
         raise ValueError(f"matching.coherence_px: must be > 0 (None turns it off), got {matching.coherence_px!r}")
-    if isinstance(matching.coherence_radius, bool) or not isinstance(matching.coherence_radius, int) or matching.coherence_radius < 0:
-        raise ValueError(f"matching.coherence_radius: must be an integer >= 0, got {matching.coherence_radius!r}")
+    radius = matching.coherence_radius
+    if isinstance(radius, bool) or not isinstance(radius, int) or not 0 <= radius <= 15:
+        raise ValueError(f"matching.coherence_radius: must be an integer from 0 to 15, got {radius!r}")
 
 
 def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> PairResult:
