@@ -189,3 +189,34 @@ def test_wide_window_graph_keeps_the_weights_and_widens_the_coarse_window(tmp_pa
         return {tuple(np.asarray(onnx.numpy_helper.to_array(t)).ravel()[:8]) for t in onnx.load(str(path)).graph.initializer
                 if onnx.numpy_helper.to_array(t).size > 16}
     assert weights(tmp_path / "frame.onnx") <= weights(wide)
+
+
+def test_peak_centroid_decoding_exports_and_the_command_can_choose_it(tmp_path) -> None:
+    import dataclasses
+
+    from dmlo.cli import main as dmlo_main
+    from dmlo.train import checkpoint
+
+    model = calibrated_matcher(MatcherConfig(refine_channels=8, refine_offset="peak_centroid"))
+    paths = export_onnx(model, tmp_path / "graphs", HEIGHT, WIDTH, graphs=("frame",))
+    ref, tgt, _, _ = synthetic_pair(HEIGHT, WIDTH, (3, -11), seed=10)
+    with torch.no_grad():
+        ref_features = model.encode(ref)
+        want = model.match(ref_features, model.encode(tgt))
+    got_flow, got_confidence, _, _ = session(paths["frame"]).run(
+        None, {"scan": tgt.numpy(), "prev_coarse_features": ref_features.coarse.numpy(),
+               "prev_refine_features": ref_features.refine.numpy()},
+    )
+    agree = np.abs(got_flow - want.flow.numpy()).max(axis=1) < 1e-3
+    assert agree.mean() > 0.99  # the rest: float32 near-ties of an argmax, decided differently
+    np.testing.assert_allclose(got_confidence, want.confidence.numpy(), atol=3e-4)
+    paper = want.refine_origin + decode_window(want.refine_logits, model.config.refine_window).offset
+    assert (np.abs(got_flow - paper.numpy()).max(axis=1) > 1e-2).mean() > 0.5  # it is not Eq. 11
+    # `dmlo export --refine-offset` re-decodes a checkpoint trained with the paper's decoding.
+    paper_model = Matcher(dataclasses.replace(model.config, refine_offset="window"))
+    paper_model.load_state_dict(model.state_dict())
+    checkpoint.save_atomic({"model": paper_model.state_dict(), "model_config": paper_model.config.to_dict()}, tmp_path / "c.pt")
+    out = tmp_path / "chosen"
+    assert dmlo_main(["export", str(tmp_path / "c.pt"), "--out", str(out), "--height", str(HEIGHT), "--width", str(WIDTH),
+                      "--graphs", "frame", "--refine-offset", "peak_centroid"]) == 0
+    assert read_metadata(out / "frame.onnx")["dmlo.model_config"]["refine_offset"] == "peak_centroid"

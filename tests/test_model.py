@@ -15,7 +15,7 @@ from dmlo.model.correlation import clamp_origin, local_correlation, window_corre
 from dmlo.model.deform_conv import DeformConv2d, deform_conv2d_reference  # noqa: E402
 from dmlo.model.loss import window_cross_entropy, window_target  # noqa: E402
 from dmlo.model.matcher import upsample_coarse_flow  # noqa: E402
-from dmlo.model.window import decode_window  # noqa: E402
+from dmlo.model.window import decode_window, peak_centroid  # noqa: E402
 
 TINY = MatcherConfig(coarse_channels=8, refine_channels=4, refine_plain_layers=1, refine_deformable_layers=1)
 
@@ -120,6 +120,58 @@ def test_decode_window_recovers_subpixel_location_and_mass() -> None:
         assert 0.9 < float(decoded.confidence) <= 1.0
     flat = decode_window(torch.zeros(1, 25, 1, 1), 5)
     np.testing.assert_allclose(float(flat.confidence), 4 / 25, rtol=1e-6)
+
+
+def numpy_peak_centroid(logits: np.ndarray, window: int) -> np.ndarray:
+    """The 3×3 centroid around the most likely cell, cell by cell (the peak moved inside at the edge)."""
+    batch, _, height, width = logits.shape
+    out = np.zeros((batch, 2, height, width))
+    for b, i, j in itertools.product(range(batch), range(height), range(width)):
+        weights = np.exp(logits[b, :, i, j] - logits[b, :, i, j].max()).reshape(window, window)
+        row, col = divmod(int(np.argmax(logits[b, :, i, j])), window)
+        row, col = min(max(row, 1), window - 2), min(max(col, 1), window - 2)
+        patch = weights[row - 1 : row + 2, col - 1 : col + 2]
+        grid_rows, grid_cols = np.mgrid[row - 1 : row + 2, col - 1 : col + 2]
+        out[b, :, i, j] = [(patch * grid_rows).sum() / patch.sum() - window // 2, (patch * grid_cols).sum() / patch.sum() - window // 2]
+    return out
+
+
+def test_peak_centroid_matches_loops_and_removes_the_pull_towards_cell_borders() -> None:
+    rng = np.random.default_rng(4)
+    logits = rng.normal(0, 2, (2, 25, 3, 4)).astype(np.float32)
+    logits[0, 0, 0, 0] = 9.0  # the peak in a corner: the 3×3 moves inside
+    got = peak_centroid(torch.from_numpy(logits), 5).numpy()
+    np.testing.assert_allclose(got, numpy_peak_centroid(logits, 5), atol=1e-5)
+    # A match 0.1 px from a cell centre, its mass spread symmetrically over the neighbours (as the network
+    # does): the paper's best 2×2 window decodes it at 0.375, towards the border; the 3×3 centroid at 0.1.
+    centre, spread = 0.1, np.array([0.2, 0.6, 0.2])
+    row_mass = np.zeros(5)
+    row_mass[1:4] = spread
+    row_mass[2] -= centre
+    row_mass[3] += centre
+    mass = np.outer(row_mass, np.eye(5)[2])  # all in the centre column
+    logits = torch.log(torch.from_numpy(mass + 1e-9).float()).view(1, 25, 1, 1)
+    paper = decode_window(logits, 5).offset.view(2).numpy()
+    ours = peak_centroid(logits, 5).view(2).numpy()
+    assert abs(paper[0] - centre) > 0.1
+    np.testing.assert_allclose(ours, [centre, 0.0], atol=1e-3)
+
+
+def test_matcher_config_chooses_the_refine_offset() -> None:
+    with pytest.raises(ValueError, match="refine_offset"):
+        MatcherConfig(refine_offset="parabola")
+    torch.manual_seed(0)
+    assert TINY.refine_offset == "window"  # the paper's Eq. 11 by default
+    ours = Matcher(MatcherConfig(**dict(TINY.to_dict(), refine_offset="peak_centroid"))).eval()
+    paper = Matcher(TINY).eval()
+    paper.load_state_dict(ours.state_dict())
+    scans = torch.rand(2, 2, 2, 16, 64)
+    with torch.no_grad():
+        a, b = ours(scans[0], scans[1]), paper(scans[0], scans[1])
+    torch.testing.assert_close(a.confidence, b.confidence)  # Q* is the 2×2 mass either way
+    expected = a.refine_origin + peak_centroid(a.refine_logits, TINY.refine_window)
+    torch.testing.assert_close(a.flow, expected)
+    torch.testing.assert_close(b.flow, b.refine_origin + decode_window(b.refine_logits, TINY.refine_window).offset)
 
 
 def test_window_target_expectation_outside_and_one_hot() -> None:

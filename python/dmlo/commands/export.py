@@ -27,6 +27,11 @@ def register(subparsers: Any) -> None:
         help="also write frame_wide.onnx: the same weights with an odd coarse window D for large motion "
         "(the paper uses D = 40 at inference; 41 here); 0 = none",
     )
+    parser.add_argument(
+        "--refine-offset", choices=("window", "peak_centroid"), default=None,
+        help="sub-pixel decoding of the refine window: window = the paper's best 2×2 window (Eq. 11), "
+        "peak_centroid = the 3×3 cells around the most likely one (default: the checkpoint's)",
+    )
     parser.set_defaults(run=run)
 
 
@@ -54,16 +59,24 @@ def resolve_checkpoint(path: Path) -> Path:
     return path
 
 
+def with_changes(model: Any, **changes: Any) -> Any:
+    """The same trained weights in a matcher whose config differs by `changes` (no fine-tuning)."""
+    import dataclasses
+
+    from dmlo.model import Matcher
+
+    changed = Matcher(dataclasses.replace(model.config, **changes))
+    changed.load_state_dict(model.state_dict())
+    return changed
+
+
 def export_wide_frame(model: Any, out: Path, window: int, size: tuple[int, int], cylinder: Any) -> Path:
     """`frame_wide.onnx`: the trained weights with a wider coarse window (§IV-D, no fine-tuning)."""
-    import dataclasses
     import tempfile
 
     from dmlo.export import export_onnx
-    from dmlo.model import Matcher
 
-    wide = Matcher(dataclasses.replace(model.config, coarse_window=window))
-    wide.load_state_dict(model.state_dict())
+    wide = with_changes(model, coarse_window=window)
     with tempfile.TemporaryDirectory(dir=out) as scratch:
         exported = export_onnx(wide, scratch, *size, cylinder, ("frame",))["frame"]
         return exported.replace(out / "frame_wide.onnx")
@@ -79,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
         checkpoint = resolve_checkpoint(Path(args.checkpoint))
         cylinder, height, width = default_cylinder()
         model = load_model(checkpoint)
+        if args.refine_offset is not None:
+            model = with_changes(model, refine_offset=args.refine_offset)
         size = (args.height or height, args.width or width)
         paths = export_onnx(model, args.out, *size, cylinder, tuple(args.graphs))
         if args.wide_window:

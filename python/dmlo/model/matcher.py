@@ -19,7 +19,7 @@ from dmlo.model.config import MatcherConfig
 from dmlo.model.correlation import clamp_origin, local_correlation, window_correlation
 from dmlo.model.features import CoarseEncoder, RefineEncoder
 from dmlo.model.loss import window_cross_entropy
-from dmlo.model.window import decode_window
+from dmlo.model.window import decode_window, peak_centroid
 
 
 class Features(NamedTuple):
@@ -104,8 +104,9 @@ class Matcher(nn.Module):
         refine_logits = window_correlation(ref.refine, tgt.refine, origin, refine_window)
         refine_logits = refine_logits * self.refine_log_scale.exp()
         refine = decode_window(refine_logits, refine_window)
+        offset = refine.offset if config.refine_offset == "window" else peak_centroid(refine_logits, refine_window)
         return MatchOutput(
-            flow=origin + refine.offset,
+            flow=origin + offset,
             confidence=refine.confidence,
             coarse_logits=coarse_logits,
             coarse_flow=coarse.offset,
