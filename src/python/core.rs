@@ -182,6 +182,16 @@ fn image<'py>(
     Ok(array)
 }
 
+/// A `2 × height × width` flow (Δrow, Δcol) over the config's image.
+fn flow_image<'py>(obj: &Bound<'py, PyAny>, config: &CylinderConfig) -> PyResult<Floats<'py>> {
+    let flow = floats("flow", obj)?;
+    let (h, w) = (config.height, config.width);
+    if flow.shape() != [2, h, w] {
+        return Err(shape_error("flow", &format!("(2, {h}, {w})"), flow.shape()));
+    }
+    Ok(flow)
+}
+
 /// A 4×4 rigid transform (float64 or float32), checked to be one.
 fn transform(name: &'static str, obj: &Bound<'_, PyAny>) -> PyResult<Isometry3<f64>> {
     let array = floats(name, obj)?;
@@ -647,10 +657,7 @@ fn decode_matches(
     let reference = image("ref_range", ref_range, &cylinder)?;
     let target = image("tgt_range", tgt_range, &cylinder)?;
     let confidence = image("confidence", confidence, &cylinder)?;
-    let flow = floats("flow", flow)?;
-    if flow.shape() != [2, h, w] {
-        return Err(shape_error("flow", &format!("(2, {h}, {w})"), flow.shape()));
-    }
+    let flow = flow_image(flow, &cylinder)?;
     let (reference, target, confidence, flow) = (
         reference.f32_data(),
         target.f32_data(),
@@ -724,10 +731,7 @@ fn coherent_confidence<'py>(
     let (h, w) = (cylinder.height, cylinder.width);
     let reference = image("ref_range", ref_range, &cylinder)?;
     let confidence = image("confidence", confidence, &cylinder)?;
-    let flow = floats("flow", flow)?;
-    if flow.shape() != [2, h, w] {
-        return Err(shape_error("flow", &format!("(2, {h}, {w})"), flow.shape()));
-    }
+    let flow = flow_image(flow, &cylinder)?;
     let (reference, confidence, flow) =
         (reference.f32_data(), confidence.f32_data(), flow.f32_data());
     let (reference, confidence, flow): (&[f32], &[f32], &[f32]) = (&reference, &confidence, &flow);
