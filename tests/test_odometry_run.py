@@ -121,6 +121,14 @@ def test_bench_command_compares_with_kiss_icp(drive: Path, tmp_path: Path) -> No
     assert read_kitti_poses(tmp_path / "KISS-ICP.txt").shape == (6, 4, 4)
 
 
+def test_bench_rows_say_which_matching_they_ran(drive: Path, tmp_path: Path) -> None:
+    result = dmlo("bench", str(drive), "--peers", "--max-frames", "3", "--symmetric", "--no-coherence", "--mapping",
+                  "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    rows = [line.split("|")[1].strip() for line in result.stdout.strip().splitlines()[2:]]
+    assert rows == ["DMLO (symmetric, no coherence)", "DMLO (symmetric, no coherence) + mapping"]
+
+
 def test_bench_names_an_unknown_peer(drive: Path, tmp_path: Path) -> None:
     result = dmlo("bench", str(drive), "--peers", "ICP-9000", "--out", str(tmp_path))
     assert result.returncode == 2

@@ -43,7 +43,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(err)) from err
     if sequence.poses is None:
         raise UserError(f"{args.path} has no ground-truth poses to compare against")
-    name = "DMLO (symmetric)" if args.symmetric else "DMLO"
+    settings = [label for label, on in (("symmetric", args.symmetric), ("no coherence", args.no_coherence)) if on]
+    name = f"DMLO ({', '.join(settings)})" if settings else "DMLO"
     variants = {name: lambda: build_odometry(args, mapping=False)}
     if args.mapping:
         variants[f"{name} + mapping"] = lambda: build_odometry(args, mapping=True)
