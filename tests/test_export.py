@@ -220,3 +220,18 @@ def test_peak_centroid_decoding_exports_and_the_command_can_choose_it(tmp_path) 
     assert dmlo_main(["export", str(tmp_path / "c.pt"), "--out", str(out), "--height", str(HEIGHT), "--width", str(WIDTH),
                       "--graphs", "frame", "--refine-offset", "peak_centroid"]) == 0
     assert read_metadata(out / "frame.onnx")["dmlo.model_config"]["refine_offset"] == "peak_centroid"
+
+
+def test_refine_window_can_be_widened_at_export(tmp_path) -> None:
+    from dmlo.cli import main as dmlo_main
+    from dmlo.train import checkpoint
+
+    model = Matcher(MatcherConfig.preset("fast"))
+    checkpoint.save_atomic({"model": model.state_dict(), "model_config": model.config.to_dict()}, tmp_path / "c.pt")
+    common = ["export", str(tmp_path / "c.pt"), "--height", "32", "--width", "64", "--graphs", "frame", "match"]
+    assert dmlo_main([*common, "--out", str(tmp_path / "wide"), "--refine-window", "7", "--wide-window", "21"]) == 0
+    for graph in ("frame", "match", "frame_wide"):
+        config = read_metadata(tmp_path / "wide" / f"{graph}.onnx")["dmlo.model_config"]
+        assert config["refine_window"] == 7  # every graph, the large-motion one too
+        assert MatcherConfig.from_dict({**config, "refine_window": 5, "coarse_window": model.config.coarse_window}) == model.config
+    assert dmlo_main([*common, "--out", str(tmp_path / "even"), "--refine-window", "6"]) == 2  # must be odd

@@ -14,7 +14,7 @@ def register(subparsers: Any) -> None:
         "export", help="Export a trained matcher to ONNX for onnxruntime.", description=__doc__,
         formatter_class=DefaultsAndExamplesFormatter,
         epilog="examples:\n"
-        "  dmlo export runs/paper --out my_model/ --wide-window 41\n"
+        "  dmlo export runs/paper --out my_model/ --wide-window 41 --refine-window 7\n"
         "  dmlo run kitti/sequences/07 --model my_model/\n",
     )
     parser.add_argument("checkpoint", help="a checkpoint (.pt) or a run folder (uses best.pt, else last.pt)")
@@ -26,6 +26,11 @@ def register(subparsers: Any) -> None:
         "--wide-window", type=int, default=0, metavar="D",
         help="also write frame_wide.onnx: the same weights with an odd coarse window D for large motion "
         "(the paper uses D = 40 at inference; 41 here); 0 = none",
+    )
+    parser.add_argument(
+        "--refine-window", type=int, default=0, metavar="D",
+        help="an odd refine window D for every graph, wider than the one trained (beyond the paper: the "
+        "bundled model's 5 widened to 7 at inference); 0 = the checkpoint's",
     )
     parser.add_argument(
         "--refine-offset", choices=("window", "peak_centroid"), default=None,
@@ -94,6 +99,8 @@ def run(args: argparse.Namespace) -> int:
         model = load_model(checkpoint)
         if args.refine_offset is not None:
             model = with_changes(model, refine_offset=args.refine_offset)
+        if args.refine_window:
+            model = with_changes(model, refine_window=args.refine_window)
         size = (args.height or height, args.width or width)
         paths = export_onnx(model, args.out, *size, cylinder, tuple(args.graphs))
         if args.wide_window:

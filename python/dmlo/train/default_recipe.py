@@ -6,7 +6,8 @@ simulates the drives (skipping those already written; deterministic per seed) an
 from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. `--finetune` runs
 the second stage instead: from `RUN_DIR/best.pt`, full-width pairs with the pose loss (beyond the paper),
 into `RUN_DIR/finetune`. Afterwards `dmlo export RUN_DIR/finetune --out python/dmlo/models/default
---wide-window 41` refreshes the bundled model.
+--wide-window 41 --refine-window 7` refreshes the bundled model (its refine window, 5 in training, widened
+to 7 at inference).
 """
 
 from __future__ import annotations
