@@ -18,7 +18,8 @@ class MatchingConfig:
     # Beyond the paper: also match the new scan back against the previous one (`match.onnx` on both
     # scans' cached features) and take the midpoint of the two motions. The network errs differently in
     # the two directions, so part of its error cancels; it costs one more matching pass (~45–55 ms at
-    # 64×1792 on 2 cores): 10.4–11.5 Hz instead of 19.7–20.2 Hz on the 300-frame drives of the README.
+    # 64×1792 on 2 cores with a 5-cell refine window, more with the bundled 7): about half the frame rate
+    # on the 300-frame drives of the README (5.5–7.0 instead of 11.9–12.3 Hz there).
     symmetric: bool = False
     # With `symmetric`: a cell whose match, followed back by the other direction's flow, lands more than
     # this many pixels from where it started is left out (optical flow's forward–backward check); None: keep all.
