@@ -506,8 +506,9 @@ class Odometry:
         )
 
 
-# Limits that None turns off.
+# Limits that None turns off, and limits that must be > 0 rather than >= 0 (a scale divides by them).
 _OPTIONAL_LIMITS = {("matching", "consistency_px"), ("matching", "coherence_px")}
+_POSITIVE_LIMITS = {("matching", "coherence_px")}
 
 
 def _check_limits(config: OdometryConfig) -> None:
@@ -527,12 +528,10 @@ def _check_limits(config: OdometryConfig) -> None:
             value = getattr(getattr(config, section), name)
             if value is None and (section, name) in _OPTIONAL_LIMITS:
                 continue
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
-                raise ValueError(f"{section}.{name}: must be a number >= 0, got {value!r}")
-    matching = config.matching
-    if matching.coherence_px is not None and not matching.coherence_px > 0:
-        raise ValueError(f"matching.coherence_px: must be > 0 (None turns it off), got {matching.coherence_px!r}")
-    radius = matching.coherence_radius
+            positive = (section, name) in _POSITIVE_LIMITS
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value > 0 if positive else value >= 0):
+                raise ValueError(f"{section}.{name}: must be a number {'>' if positive else '>='} 0, got {value!r}")
+    radius = config.matching.coherence_radius
     if isinstance(radius, bool) or not isinstance(radius, int) or not 0 <= radius <= 15:
         raise ValueError(f"matching.coherence_radius: must be an integer from 0 to 15, got {radius!r}")
 
