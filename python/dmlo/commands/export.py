@@ -97,10 +97,10 @@ def run(args: argparse.Namespace) -> int:
         checkpoint = resolve_checkpoint(Path(args.checkpoint))
         cylinder, height, width = default_cylinder()
         model = load_model(checkpoint)
-        if args.refine_offset is not None:
-            model = with_changes(model, refine_offset=args.refine_offset)
-        if args.refine_window:
-            model = with_changes(model, refine_window=args.refine_window)
+        changes = {"refine_offset": args.refine_offset, "refine_window": args.refine_window or None}
+        changes = {name: value for name, value in changes.items() if value is not None}
+        if changes:
+            model = with_changes(model, **changes)
         size = (args.height or height, args.width or width)
         paths = export_onnx(model, args.out, *size, cylinder, tuple(args.graphs))
         if args.wide_window:
