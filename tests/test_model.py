@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 import torch.nn.functional as F  # noqa: E402
 
 from dmlo.model import Matcher, MatcherConfig, coarse_ground_truth, matching_loss  # noqa: E402
-from dmlo.model.correlation import clamp_origin, local_correlation, window_correlation  # noqa: E402
+from dmlo.model.correlation import block_window_correlation, clamp_origin, local_correlation, window_correlation  # noqa: E402
 from dmlo.model.deform_conv import DeformConv2d, deform_conv2d_reference  # noqa: E402
 from dmlo.model.loss import window_cross_entropy, window_target  # noqa: E402
 from dmlo.model.matcher import upsample_coarse_flow  # noqa: E402
@@ -86,6 +86,71 @@ def test_window_correlation_matches_loops_with_random_origins() -> None:
     got = window_correlation(ref, tgt, clamped, 5)
     want = numpy_window_correlation(ref.double().numpy(), tgt.double().numpy(), origin.numpy(), 5)
     np.testing.assert_allclose(got.numpy(), want, atol=1e-5)
+
+
+def matcher_like_origin(batch: int, height: int, width: int, spread: float, generator: torch.Generator) -> torch.Tensor:
+    """The matcher's unclamped refine origin: a random coarse flow of up to ``spread`` coarse cells,
+    pointing out of the image along all four borders (by half a coarse cell at the corners, which clamps
+    part of a block), upsampled by 4×8 and rounded."""
+    size = (batch, 2, height // 4, width // 8)
+    coarse = (torch.rand(size, generator=generator) * 2 - 1) * spread
+    outward = torch.rand(size, generator=generator) * spread
+    coarse[:, 0, 0], coarse[:, 0, -1] = -outward[:, 0, 0], outward[:, 0, -1]
+    coarse[:, 1, :, 0], coarse[:, 1, :, -1] = -outward[:, 1, :, 0], outward[:, 1, :, -1]
+    coarse[:, :, 0, 0], coarse[:, :, -1, -1] = -0.5, 0.5
+    return torch.round(upsample_coarse_flow(coarse, (4, 8)))
+
+
+@pytest.mark.parametrize(("height", "width", "window", "spread"), [(8, 32, 3, 3.0), (8, 32, 5, 6.0), (12, 48, 7, 4.0), (16, 40, 9, 9.0)])
+def test_block_window_correlation_is_window_correlation_on_matcher_origins(height: int, width: int, window: int, spread: float) -> None:
+    generator = torch.Generator().manual_seed(height * window)
+    ref = torch.randn(2, 3, height, width, generator=generator)
+    tgt = torch.randn(2, 3, height, width, generator=generator)
+    origin = matcher_like_origin(2, height, width, spread, generator)
+    clamped = clamp_origin(origin, height, width)
+    for border in (0, -1):  # windows are clamped at all four borders
+        assert (clamped[:, 0, border] != origin[:, 0, border]).any() and (clamped[:, 1, :, border] != origin[:, 1, :, border]).any()
+    moved = (clamped != origin).any(dim=1).view(2, height // 4, 4, width // 8, 8)
+    assert (moved.any(dim=(2, 4)) & ~moved.all(dim=(2, 4))).any(), "some block must be clamped only in part"
+    got = block_window_correlation(ref, tgt, origin[:, :, ::4, ::8], (4, 8), window)
+    torch.testing.assert_close(got, window_correlation(ref, tgt, clamped, window), atol=1e-5, rtol=1e-5)
+    want = numpy_window_correlation(ref.double().numpy(), tgt.double().numpy(), origin.numpy(), window)
+    np.testing.assert_allclose(got.numpy(), want, atol=1e-5)
+
+
+def test_block_window_correlation_at_full_size() -> None:
+    generator = torch.Generator().manual_seed(3)
+    ref = F.normalize(torch.randn(1, 8, 64, 1792, generator=generator), dim=1)
+    tgt = F.normalize(torch.randn(1, 8, 64, 1792, generator=generator), dim=1)
+    origin = matcher_like_origin(1, 64, 1792, 7.0, generator)
+    got = block_window_correlation(ref, tgt, origin[:, :, ::4, ::8], (4, 8), 7)
+    torch.testing.assert_close(got, window_correlation(ref, tgt, clamp_origin(origin, 64, 1792), 7), atol=1e-5, rtol=1e-5)
+
+
+def test_block_window_correlation_gradients_equal_window_correlation() -> None:
+    generator = torch.Generator().manual_seed(4)
+    origin = matcher_like_origin(2, 8, 32, 5.0, generator)
+    weights = torch.randn(2, 25, 8, 32, generator=generator)  # a loss that weighs every window cell
+    grads = []
+    for correlate in (
+        lambda ref, tgt: block_window_correlation(ref, tgt, origin[:, :, ::4, ::8], (4, 8), 5),
+        lambda ref, tgt: window_correlation(ref, tgt, clamp_origin(origin, 8, 32), 5),
+    ):
+        ref = torch.randn(2, 3, 8, 32, generator=torch.Generator().manual_seed(5)).requires_grad_()
+        tgt = torch.randn(2, 3, 8, 32, generator=torch.Generator().manual_seed(6)).requires_grad_()
+        (correlate(ref, tgt) * weights).sum().backward()
+        grads.append((ref.grad, tgt.grad))
+    for got, want in zip(*grads):
+        torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize(("shape", "message"), [((1, 2, 3, 8), "split into"), ((1, 2, 2, 3), "block_origin must have shape")])
+def test_block_window_correlation_rejects_bad_shapes(shape: tuple[int, ...], message: str) -> None:
+    features = torch.zeros(1, 3, 8, 16)
+    if message == "split into":
+        features = torch.zeros(1, 3, 6, 16)
+    with pytest.raises(ValueError, match=message):
+        block_window_correlation(features, features, torch.zeros(shape), (4, 8), 5)
 
 
 @pytest.mark.parametrize(("height", "width", "window"), [(6, 7, 5), (4, 28, 11), (3, 2, 11), (5, 9, 3)])

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from dmlo.model.config import MatcherConfig
-from dmlo.model.correlation import clamp_origin, local_correlation, window_correlation
+from dmlo.model.correlation import block_window_correlation, clamp_origin, local_correlation
 from dmlo.model.features import CoarseEncoder, RefineEncoder
 from dmlo.model.loss import window_cross_entropy
 from dmlo.model.window import decode_window, peak_centroid
@@ -99,9 +99,12 @@ class Matcher(nn.Module):
         # The refine window is centred on the upsampled coarse match rounded to a pixel; no gradient flows
         # through the argmax-based coarse decision.
         height, width = ref.refine.shape[2:]
-        origin = torch.round(upsample_coarse_flow(coarse.offset.detach(), config.coarse_stride))
-        origin = clamp_origin(origin, height, width)
-        refine_logits = window_correlation(ref.refine, tgt.refine, origin, refine_window)
+        stride = config.coarse_stride
+        unclamped = torch.round(upsample_coarse_flow(coarse.offset.detach(), stride))
+        origin = clamp_origin(unclamped, height, width)
+        # Every cell of a coarse cell's block shares its unclamped origin: one patch per block suffices.
+        block_origin = unclamped[:, :, :: stride[0], :: stride[1]]
+        refine_logits = block_window_correlation(ref.refine, tgt.refine, block_origin, stride, refine_window)
         refine_logits = refine_logits * self.refine_log_scale.exp()
         refine = decode_window(refine_logits, refine_window)
         offset = refine.offset if config.refine_offset == "window" else peak_centroid(refine_logits, refine_window)
