@@ -1,9 +1,14 @@
-"""Per-frame onnxruntime time of the exported matcher (``frame.onnx``) for several refine variants.
+"""Per-frame onnxruntime time of the exported matcher (``frame.onnx``) for several refine variants, or of
+exported model folders on a real scan pair.
 
     python -m dmlo.benchmarks.network [--height 64 --width 1792 --threads 2 --repeats 10 --profile]
+    python -m dmlo.benchmarks.network --models python/dmlo/models/default other/ --drive DRIVE [--frame 10]
 
-Each variant is exported with random weights (time does not depend on them), then the sessions run in
-turns so that machine load hits all of them alike; the table gives the median per-frame time.
+Without ``--models`` each refine variant is exported with random weights (time does not depend on them).
+With ``--models`` the folders' own ``frame.onnx`` run on two consecutive scans of ``--drive`` projected
+by the odometry, each fed the previous scan's features from its own ``encoder.onnx``; the table also
+gives how far each model's flow and confidence are from the first model's. Either way the sessions run
+in turns so that machine load hits all of them alike, and the table gives the median per-frame time.
 """
 
 from __future__ import annotations
@@ -26,6 +31,17 @@ VARIANTS: dict[str, dict[str, Any]] = {
 }
 
 
+def _session(path: Path, threads: int) -> Any:
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    # No spin-waiting: the process CPU time is then the work done, a figure that machine load
+    # disturbs far less than wall time.
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
 def _profile(path: Path, feeds: dict[str, np.ndarray], threads: int, top: int = 10) -> list[tuple[str, float]]:
     import onnxruntime as ort
 
@@ -44,15 +60,22 @@ def _profile(path: Path, feeds: dict[str, np.ndarray], threads: int, top: int = 
     return [(op, micros / runs / 1000) for op, micros in totals.most_common(top)]
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--height", type=int, default=64)
-    parser.add_argument("--width", type=int, default=1792)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=10)
-    parser.add_argument("--profile", action="store_true", help="also print the costliest operator types")
-    args = parser.parse_args(argv)
+def _time_in_turns(sessions: dict[str, Any], feeds: dict[str, Any], repeats: int) -> dict[str, tuple[float, float]]:
+    """Median (wall ms, CPU ms) per session, the sessions run one after the other ``repeats`` times."""
+    for name, session in sessions.items():
+        session.run(None, feeds[name])  # warm-up
+    times: dict[str, list[float]] = {name: [] for name in sessions}
+    cpu_times: dict[str, list[float]] = {name: [] for name in sessions}
+    for _ in range(repeats):
+        for name, session in sessions.items():
+            start, start_cpu = time.perf_counter(), time.process_time()
+            session.run(None, feeds[name])
+            times[name].append(time.perf_counter() - start)
+            cpu_times[name].append(time.process_time() - start_cpu)
+    return {name: (1000 * float(np.median(times[name])), 1000 * float(np.median(cpu_times[name]))) for name in sessions}
 
+
+def _variant_table(args: argparse.Namespace) -> None:
     import onnxruntime as ort
     import torch
 
@@ -72,12 +95,7 @@ def main(argv: list[str] | None = None) -> None:
             model = Matcher(MatcherConfig(**changes)).eval()
             out = Path(folder) / str(len(paths))
             paths[name] = export_onnx(model, out, args.height, args.width, graphs=("frame",))["frame"]
-            options = ort.SessionOptions()
-            options.intra_op_num_threads = args.threads
-            # No spin-waiting: the process CPU time is then the work done, a figure that machine load
-            # disturbs far less than wall time.
-            options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-            sessions[name] = ort.InferenceSession(str(paths[name]), options, providers=["CPUExecutionProvider"])
+            sessions[name] = _session(paths[name], args.threads)
             with torch.no_grad():
                 features = model.encode(torch.from_numpy(scan))
             feeds[name] = {
@@ -85,26 +103,64 @@ def main(argv: list[str] | None = None) -> None:
                 "prev_coarse_features": features.coarse.numpy(),
                 "prev_refine_features": features.refine.numpy(),
             }
-            sessions[name].run(None, feeds[name])  # warm-up
-        times: dict[str, list[float]] = {name: [] for name in VARIANTS}
-        cpu_times: dict[str, list[float]] = {name: [] for name in VARIANTS}
-        for _ in range(args.repeats):
-            for name, session in sessions.items():
-                start, start_cpu = time.perf_counter(), time.process_time()
-                session.run(None, feeds[name])
-                times[name].append(time.perf_counter() - start)
-                cpu_times[name].append(time.process_time() - start_cpu)
+        medians = _time_in_turns(sessions, feeds, args.repeats)
         print(f"frame.onnx at {args.height}×{args.width}, onnxruntime {ort.__version__}, {args.threads} threads, "
               f"median of {args.repeats}\n")
         print("| refine variant | wall ms per frame | Hz | CPU ms per frame | CPU ms / threads |\n|---|---|---|---|---|")
-        for name, values in times.items():
-            ms = 1000 * float(np.median(values))
-            cpu_ms = 1000 * float(np.median(cpu_times[name]))
+        for name, (ms, cpu_ms) in medians.items():
             print(f"| {name} | {ms:.0f} | {1000 / ms:.1f} | {cpu_ms:.0f} | {cpu_ms / args.threads:.0f} |")
         if args.profile:
             for name in VARIANTS:
                 ops = ", ".join(f"{op} {ms:.0f}" for op, ms in _profile(paths[name], feeds[name], args.threads))
                 print(f"\n{name}: {ops} (ms)")
+
+
+def _model_table(args: argparse.Namespace) -> None:
+    import onnxruntime as ort
+
+    from dmlo.datasets import open_sequence
+    from dmlo.odometry import Odometry
+
+    if args.drive is None:
+        raise SystemExit("--models needs --drive: the sequence whose scans are fed to the models")
+    sequence = open_sequence(args.drive)
+    odometry = Odometry(args.models[0])
+    previous, scan = (odometry.project(sequence[args.frame + step].points)[0][None].astype(np.float32) for step in (0, 1))
+    names = [str(folder) for folder in args.models]
+    sessions = {name: _session(folder / "frame.onnx", args.threads) for name, folder in zip(names, args.models)}
+    feeds = {}
+    for name, folder in zip(names, args.models):
+        prev_coarse, prev_refine = _session(folder / "encoder.onnx", args.threads).run(None, {"scan": previous})
+        feeds[name] = {"scan": scan, "prev_coarse_features": prev_coarse, "prev_refine_features": prev_refine}
+    outputs = {name: sessions[name].run(None, feeds[name]) for name in names}
+    medians = _time_in_turns(sessions, feeds, args.repeats)
+    print(f"frame.onnx on {args.drive} frames {args.frame}→{args.frame + 1} ({scan.shape[2]}×{scan.shape[3]}), "
+          f"onnxruntime {ort.__version__}, {args.threads} threads, median of {args.repeats}\n")
+    print("| model | wall ms per frame | Hz | CPU ms per frame | max \\|Δflow\\| px | cells \\|Δflow\\| > 1e-4 | max \\|ΔQ*\\| |")
+    print("|---|---|---|---|---|---|---|")
+    first_flow, first_confidence = outputs[names[0]][:2]
+    for name, (ms, cpu_ms) in medians.items():
+        flow, confidence = outputs[name][:2]
+        flow_change = np.abs(flow - first_flow).max(axis=1)
+        print(f"| {name} | {ms:.1f} | {1000 / ms:.1f} | {cpu_ms:.1f} | {flow_change.max():.2g} | "
+              f"{int((flow_change > 1e-4).sum())} | {np.abs(confidence - first_confidence).max():.2g} |")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--height", type=int, default=64)
+    parser.add_argument("--width", type=int, default=1792)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--profile", action="store_true", help="also print the costliest operator types")
+    parser.add_argument("--models", type=Path, nargs="+", help="exported model folders to time instead of the variants")
+    parser.add_argument("--drive", type=Path, help="with --models: a sequence to take the scan pair from")
+    parser.add_argument("--frame", type=int, default=0, help="with --models: the first scan of the pair")
+    args = parser.parse_args(argv)
+    if args.models:
+        _model_table(args)
+    else:
+        _variant_table(args)
 
 
 if __name__ == "__main__":
