@@ -187,6 +187,67 @@ def test_decode_window_recovers_subpixel_location_and_mass() -> None:
     np.testing.assert_allclose(float(flat.confidence), 4 / 25, rtol=1e-6)
 
 
+def reference_decode_window(logits: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The straightforward decoding (four strided corner slices, channel-axis reductions): offset, Q*, sums."""
+    batch, _, height, width = logits.shape
+    radius = window // 2
+    weights = torch.exp(logits - logits.amax(dim=1, keepdim=True)).view(batch, window, window, height, width)
+    total = weights.sum(dim=(1, 2))
+    top_left = weights[:, :-1, :-1].reshape(batch, -1, height, width)
+    top_right = weights[:, :-1, 1:].reshape(batch, -1, height, width)
+    bottom_left = weights[:, 1:, :-1].reshape(batch, -1, height, width)
+    bottom_right = weights[:, 1:, 1:].reshape(batch, -1, height, width)
+    sums = top_left + top_right + bottom_left + bottom_right
+    best = sums.argmax(dim=1, keepdim=True)
+
+    def pick(values: torch.Tensor) -> torch.Tensor:
+        return values.gather(1, best).squeeze(1)
+
+    best_sum = pick(sums)
+    best_row = torch.div(best.squeeze(1), window - 1, rounding_mode="floor")
+    best_col = best.squeeze(1) - best_row * (window - 1)
+    row = best_row + (pick(bottom_left) + pick(bottom_right)) / best_sum - radius
+    col = best_col + (pick(top_right) + pick(bottom_right)) / best_sum - radius
+    return torch.stack((row, col), dim=1), best_sum / total, sums
+
+
+@pytest.mark.parametrize("window", [2, 3, 5, 7, 9, 11, 13])  # both ways to the sums (MatMul up to 9, adds above)
+def test_decode_window_equals_the_straightforward_decoding_ties_and_gradients_included(window: int) -> None:
+    generator = torch.Generator().manual_seed(window)
+    shape = (2, window * window, 5, 7)
+    random = torch.randn(shape, generator=generator) * 3
+    # Exact ties: every cell 1 or 0 after exp, so window sums are small integers and many windows tie; the
+    # first maximum (lowest channel) must win, as in the reference. The all-equal cell ties every window.
+    ties = torch.where(torch.rand(shape, generator=generator) < 0.5, 0.0, -1e4)
+    ties[0, :, 0, 0] = 0.0
+    for logits in (random, ties, random.double(), random.to(memory_format=torch.channels_last)):
+        got = decode_window(logits, window)
+        want = reference_decode_window(logits, window)
+        torch.testing.assert_close(got.offset, want[0])
+        torch.testing.assert_close(got.confidence, want[1])
+        torch.testing.assert_close(got.window_sums, want[2])
+        assert got.offset.shape == (2, 2, 5, 7) and got.confidence.shape == (2, 5, 7)
+    # Cell by cell: the winner among tied windows is the first maximal one (row-major), and ties are common.
+    offset = decode_window(ties, window).offset.numpy()
+    cells = (ties - ties.amax(dim=1, keepdim=True)).exp().numpy().reshape(2, window, window, 5, 7)
+    tied = 0
+    for b, i, j in itertools.product(range(2), range(5), range(7)):
+        weights = cells[b, :, :, i, j]
+        sums = [weights[r : r + 2, c : c + 2].sum() for r in range(window - 1) for c in range(window - 1)]
+        tied += sums.count(max(sums)) > 1
+        row, col = divmod(sums.index(max(sums)), window - 1)
+        best = weights[row : row + 2, col : col + 2]
+        expected = [row + best[1].sum() / best.sum() - window // 2, col + best[:, 1].sum() / best.sum() - window // 2]
+        np.testing.assert_allclose(offset[:, :, i, j][b], expected, atol=1e-6)
+    assert tied > 20 or window == 2  # one window only at D = 2
+    # Same gradients through all three outputs (float64: no rounding noise to tolerate).
+    logits = random.double().requires_grad_()
+    grads = [torch.randn(t.shape, generator=generator, dtype=torch.float64) for t in reference_decode_window(logits, window)]
+    got = torch.autograd.grad(tuple(decode_window(logits, window)), logits, grads)[0]
+    want = torch.autograd.grad(reference_decode_window(logits, window), logits, grads)[0]
+    torch.testing.assert_close(got, want)
+
+
 def numpy_peak_centroid(logits: np.ndarray, window: int) -> np.ndarray:
     """The 3×3 centroid around the most likely cell, cell by cell (the peak moved inside at the edge)."""
     batch, _, height, width = logits.shape

@@ -22,30 +22,80 @@ class WindowDecoding(NamedTuple):
 
 
 def decode_window(logits: Tensor, window: int) -> WindowDecoding:
-    """Decodes (B, D·D, H, W) logits whose channel ``d = row·D + col`` indexes the window cell."""
-    batch, _, height, width = logits.shape
+    """Decodes (B, D·D, H, W) logits whose channel ``d = row·D + col`` indexes the window cell.
+
+    Written for onnxruntime on the CPU, where reductions over the channel axis (ReduceMax, ReduceSum,
+    ArgMax) cost several times an elementwise pass over the same tensor; at the refine stage
+    (D = 7, 64×1792) this version runs in under half the time of four slices, three adds and channel-axis
+    reductions, with the same values (float rounding apart) and the same first-maximum tie-breaking.
+    """
+    batch, channels, height, width = logits.shape
     radius = window // 2
-    weights = torch.exp(logits - logits.amax(dim=1, keepdim=True)).view(batch, window, window, height, width)
-    total = weights.sum(dim=(1, 2))
-    # The four corners of every 2×2 window, indexed by the window's top-left cell.
-    top_left = weights[:, :-1, :-1].reshape(batch, -1, height, width)
-    top_right = weights[:, :-1, 1:].reshape(batch, -1, height, width)
-    bottom_left = weights[:, 1:, :-1].reshape(batch, -1, height, width)
-    bottom_right = weights[:, 1:, 1:].reshape(batch, -1, height, width)
-    sums = top_left + top_right + bottom_left + bottom_right
-    best = sums.argmax(dim=1, keepdim=True)
-
-    def pick(values: Tensor) -> Tensor:
-        return values.gather(1, best).squeeze(1)
-
-    best_sum = pick(sums)
+    weights = torch.exp(logits - _channel_max(logits))  # (B, D², H, W), the largest is 1
+    flat = weights.reshape(batch, channels, height * width)
+    # Sums over the channel axis as MatMuls: in onnxruntime ~10× faster than a ReduceSum over that axis.
+    total = torch.matmul(torch.ones(1, channels, dtype=logits.dtype, device=logits.device), flat)
+    # 2×2 window masses laid out (B, H·W, (D−1)²): the window axis last, where onnxruntime's ArgMax is ~4×
+    # faster than along the channel axis.
+    if window <= _MATMUL_MAX_WINDOW:
+        # One MatMul with the 0/1 window-membership matrix sums the four corners and transposes for free;
+        # (D−1)²·D² multiply-adds per cell are cheap for a small window.
+        window_sums_last = torch.matmul(flat.transpose(1, 2), _window_membership(window, logits).t())
+    else:
+        # A wide window (the wide-window graph's D = 41) would make that matrix huge: sum adjacent columns,
+        # then adjacent rows of those pairs (2 adds instead of 3), and transpose.
+        cells = flat.view(batch, window, window, height, width)
+        column_pairs = cells[:, :, :-1] + cells[:, :, 1:]
+        window_sums = (column_pairs[:, :-1] + column_pairs[:, 1:]).view(batch, -1, height * width)
+        window_sums_last = window_sums.transpose(1, 2)
+    best_last = window_sums_last.argmax(dim=2, keepdim=True)  # (B, H·W, 1), the first maximum
+    best_sum = window_sums_last.gather(2, best_last).view(batch, height, width)
+    best = best_last.view(batch, 1, height, width)
     # Row and column of the winning window's top-left cell, computed in float (exports as plain arithmetic).
     best_float = best.squeeze(1).to(logits.dtype)
     best_row = torch.floor(best_float / (window - 1))
     best_col = best_float - best_row * (window - 1)
-    row = best_row + (pick(bottom_left) + pick(bottom_right)) / best_sum - radius
-    col = best_col + (pick(top_right) + pick(bottom_right)) / best_sum - radius
-    return WindowDecoding(torch.stack((row, col), dim=1), best_sum / total, sums)
+    # Channel of that cell: best_row·D + best_col = best + best_row. Only three cells are needed for the
+    # centroid: the bottom pair (bottom left + bottom right) and the right pair (top right + bottom right).
+    top_left = best + best_row.unsqueeze(1).to(best.dtype)
+
+    def pick(channel: Tensor) -> Tensor:
+        return weights.gather(1, channel).squeeze(1)
+
+    top_right, bottom_left, bottom_right = pick(top_left + 1), pick(top_left + window), pick(top_left + window + 1)
+    row = best_row + (bottom_left + bottom_right) / best_sum - radius
+    col = best_col + (top_right + bottom_right) / best_sum - radius
+    window_sums = window_sums_last.transpose(1, 2).view(batch, -1, height, width)
+    return WindowDecoding(torch.stack((row, col), dim=1), best_sum / total.view(batch, height, width), window_sums)
+
+
+# Up to this window the membership MatMul is the faster way to the window-last sums in onnxruntime (measured:
+# ~20 % faster than separable adds + Transpose at D = 5 and 7, a tie at D = 11; at D = 41 its 1,600 × 1,681
+# matrix would cost ~10 G multiply-adds per frame).
+_MATMUL_MAX_WINDOW = 9
+
+
+def _window_membership(window: int, like: Tensor) -> Tensor:
+    """((D−1)², D²) 0/1 matrix whose row ``row·(D−1) + col`` marks the four cells of that window (channels
+    ``r·D + c``). Built per call (a few tiny ops; constants in the exported graph) rather than cached, so
+    that no tensor outlives a ``torch.inference_mode`` block or a device."""
+    eye = torch.eye(window, dtype=like.dtype, device=like.device)
+    pairs = eye[:-1] + eye[1:]  # pairs[i, j] = 1 for j ∈ {i, i + 1}
+    return torch.kron(pairs, pairs)
+
+
+def _channel_max(values: Tensor) -> Tensor:
+    """``values.amax(dim=1, keepdim=True)`` as pairwise maxima of channel halves (exact): in onnxruntime a
+    handful of elementwise Max ops take about half the time of one ReduceMax over the channel axis."""
+    leftovers = []
+    while values.shape[1] > 1:
+        half = values.shape[1] // 2
+        if values.shape[1] % 2:
+            leftovers.append(values[:, 2 * half:])
+        values = torch.maximum(values[:, :half], values[:, half: 2 * half])
+    for leftover in leftovers:
+        values = torch.maximum(values, leftover)
+    return values
 
 
 def peak_centroid(logits: Tensor, window: int) -> Tensor:
