@@ -3,11 +3,12 @@ exported model folders on a real scan pair.
 
     python -m dmlo.benchmarks.network [--height 64 --width 1792 --threads 2 --repeats 10 --profile]
     python -m dmlo.benchmarks.network --models python/dmlo/models/default other/ --drive DRIVE [--frame 10]
+        [--graph frame_wide]
 
 Without ``--models`` each refine variant is exported with random weights (time does not depend on them).
-With ``--models`` the folders' own ``frame.onnx`` run on two consecutive scans of ``--drive`` projected
-by the odometry, each fed the previous scan's features from its own ``encoder.onnx``; the table also
-gives how far each model's flow and confidence are from the first model's. Either way the sessions run
+With ``--models`` the folders' own ``frame.onnx`` (or ``frame_wide.onnx``) run on two consecutive scans of
+``--drive`` projected by the odometry, each fed the previous scan's features from its own ``encoder.onnx``;
+the table also gives how far each model's flow and confidence are from the first model's. Either way the sessions run
 in turns so that machine load hits all of them alike, and the table gives the median per-frame time.
 """
 
@@ -127,14 +128,14 @@ def _model_table(args: argparse.Namespace) -> None:
     odometry = Odometry(args.models[0])
     previous, scan = (odometry.project(sequence[args.frame + step].points)[0][None].astype(np.float32) for step in (0, 1))
     names = [str(folder) for folder in args.models]
-    sessions = {name: _session(folder / "frame.onnx", args.threads) for name, folder in zip(names, args.models)}
+    sessions = {name: _session(folder / f"{args.graph}.onnx", args.threads) for name, folder in zip(names, args.models)}
     feeds = {}
     for name, folder in zip(names, args.models):
         prev_coarse, prev_refine = _session(folder / "encoder.onnx", args.threads).run(None, {"scan": previous})
         feeds[name] = {"scan": scan, "prev_coarse_features": prev_coarse, "prev_refine_features": prev_refine}
     outputs = {name: sessions[name].run(None, feeds[name]) for name in names}
     medians = _time_in_turns(sessions, feeds, args.repeats)
-    print(f"frame.onnx on {args.drive} frames {args.frame}→{args.frame + 1} ({scan.shape[2]}×{scan.shape[3]}), "
+    print(f"{args.graph}.onnx on {args.drive} frames {args.frame}→{args.frame + 1} ({scan.shape[2]}×{scan.shape[3]}), "
           f"onnxruntime {ort.__version__}, {args.threads} threads, median of {args.repeats}\n")
     print("| model | wall ms per frame | Hz | CPU ms per frame | max \\|Δflow\\| px | cells \\|Δflow\\| > 1e-4 | max \\|ΔQ*\\| |")
     print("|---|---|---|---|---|---|---|")
@@ -156,6 +157,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--models", type=Path, nargs="+", help="exported model folders to time instead of the variants")
     parser.add_argument("--drive", type=Path, help="with --models: a sequence to take the scan pair from")
     parser.add_argument("--frame", type=int, default=0, help="with --models: the first scan of the pair")
+    parser.add_argument("--graph", default="frame", choices=("frame", "frame_wide"),
+                        help="with --models: the per-frame graph to time (same inputs and outputs)")
     args = parser.parse_args(argv)
     if args.models:
         _model_table(args)
