@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from dmlo.benchmarks import large_motion, matching
+from dmlo.benchmarks import large_motion, matching, network
 from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
 
@@ -33,3 +34,21 @@ def test_large_motion_benchmark_tabulates_every_method(drive: Path) -> None:
     rows = table[2:]
     assert any("DMLO (wide window)" in row for row in rows)
     assert all(row.startswith("| 2 |") for row in rows)
+
+
+def test_network_benchmark_compares_model_folders_without_writing_beside_them(
+    drive: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    model = default_model_path()
+    copy = shutil.copytree(model, tmp_path / "copy", ignore=shutil.ignore_patterns("training"))
+    before = sorted(p.name for p in model.iterdir())
+    network.main(["--models", str(model), str(copy), "--drive", str(drive), "--repeats", "1", "--profile"])
+    lines = capsys.readouterr().out.splitlines()
+    rows = [line for line in lines if line.startswith((f"| {model} |", f"| {copy} |"))]
+    assert len(rows) == 2
+    # Byte-identical graphs: no flow or confidence difference, so the comparison itself is not broken.
+    assert all(row.endswith("| 0 | 0 | 0 |") for row in rows)
+    assert sum(line.startswith((f"{model}: ", f"{copy}: ")) and "Conv" in line for line in lines) == 2
+    assert sorted(p.name for p in model.iterdir()) == before  # no profiling trace left in the model folder
+    with pytest.raises(SystemExit, match="each folder once"):
+        network.main(["--models", str(model), str(model), "--drive", str(drive)])

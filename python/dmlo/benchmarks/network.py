@@ -49,15 +49,17 @@ def _profile(path: Path, feeds: dict[str, np.ndarray], threads: int, top: int = 
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.enable_profiling = True
-    options.profile_file_prefix = str(path.with_suffix(""))
-    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-    runs = 3
-    for _ in range(runs):
-        session.run(None, feeds)
     totals: collections.Counter[str] = collections.Counter()
-    for event in json.loads(Path(session.end_profiling()).read_text()):
-        if event.get("cat") == "Node" and event["name"].endswith("_kernel_time"):
-            totals[event["args"].get("op_name", "?")] += event["dur"]
+    # The trace goes to a temporary folder, never beside the model (which may be the installed package's).
+    with tempfile.TemporaryDirectory() as folder:
+        options.profile_file_prefix = str(Path(folder) / "profile")
+        session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        runs = 3
+        for _ in range(runs):
+            session.run(None, feeds)
+        for event in json.loads(Path(session.end_profiling()).read_text()):
+            if event.get("cat") == "Node" and event["name"].endswith("_kernel_time"):
+                totals[event["args"].get("op_name", "?")] += event["dur"]
     return [(op, micros / runs / 1000) for op, micros in totals.most_common(top)]
 
 
@@ -128,6 +130,8 @@ def _model_table(args: argparse.Namespace) -> None:
     odometry = Odometry(args.models[0])
     previous, scan = (odometry.project(sequence[args.frame + step].points)[0][None].astype(np.float32) for step in (0, 1))
     names = [str(folder) for folder in args.models]
+    if len(set(names)) != len(names):
+        raise SystemExit("--models: name each folder once (its row would be timed and compared with itself)")
     sessions = {name: _session(folder / f"{args.graph}.onnx", args.threads) for name, folder in zip(names, args.models)}
     feeds = {}
     for name, folder in zip(names, args.models):
@@ -145,6 +149,10 @@ def _model_table(args: argparse.Namespace) -> None:
         flow_change = np.abs(flow - first_flow).max(axis=1)
         print(f"| {name} | {ms:.1f} | {1000 / ms:.1f} | {cpu_ms:.1f} | {flow_change.max():.2g} | "
               f"{int((flow_change > 1e-4).sum())} | {np.abs(confidence - first_confidence).max():.2g} |")
+    if args.profile:
+        for name, folder in zip(names, args.models):
+            ops = ", ".join(f"{op} {ms:.1f}" for op, ms in _profile(folder / f"{args.graph}.onnx", feeds[name], args.threads))
+            print(f"\n{name}: {ops} (ms)")
 
 
 def main(argv: list[str] | None = None) -> None:
