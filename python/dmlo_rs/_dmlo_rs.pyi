@@ -165,10 +165,13 @@ def ransac_rigid(
     max_iterations: int = 1000,
     seed: int = 0,
     *,
-    refine_iterations: int = 3,
+    refine_iterations: int = 10,
     num_threads: int | None = None,
 ) -> RansacResult:
-    """RANSAC (samples of 3) around the rigid solve; deterministic for a seed whatever num_threads."""
+    """RANSAC (samples of 3) around the rigid solve; deterministic for a seed whatever num_threads.
+
+    The answer is a least-squares refit on the inliers, repeated on the refit's inliers until they stop
+    changing (at most `refine_iterations` times; 0: the best minimal-sample hypothesis itself)."""
 
 def nms(
     rows: npt.NDArray[np.integer],

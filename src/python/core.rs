@@ -520,7 +520,7 @@ impl PyRansacResult {
 /// adaptive iterations for `confidence`, deterministic for a `seed` whatever `num_threads`.
 #[pyfunction]
 #[pyo3(signature = (src, dst, threshold = 0.1, confidence = 0.999, max_iterations = 1000, seed = 0, *,
-                    refine_iterations = 3, num_threads = None))]
+                    refine_iterations = 10, num_threads = None))]
 #[allow(clippy::too_many_arguments)]
 fn ransac_rigid(
     py: Python<'_>,
