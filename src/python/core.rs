@@ -212,6 +212,12 @@ fn points_to_numpy<'py>(py: Python<'py>, points: &[Point3<f64>]) -> Bound<'py, P
     Array2::from_shape_fn((points.len(), 3), |(i, j)| points[i][j]).into_pyarray(py)
 }
 
+/// A row-major `height × width` image the crate returned as a flat vector.
+fn image_array<T>(height: usize, width: usize, values: Vec<T>) -> PyResult<Array2<T>> {
+    Array2::from_shape_vec((height, width), values)
+        .map_err(|e| PyRuntimeError::new_err(format!("internal error in dmlo_rs: {e}")))
+}
+
 // ---- CylinderConfig --------------------------------------------------------------------------------
 
 /// Geometry of a cylinder image (angles in degrees); see the Rust docs of `CylinderConfig`.
@@ -402,16 +408,12 @@ fn project(
         projection::project_flat(data_ref, shape[1], &config)
     })?;
     let (h, w) = (image.height, image.width);
-    let to_image = |v: Vec<f32>| {
-        Array2::from_shape_vec((h, w), v).map_err(|e| PyRuntimeError::new_err(e.to_string()))
-    };
     Ok(PyProjection {
-        range: to_image(image.range)?.into_pyarray(py).unbind(),
-        reflectance: to_image(image.reflectance)?.into_pyarray(py).unbind(),
-        index: Array2::from_shape_vec((h, w), image.index)
-            .map_err(|e| PyRuntimeError::new_err(e.to_string()))?
+        range: image_array(h, w, image.range)?.into_pyarray(py).unbind(),
+        reflectance: image_array(h, w, image.reflectance)?
             .into_pyarray(py)
             .unbind(),
+        index: image_array(h, w, image.index)?.into_pyarray(py).unbind(),
         num_non_finite: image.num_non_finite,
         num_out_of_view: image.num_out_of_view,
     })
@@ -466,8 +468,7 @@ fn ground_truth_flow<'py>(
     let (h, w) = (gt.height, gt.width);
     let flow = Array3::from_shape_vec((2, h, w), gt.flow)
         .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
-    let valid = Array2::from_shape_vec((h, w), gt.valid)
-        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+    let valid = image_array(h, w, gt.valid)?;
     Ok((flow.into_pyarray(py), valid.into_pyarray(py)))
 }
 
@@ -739,9 +740,7 @@ fn coherent_confidence<'py>(
     let weighted = run(py, num_threads, || {
         coherence::coherent_confidence(flow, confidence, reference, &cylinder, &settings)
     })?;
-    let weighted = Array2::from_shape_vec((h, w), weighted)
-        .map_err(|e| PyRuntimeError::new_err(format!("internal error in dmlo_rs: {e}")))?;
-    Ok(weighted.into_pyarray(py))
+    Ok(image_array(h, w, weighted)?.into_pyarray(py))
 }
 
 pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
