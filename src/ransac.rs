@@ -498,7 +498,10 @@ mod tests {
             let gap = (refit.to_homogeneous() - result.transform.to_homogeneous())
                 .abs()
                 .max();
-            assert!(gap < 1e-9, "seed {seed}: the answer is {gap} from the fit of its inliers");
+            assert!(
+                gap < 1e-9,
+                "seed {seed}: the answer is {gap} from the fit of its inliers"
+            );
         }
     }
 

@@ -17,9 +17,9 @@ class MatchingConfig:
     max_matches: int = 1000  # top N kept after NMS
     # Beyond the paper: also match the new scan back against the previous one (`match.onnx` on both
     # scans' cached features) and take the midpoint of the two motions. The network errs differently in
-    # the two directions, so part of its error cancels; it costs one more matching pass (~45–55 ms at
-    # 64×1792 on 2 cores with a 5-cell refine window, more with the bundled 7): about half the frame rate
-    # on the 300-frame drives of the README (5.5–7.0 instead of 11.9–12.3 Hz there).
+    # the two directions, so part of its error cancels; it costs one more matching pass and a second
+    # coherence pass: about half the frame rate on the 300-frame drives of the README (7.1–7.8 instead of
+    # 11.3–15.8 Hz there).
     symmetric: bool = False
     # With `symmetric`: a cell whose match, followed back by the other direction's flow, lands more than
     # this many pixels from where it started is left out (optical flow's forward–backward check); None: keep all.
