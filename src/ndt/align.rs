@@ -26,7 +26,7 @@ use nalgebra::{
 
 use super::map::NdtMap;
 use super::score::{
-    apply_increment, evaluate, Evaluation, NeighbourSearch, ScoreConstants, ScoreContext,
+    apply_increment, Evaluation, NeighbourSearch, ScoreConstants, ScoreContext, Scorer,
 };
 use super::voxel::voxel_downsample;
 use crate::{Error, Result};
@@ -254,7 +254,8 @@ impl NdtMap {
             constants: ScoreConstants::new(config.outlier_ratio, voxel_size),
         };
         let mut pose = *initial;
-        let mut current = evaluate(&context, &source, &pose);
+        let mut scorer = Scorer::new(&context, &source);
+        let mut current = scorer.evaluate(&pose);
         if current.num_correspondences < config.min_correspondences {
             return Err(Error::TooFewPoints {
                 needed: config.min_correspondences,
@@ -282,12 +283,12 @@ impl NdtMap {
             if is_small(&direction, config.translation_epsilon, rotation_epsilon) {
                 // Below the tolerances the cost change is lost in round-off: take the step unchecked.
                 pose = apply_increment(&pose, &direction);
-                current = evaluate(&context, &source, &pose);
+                current = scorer.evaluate(&pose);
                 converged = true;
                 break;
             }
             let Some((next_pose, next, step)) =
-                line_search(&context, &source, &pose, &current, &direction)
+                line_search(&mut scorer, &pose, &current, &direction)
             else {
                 break;
             };
@@ -483,8 +484,7 @@ fn positive_definite_solve(
 /// Backtracks along `direction` until the cost drops enough (Armijo). Returns the new pose, its
 /// evaluation and the step taken; `None` when no tried step decreases the cost.
 fn line_search(
-    context: &ScoreContext<'_>,
-    source: &[Point3<f64>],
+    scorer: &mut Scorer<'_>,
     pose: &Isometry3<f64>,
     current: &Evaluation,
     direction: &Vector6<f64>,
@@ -494,7 +494,7 @@ fn line_search(
     for _ in 0..=MAX_LINE_SEARCH_HALVINGS {
         let step = direction * length;
         let candidate = apply_increment(pose, &step);
-        let evaluation = evaluate(context, source, &candidate);
+        let evaluation = scorer.evaluate(&candidate);
         if evaluation.cost <= current.cost + ARMIJO * length * slope {
             return Some((candidate, evaluation, step));
         }

@@ -11,7 +11,7 @@ use std::collections::VecDeque;
 use nalgebra::{Isometry3, Point3};
 use rayon::prelude::*;
 
-use super::voxel::{voxel_statistics, Gaussian, VoxelKey, VoxelMap, VoxelStats};
+use super::voxel::{voxel_statistics, Distributions, Gaussian, VoxelKey, VoxelMap, VoxelStats};
 use crate::{Error, Result};
 
 /// Settings of an [`NdtMap`].
@@ -75,7 +75,7 @@ pub struct NdtMap {
     config: NdtMapConfig,
     /// Statistics of every occupied voxel over the window.
     voxels: VoxelMap<VoxelStats>,
-    gaussians: VoxelMap<Gaussian>,
+    gaussians: Distributions,
     /// Per-scan statistics of the window, oldest first, each in order of first appearance.
     scans: VecDeque<Vec<(VoxelKey, VoxelStats)>>,
 }
@@ -87,7 +87,7 @@ impl NdtMap {
         Ok(NdtMap {
             config,
             voxels: VoxelMap::default(),
-            gaussians: VoxelMap::default(),
+            gaussians: Distributions::default(),
             scans: VecDeque::new(),
         })
     }
@@ -118,7 +118,7 @@ impl NdtMap {
     }
 
     /// The distributions, keyed by voxel.
-    pub fn gaussians(&self) -> &VoxelMap<Gaussian> {
+    pub fn gaussians(&self) -> &Distributions {
         &self.gaussians
     }
 
@@ -262,8 +262,8 @@ mod tests {
         rebuilt.insert(&block(5.0, 20)).unwrap();
         assert_eq!(sliding.num_voxels(), rebuilt.num_voxels());
         assert_eq!(sliding.num_occupied_voxels(), rebuilt.num_occupied_voxels());
-        for (key, gaussian) in rebuilt.gaussians() {
-            let other = sliding.gaussians()[key];
+        for (key, gaussian) in rebuilt.gaussians().iter() {
+            let other = sliding.gaussians().get(key).unwrap();
             assert!((other.mean - gaussian.mean).norm() < 1e-9);
             assert!((other.inverse_covariance - gaussian.inverse_covariance).norm() < 1e-6);
         }

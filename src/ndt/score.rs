@@ -12,10 +12,10 @@
 //! `∂x/∂v = I`, `∂x/∂ω = −[y]×` and `∂²x/∂ωᵢ∂ωⱼ = ½(eᵢyⱼ + eⱼyᵢ) − y·δᵢⱼ` (the Hessian is exact for this
 //! chart; Magnusson's Euler-angle derivatives are replaced by the second-order term of the exponential).
 
-use nalgebra::{Isometry3, Matrix3, Matrix3x6, Matrix6, Point3, Vector3, Vector6};
+use nalgebra::{Isometry3, Matrix3, Matrix6, Point3, Vector3, Vector6};
 use rayon::prelude::*;
 
-use super::voxel::{Gaussian, VoxelKey, VoxelMap};
+use super::voxel::{Distributions, VoxelKey};
 
 /// Points per chunk of the parallel reduction. Fixed, so the summation order (and with it every bit of
 /// the result) does not depend on the number of threads.
@@ -130,7 +130,7 @@ impl Evaluation {
 
 /// What [`evaluate`] reads: the map's distributions and how to look them up.
 pub struct ScoreContext<'a> {
-    pub gaussians: &'a VoxelMap<Gaussian>,
+    pub gaussians: &'a Distributions,
     pub voxel_size: f64,
     pub neighbours: NeighbourSearch,
     pub constants: ScoreConstants,
@@ -143,49 +143,119 @@ pub fn evaluate(
     source: &[Point3<f64>],
     pose: &Isometry3<f64>,
 ) -> Evaluation {
-    let partial: Vec<Evaluation> = source
-        .par_chunks(CHUNK)
-        .map(|chunk| evaluate_chunk(context, chunk, pose))
-        .collect();
-    let mut total = Evaluation::zero();
-    for part in &partial {
-        total.add(part);
+    Scorer::new(context, source).evaluate(pose)
+}
+
+/// Repeated evaluations of one source against one map, as Newton's method and its line search make them.
+/// Each point remembers the voxel it fell in last time and the distributions around it: between nearby
+/// poses most points stay in their voxel and skip the 7 (or 27) hash lookups, which were most of an
+/// evaluation's time. The results are those of [`evaluate`], bit for bit.
+pub struct Scorer<'a> {
+    context: &'a ScoreContext<'a>,
+    source: &'a [Point3<f64>],
+    /// Per point: the voxel it was last found in (`None`: not yet, or outside the key range) …
+    keys: Vec<Option<VoxelKey>>,
+    /// … how many of that voxel's neighbourhood hold a distribution …
+    counts: Vec<u8>,
+    /// … and their slots in the map, `neighbours.offsets().len()` per point, in offset order.
+    slots: Vec<u32>,
+}
+
+impl<'a> Scorer<'a> {
+    pub fn new(context: &'a ScoreContext<'a>, source: &'a [Point3<f64>]) -> Self {
+        let stride = context.neighbours.offsets().len();
+        Scorer {
+            context,
+            source,
+            keys: vec![None; source.len()],
+            counts: vec![0; source.len()],
+            slots: vec![0; source.len() * stride],
+        }
     }
-    total
+
+    /// The cost and its derivatives with the source placed by `pose`.
+    pub fn evaluate(&mut self, pose: &Isometry3<f64>) -> Evaluation {
+        let context = self.context;
+        let stride = context.neighbours.offsets().len();
+        let partial: Vec<Evaluation> = self
+            .source
+            .par_chunks(CHUNK)
+            .zip(self.keys.par_chunks_mut(CHUNK))
+            .zip(self.counts.par_chunks_mut(CHUNK))
+            .zip(self.slots.par_chunks_mut(CHUNK * stride))
+            .map(|(((points, keys), counts), slots)| {
+                let mut cache = NeighbourCache {
+                    keys,
+                    counts,
+                    slots,
+                    stride,
+                };
+                evaluate_chunk(context, points, pose, &mut cache)
+            })
+            .collect();
+        let mut total = Evaluation::zero();
+        for part in &partial {
+            total.add(part);
+        }
+        total
+    }
+}
+
+/// One chunk's share of a [`Scorer`]'s memory.
+struct NeighbourCache<'c> {
+    keys: &'c mut [Option<VoxelKey>],
+    counts: &'c mut [u8],
+    slots: &'c mut [u32],
+    stride: usize,
+}
+
+impl NeighbourCache<'_> {
+    /// The map slots of the distributions around voxel `key`, for point `index` of the chunk.
+    fn neighbours(&mut self, index: usize, key: VoxelKey, context: &ScoreContext<'_>) -> &[u32] {
+        let slots = &mut self.slots[index * self.stride..(index + 1) * self.stride];
+        if self.keys[index] != Some(key) {
+            let mut count = 0;
+            for offset in context.neighbours.offsets() {
+                if let Some(slot) = context.gaussians.slot(&key.offset(*offset)) {
+                    slots[count] = slot;
+                    count += 1;
+                }
+            }
+            self.keys[index] = Some(key);
+            self.counts[index] = count as u8;
+        }
+        &slots[..usize::from(self.counts[index])]
+    }
 }
 
 fn evaluate_chunk(
     context: &ScoreContext<'_>,
     chunk: &[Point3<f64>],
     pose: &Isometry3<f64>,
+    cache: &mut NeighbourCache<'_>,
 ) -> Evaluation {
     let ScoreConstants { d1, d2 } = context.constants;
     let inverse_voxel_size = 1.0 / context.voxel_size;
     let rotation = pose.rotation.to_rotation_matrix();
     let translation = pose.translation.vector;
     let mut sum = Evaluation::zero();
-    for point in chunk {
-        let rotated = rotation * point.coords;
-        let placed = Point3::from(rotated + translation);
+    // The Hessian is assembled once per chunk from three sums, Σw·JᵀΣ⁻¹J − d2·Σw·ggᵀ + Σw·(rotation
+    // curvature), instead of building a 6×6 matrix for every point–distribution pair.
+    let mut outer_gradients = Matrix6::zeros();
+    let mut curvature = Matrix3::zeros();
+    for (index, point) in chunk.iter().enumerate() {
+        let y = rotation * point.coords;
+        let placed = Point3::from(y + translation);
         let Some(key) = VoxelKey::containing(&placed, inverse_voxel_size) else {
             continue;
         };
-        // ∂x/∂δ = [I | −[y]×]
-        let mut jacobian = Matrix3x6::zeros();
-        jacobian
-            .fixed_view_mut::<3, 3>(0, 0)
-            .copy_from(&Matrix3::identity());
-        jacobian
-            .fixed_view_mut::<3, 3>(0, 3)
-            .copy_from(&-rotated.cross_matrix());
-        let mut found = false;
-        for offset in context.neighbours.offsets() {
-            let Some(gaussian) = context.gaussians.get(&key.offset(*offset)) else {
-                continue;
-            };
-            found = true;
+        let slots = cache.neighbours(index, key, context);
+        let found = !slots.is_empty();
+        for &slot in slots {
+            let gaussian = context.gaussians.by_slot(slot);
             let q = placed - gaussian.mean;
-            let a = gaussian.inverse_covariance * q;
+            let inverse_covariance = &gaussian.inverse_covariance;
+            let a = inverse_covariance * q;
             let exponent = 0.5 * d2 * q.dot(&a);
             if exponent > NEGLIGIBLE_EXPONENT {
                 continue;
@@ -193,24 +263,57 @@ fn evaluate_chunk(
             let e = (-exponent).exp();
             sum.cost += d1 * e;
             sum.likelihood += e;
-            // ∂cost/∂δ = −d1·d2·e·g with g = Jᵀ Σ⁻¹ q
+            // With J = ∂x/∂δ = [I | −[y]×]: g = JᵀΣ⁻¹q = (a, y × a), and ∂cost/∂δ = −d1·d2·e·g.
             let weight = -d1 * d2 * e;
-            let g = jacobian.transpose() * a;
+            let rotation_gradient = y.cross(&a);
+            let g = Vector6::new(
+                a.x,
+                a.y,
+                a.z,
+                rotation_gradient.x,
+                rotation_gradient.y,
+                rotation_gradient.z,
+            );
             sum.gradient += g * weight;
-            let first_order = jacobian.transpose() * (gaussian.inverse_covariance * jacobian);
-            sum.hessian_psd += first_order * weight;
-            let mut hessian = first_order - g * g.transpose() * d2;
+            // JᵀΣ⁻¹J by blocks: Σ⁻¹ (translation), Σ⁻¹·(−[y]×) (coupling, whose row i is (y × sᵢ)ᵀ for the
+            // rows sᵢ of the symmetric Σ⁻¹) and [y]×·Σ⁻¹·(−[y]×) (rotation, column j = y × coupling column j).
+            let coupling = Matrix3::from_rows(&[
+                y.cross(&inverse_covariance.column(0).into_owned())
+                    .transpose(),
+                y.cross(&inverse_covariance.column(1).into_owned())
+                    .transpose(),
+                y.cross(&inverse_covariance.column(2).into_owned())
+                    .transpose(),
+            ]);
+            let rotation_block = Matrix3::from_columns(&[
+                y.cross(&coupling.column(0).into_owned()),
+                y.cross(&coupling.column(1).into_owned()),
+                y.cross(&coupling.column(2).into_owned()),
+            ]);
+            let mut first_order = sum.hessian_psd.fixed_view_mut::<3, 3>(0, 0);
+            first_order += inverse_covariance * weight;
+            let mut first_order = sum.hessian_psd.fixed_view_mut::<3, 3>(0, 3);
+            first_order += coupling * weight;
+            let mut first_order = sum.hessian_psd.fixed_view_mut::<3, 3>(3, 3);
+            first_order += rotation_block * weight;
+            outer_gradients += g * g.transpose() * (weight * d2);
             // qᵀΣ⁻¹ ∂²x/∂ωᵢ∂ωⱼ = ½(aᵢyⱼ + aⱼyᵢ) − (a·y)δᵢⱼ
-            let second_order = (a * rotated.transpose() + rotated * a.transpose()) * 0.5
-                - Matrix3::identity() * a.dot(&rotated);
-            let mut block = hessian.fixed_view_mut::<3, 3>(3, 3);
-            block += second_order;
-            sum.hessian += hessian * weight;
+            curvature += ((a * y.transpose() + y * a.transpose()) * 0.5
+                - Matrix3::identity() * a.dot(&y))
+                * weight;
         }
         if found {
             sum.num_correspondences += 1;
         }
     }
+    // The lower-left coupling block is the transpose of the upper-right one.
+    let upper_right = sum.hessian_psd.fixed_view::<3, 3>(0, 3).transpose();
+    sum.hessian_psd
+        .fixed_view_mut::<3, 3>(3, 0)
+        .copy_from(&upper_right);
+    sum.hessian = sum.hessian_psd - outer_gradients;
+    let mut rotation_block = sum.hessian.fixed_view_mut::<3, 3>(3, 3);
+    rotation_block += curvature;
     sum
 }
 
@@ -227,7 +330,7 @@ mod tests {
     use super::*;
     use crate::ndt::voxel::voxel_statistics;
 
-    fn small_map() -> (VoxelMap<Gaussian>, Vec<Point3<f64>>) {
+    fn small_map() -> (Distributions, Vec<Point3<f64>>) {
         // Three tilted planes crossing a few voxels, sampled on a jittered grid.
         let mut points = Vec::new();
         for i in 0..40 {
@@ -240,7 +343,7 @@ mod tests {
             }
         }
         let (order, stats) = voxel_statistics(&points, 1.0);
-        let mut gaussians = VoxelMap::default();
+        let mut gaussians = Distributions::default();
         for key in order {
             if let Some(g) = stats[&key].gaussian(&key.corner(1.0), 5, 0.01) {
                 gaussians.insert(key, g);
@@ -264,6 +367,45 @@ mod tests {
         offsets.sort();
         offsets.dedup();
         assert_eq!(offsets.len(), 27);
+    }
+
+    #[test]
+    fn a_scorer_remembering_neighbours_gives_the_uncached_evaluation_bit_for_bit() {
+        let (gaussians, source) = small_map();
+        for neighbours in [
+            NeighbourSearch::Containing,
+            NeighbourSearch::Direct7,
+            NeighbourSearch::Direct27,
+        ] {
+            let context = ScoreContext {
+                gaussians: &gaussians,
+                voxel_size: 1.0,
+                neighbours,
+                constants: ScoreConstants::new(0.55, 1.0),
+            };
+            let mut scorer = Scorer::new(&context, &source);
+            // Small steps keep most points in their voxel (cache hits), the large ones move many (misses),
+            // and the return to a pose seen before re-uses entries written at other poses.
+            let poses = [
+                (0.0, 0.0),
+                (0.01, 0.001),
+                (0.02, 0.002),
+                (0.6, 0.05),
+                (0.61, 0.05),
+                (0.0, 0.0),
+            ];
+            let mut hits = 0;
+            for (shift, turn) in poses {
+                let pose = Isometry3::new(
+                    Vector3::new(shift, -0.5 * shift, 0.2 * shift),
+                    Vector3::new(0.3 * turn, -0.2 * turn, turn),
+                );
+                let cached = scorer.evaluate(&pose);
+                assert_eq!(cached, evaluate(&context, &source, &pose), "{neighbours:?}");
+                hits += cached.num_correspondences;
+            }
+            assert!(hits > 0);
+        }
     }
 
     #[test]

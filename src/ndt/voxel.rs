@@ -2,16 +2,18 @@
 //! Voxels of the NDT map: integer keys, per-voxel point statistics and the normal distribution fitted to
 //! them (Magnusson 2009, §6.1), and the voxel-grid filter used to thin the source scan.
 
+use std::collections::hash_map::Entry;
 use std::collections::HashMap;
-use std::hash::{BuildHasherDefault, Hasher};
+use std::hash::{BuildHasherDefault, Hash, Hasher};
 
 use nalgebra::{Matrix3, Point3, SymmetricEigen, Vector3};
+use rayon::prelude::*;
 
 /// Keys beyond this magnitude are refused so that `floor(x / voxel_size)` always fits an `i32`.
 const MAX_KEY: f64 = (1u32 << 30) as f64;
 
 /// Integer coordinates of a voxel: the voxel `[k·s, (k+1)·s)` along each axis for voxel size `s`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub struct VoxelKey(pub [i32; 3]);
 
 impl VoxelKey {
@@ -42,24 +44,37 @@ impl VoxelKey {
     }
 }
 
-/// A small fixed hasher for voxel keys (FxHash's multiply-rotate). The std SipHash is several times slower
-/// on three `i32`s, and no result depends on the iteration order of the maps, so a fixed seed is fine.
+impl Hash for VoxelKey {
+    /// Two words instead of the derived slice hash (a length and 12 single bytes, each a round of the
+    /// hasher below): hashing was most of the voxel-grid filter's time.
+    fn hash<H: Hasher>(&self, state: &mut H) {
+        let [x, y, z] = self.0;
+        state.write_u64((u64::from(x as u32) << 32) | u64::from(y as u32));
+        state.write_u64(u64::from(z as u32));
+    }
+}
+
+/// A small fixed hasher for voxel keys (FxHash's multiply-rotate per word, then MurmurHash3's 64-bit
+/// finaliser so that every key bit reaches the low bits the table indexes by). The std SipHash is several
+/// times slower on three `i32`s, and no result depends on the iteration order of the maps, so a fixed
+/// seed is fine.
 #[derive(Default, Clone, Copy)]
 pub struct VoxelHasher(u64);
 
 impl Hasher for VoxelHasher {
     fn finish(&self) -> u64 {
-        self.0
+        let mut h = self.0;
+        h ^= h >> 33;
+        h = h.wrapping_mul(0xff51_afd7_ed55_8ccd);
+        h ^= h >> 33;
+        h = h.wrapping_mul(0xc4ce_b9fe_1a85_ec53);
+        h ^ (h >> 33)
     }
 
     fn write(&mut self, bytes: &[u8]) {
         for &byte in bytes {
             self.write_u64(u64::from(byte));
         }
-    }
-
-    fn write_i32(&mut self, value: i32) {
-        self.write_u64(value as u32 as u64);
     }
 
     fn write_u64(&mut self, value: u64) {
@@ -155,43 +170,200 @@ pub struct Gaussian {
     pub inverse_covariance: Matrix3<f64>,
 }
 
-/// Per-voxel statistics of a set of points, plus the voxel keys in order of first appearance so that
-/// anything iterating over the result is deterministic.
-pub fn voxel_statistics(
-    points: &[Point3<f64>],
-    voxel_size: f64,
-) -> (Vec<VoxelKey>, VoxelMap<VoxelStats>) {
+/// The map's distributions: a key → slot table over a dense array, so that the score can remember where a
+/// point's neighbours are as four-byte slots.
+#[derive(Clone, Debug, Default)]
+pub struct Distributions {
+    slots: VoxelMap<u32>,
+    keys: Vec<VoxelKey>,
+    gaussians: Vec<Gaussian>,
+}
+
+impl Distributions {
+    /// The distribution of voxel `key`, if it has one.
+    pub fn get(&self, key: &VoxelKey) -> Option<&Gaussian> {
+        self.slot(key).map(|slot| self.by_slot(slot))
+    }
+
+    /// Where the distribution of `key` is stored, if it has one; valid until the next change.
+    pub fn slot(&self, key: &VoxelKey) -> Option<u32> {
+        self.slots.get(key).copied()
+    }
+
+    /// The distribution stored at `slot` (from [`slot`](Self::slot)).
+    pub fn by_slot(&self, slot: u32) -> &Gaussian {
+        &self.gaussians[slot as usize]
+    }
+
+    /// Sets (or replaces) the distribution of `key`.
+    pub fn insert(&mut self, key: VoxelKey, gaussian: Gaussian) {
+        match self.slots.entry(key) {
+            Entry::Occupied(entry) => self.gaussians[*entry.get() as usize] = gaussian,
+            Entry::Vacant(entry) => {
+                let slot = u32::try_from(self.gaussians.len())
+                    .expect("fewer than 2³² distributions (a voxel key holds 30 bits per axis)");
+                entry.insert(slot);
+                self.keys.push(key);
+                self.gaussians.push(gaussian);
+            }
+        }
+    }
+
+    /// Removes the distribution of `key` (the last one moves into its slot).
+    pub fn remove(&mut self, key: &VoxelKey) {
+        let Some(slot) = self.slots.remove(key) else {
+            return;
+        };
+        let slot = slot as usize;
+        self.keys.swap_remove(slot);
+        self.gaussians.swap_remove(slot);
+        if let Some(moved) = self.keys.get(slot) {
+            self.slots.insert(*moved, slot as u32);
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.gaussians.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.gaussians.is_empty()
+    }
+
+    pub fn clear(&mut self) {
+        self.slots.clear();
+        self.keys.clear();
+        self.gaussians.clear();
+    }
+
+    /// Every voxel with its distribution, in no particular order.
+    pub fn iter(&self) -> impl Iterator<Item = (&VoxelKey, &Gaussian)> {
+        self.keys.iter().zip(&self.gaussians)
+    }
+}
+
+impl PartialEq for Distributions {
+    /// The same voxels with the same distributions, whatever the order they were inserted in.
+    fn eq(&self, other: &Self) -> bool {
+        self.len() == other.len()
+            && self
+                .iter()
+                .all(|(key, gaussian)| other.get(key) == Some(gaussian))
+    }
+}
+
+/// Points per chunk of the parallel accumulation below. Fixed, so the grouping of the sums (and with it
+/// every bit of the result) does not depend on the number of threads.
+const ACCUMULATION_CHUNK: usize = 16_384;
+
+/// What a voxel accumulates of its points (given relative to the voxel's corner).
+trait Accumulator: Default + Send {
+    fn add_local(&mut self, local: &Vector3<f64>);
+    fn merge(&mut self, other: &Self);
+}
+
+impl Accumulator for VoxelStats {
+    fn add_local(&mut self, local: &Vector3<f64>) {
+        VoxelStats::add_local(self, local);
+    }
+
+    fn merge(&mut self, other: &Self) {
+        VoxelStats::merge(self, other);
+    }
+}
+
+/// Count and sum only: all the voxel-grid filter needs (the outer products would double its cost).
+#[derive(Default)]
+struct Centroid {
+    count: u64,
+    sum: Vector3<f64>,
+}
+
+impl Accumulator for Centroid {
+    fn add_local(&mut self, local: &Vector3<f64>) {
+        self.count += 1;
+        self.sum += local;
+    }
+
+    fn merge(&mut self, other: &Self) {
+        self.count += other.count;
+        self.sum += other.sum;
+    }
+}
+
+/// Keys in order of first appearance, and what each voxel accumulated.
+type Accumulated<A> = (Vec<VoxelKey>, VoxelMap<A>);
+
+fn accumulate_chunk<A: Accumulator>(points: &[Point3<f64>], voxel_size: f64) -> Accumulated<A> {
     let inverse = 1.0 / voxel_size;
     let mut order = Vec::new();
-    let mut stats: VoxelMap<VoxelStats> = VoxelMap::default();
+    let mut voxels: VoxelMap<A> = VoxelMap::default();
     for point in points {
         let Some(key) = VoxelKey::containing(point, inverse) else {
             continue;
         };
         let local = point.coords - key.corner(voxel_size);
-        stats
+        voxels
             .entry(key)
             .or_insert_with(|| {
                 order.push(key);
-                VoxelStats::default()
+                A::default()
             })
             .add_local(&local);
     }
-    (order, stats)
+    (order, voxels)
+}
+
+/// Chunks accumulated in parallel, then merged in chunk order: the keys keep the order in which a single
+/// pass would first have met them, whatever the number of threads.
+fn accumulate<A: Accumulator>(points: &[Point3<f64>], voxel_size: f64) -> Accumulated<A> {
+    let mut chunks = points
+        .par_chunks(ACCUMULATION_CHUNK)
+        .map(|chunk| accumulate_chunk::<A>(chunk, voxel_size))
+        .collect::<Vec<_>>()
+        .into_iter();
+    let Some((mut order, mut voxels)) = chunks.next() else {
+        return (Vec::new(), VoxelMap::default());
+    };
+    for (chunk_order, mut chunk_voxels) in chunks {
+        for key in chunk_order {
+            let Some(accumulated) = chunk_voxels.remove(&key) else {
+                continue;
+            };
+            match voxels.entry(key) {
+                Entry::Occupied(mut entry) => entry.get_mut().merge(&accumulated),
+                Entry::Vacant(entry) => {
+                    order.push(key);
+                    entry.insert(accumulated);
+                }
+            }
+        }
+    }
+    (order, voxels)
+}
+
+/// Per-voxel statistics of a set of points, plus the voxel keys in order of first appearance so that
+/// anything iterating over the result is deterministic. Parallel over chunks of points; the result does
+/// not depend on the number of threads.
+pub fn voxel_statistics(
+    points: &[Point3<f64>],
+    voxel_size: f64,
+) -> (Vec<VoxelKey>, VoxelMap<VoxelStats>) {
+    accumulate(points, voxel_size)
 }
 
 /// Voxel-grid filter: the centroid of the points in each occupied voxel, in order of first appearance.
-/// A `voxel_size` of zero returns the points unchanged.
+/// A `voxel_size` of zero returns the points unchanged. Parallel like [`voxel_statistics`].
 pub fn voxel_downsample(points: &[Point3<f64>], voxel_size: f64) -> Vec<Point3<f64>> {
     if voxel_size <= 0.0 {
         return points.to_vec();
     }
-    let (order, stats) = voxel_statistics(points, voxel_size);
+    let (order, centroids) = accumulate::<Centroid>(points, voxel_size);
     order
         .iter()
         .map(|key| {
-            let voxel = &stats[key];
-            Point3::from(key.corner(voxel_size) + voxel.sum / voxel.count as f64)
+            let centroid = &centroids[key];
+            Point3::from(key.corner(voxel_size) + centroid.sum / centroid.count as f64)
         })
         .collect()
 }
@@ -272,6 +444,77 @@ mod tests {
         total.unmerge(&a);
         assert_eq!(total.count, 1);
         assert!((total.sum - b.sum).norm() < 1e-15);
+    }
+
+    fn distribution(value: f64) -> Gaussian {
+        Gaussian {
+            mean: Point3::new(value, 0.0, 0.0),
+            inverse_covariance: Matrix3::identity() * value,
+        }
+    }
+
+    #[test]
+    fn distributions_keep_every_key_right_through_replacements_and_removals() {
+        let key = |i: i32| VoxelKey([i, -i, 2 * i]);
+        let mut forwards = Distributions::default();
+        for i in 0..6 {
+            forwards.insert(key(i), distribution(f64::from(i)));
+        }
+        forwards.insert(key(2), distribution(20.0));
+        // Removing the first, a middle and the last slot moves others into the holes.
+        for i in [0, 3, 5, 9] {
+            forwards.remove(&key(i));
+        }
+        assert_eq!(forwards.len(), 3);
+        for (i, expected) in [
+            (1, Some(1.0)),
+            (2, Some(20.0)),
+            (4, Some(4.0)),
+            (0, None),
+            (3, None),
+            (5, None),
+        ] {
+            assert_eq!(forwards.get(&key(i)).map(|g| g.mean.x), expected, "key {i}");
+        }
+        let mut backwards = Distributions::default();
+        for (i, value) in [(4, 4.0), (2, 20.0), (1, 1.0)] {
+            backwards.insert(key(i), distribution(value));
+        }
+        assert_eq!(forwards, backwards, "equality ignores the insertion order");
+        backwards.insert(key(4), distribution(5.0));
+        assert_ne!(forwards, backwards);
+        backwards.clear();
+        assert!(backwards.is_empty() && backwards.get(&key(1)).is_none());
+    }
+
+    #[test]
+    fn statistics_in_parallel_chunks_match_one_sequential_pass() {
+        // More points than one chunk, in an order that revisits voxels across chunk boundaries.
+        let points: Vec<Point3<f64>> = (0..3 * ACCUMULATION_CHUNK + 17)
+            .map(|i| {
+                let t = i as f64;
+                Point3::new(
+                    (t * 0.731) % 9.0 - 4.5,
+                    (t * 0.377) % 7.0,
+                    (t * 0.193) % 3.0 - 40.0,
+                )
+            })
+            .collect();
+        let (order, stats) = voxel_statistics(&points, 0.8);
+        let (sequential_order, sequential) = accumulate_chunk::<VoxelStats>(&points, 0.8);
+        assert_eq!(order, sequential_order, "first-seen order");
+        for key in &order {
+            let (a, b) = (&stats[key], &sequential[key]);
+            assert_eq!(a.count, b.count);
+            assert!((a.sum - b.sum).norm() < 1e-9 && (a.sum_outer - b.sum_outer).norm() < 1e-9);
+        }
+        let thinned = voxel_downsample(&points, 0.8);
+        assert_eq!(thinned.len(), order.len());
+        for (point, key) in thinned.iter().zip(&order) {
+            let voxel = &sequential[key];
+            let centroid = key.corner(0.8) + voxel.sum / voxel.count as f64;
+            assert!((point.coords - centroid).norm() < 1e-12);
+        }
     }
 
     #[test]

@@ -5,7 +5,7 @@
 //! rebuilt after `fork()`; crate errors become `ValueError`, panics `RuntimeError`.
 
 use nalgebra::{Matrix4, Point3};
-use numpy::ndarray::Array2;
+use numpy::ndarray::{Array2, ArrayView2};
 use numpy::{
     IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2, PyUntypedArray, PyUntypedArrayMethods,
 };
@@ -51,9 +51,24 @@ fn read_rows(value: &Bound<'_, PyAny>, argument: &str) -> PyResult<Array2<f64>> 
     )))
 }
 
-/// An `N×3` or `N×4` array as points (the 4th column, reflectance, is ignored).
+/// An `N×3` or `N×4` array as points (the 4th column, reflectance, is ignored), read in one pass.
 fn read_points(value: &Bound<'_, PyAny>, argument: &str) -> PyResult<Vec<Point3<f64>>> {
-    let rows = read_rows(value, argument)?;
+    if let Ok(array) = value.extract::<PyReadonlyArray2<'_, f64>>() {
+        return points_from_rows(array.as_array(), argument);
+    }
+    if let Ok(array) = value.extract::<PyReadonlyArray2<'_, f32>>() {
+        return points_from_rows(array.as_array(), argument);
+    }
+    Err(PyTypeError::new_err(format!(
+        "{argument}: expected a 2-D float32 or float64 numpy array, got {}",
+        describe(value)
+    )))
+}
+
+fn points_from_rows<T: Copy + Into<f64>>(
+    rows: ArrayView2<'_, T>,
+    argument: &str,
+) -> PyResult<Vec<Point3<f64>>> {
     let (count, columns) = rows.dim();
     if columns != 3 && columns != 4 {
         return Err(PyValueError::new_err(format!(
@@ -62,7 +77,7 @@ fn read_points(value: &Bound<'_, PyAny>, argument: &str) -> PyResult<Vec<Point3<
     }
     Ok(rows
         .outer_iter()
-        .map(|row| Point3::new(row[0], row[1], row[2]))
+        .map(|row| Point3::new(row[0].into(), row[1].into(), row[2].into()))
         .collect())
 }
 
