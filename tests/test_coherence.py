@@ -87,8 +87,11 @@ def test_bad_input_names_the_argument() -> None:
         dmlo_rs.coherent_confidence(flow.astype(np.int32), confidence, ref_range, config)
     with pytest.raises(ValueError, match="scale_px"):
         dmlo_rs.coherent_confidence(flow, confidence, ref_range, config, scale_px=0.0)
+    largest = dmlo_rs.MAX_COHERENCE_RADIUS
+    assert largest == 15
+    dmlo_rs.coherent_confidence(flow, confidence, ref_range, config, radius=largest)
     with pytest.raises(ValueError, match="radius"):
-        dmlo_rs.coherent_confidence(flow, confidence, ref_range, config, radius=16)
+        dmlo_rs.coherent_confidence(flow, confidence, ref_range, config, radius=largest + 1)
 
 
 @pytest.fixture(scope="module")

@@ -28,7 +28,11 @@ __all__ += [
     "nms",
     "decode_matches",
     "coherent_confidence",
+    "MAX_COHERENCE_RADIUS",
 ]
+
+MAX_COHERENCE_RADIUS: int
+"""The largest `radius` coherent_confidence accepts (its median windows live on the stack)."""
 
 @final
 class CylinderConfig:
@@ -216,7 +220,7 @@ def coherent_confidence(
     """confidence[H, W] × exp(−d / scale_px), d the pixel distance of a cell's flow from the separable median
     flow of the (2·radius+1)² cells around it (per component: medians down the window's columns over cells
     with a range, then their median across; a 360° image's columns wrap); 0 without a range or finite
-    flow; radius ≤ 15. Beyond the paper: lowers matches that disagree with their neighbours."""
+    flow; radius ≤ MAX_COHERENCE_RADIUS (15). Beyond the paper: lowers matches that disagree with their neighbours."""
 
 
 

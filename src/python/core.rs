@@ -714,7 +714,8 @@ fn decode_matches(
 /// `exp(−d / scale_px)`, `d` the pixel distance of its flow from the separable median flow of the
 /// `(2·radius+1)²` cells around it (per component, the median down each window column over the cells with
 /// a range in `ref_range`, then the median of those across the columns; they wrap on a 360° image).
-/// Cells without a range or with a non-finite flow get 0; `radius` ≤ 15. → float32 `[H, W]`.
+/// Cells without a range or with a non-finite flow get 0; `radius` ≤ `MAX_COHERENCE_RADIUS` (15).
+/// → float32 `[H, W]`.
 #[pyfunction]
 #[pyo3(signature = (flow, confidence, ref_range, config, *, radius = 2, scale_px = 0.5, num_threads = None))]
 #[allow(clippy::too_many_arguments)]
@@ -756,5 +757,6 @@ pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(non_maximum_suppression, m)?)?;
     m.add_function(wrap_pyfunction!(decode_matches, m)?)?;
     m.add_function(wrap_pyfunction!(coherent_confidence, m)?)?;
+    m.add("MAX_COHERENCE_RADIUS", coherence::MAX_RADIUS)?;
     Ok(())
 }

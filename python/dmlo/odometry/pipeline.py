@@ -531,9 +531,10 @@ def _check_limits(config: OdometryConfig) -> None:
             positive = (section, name) in _POSITIVE_LIMITS
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value > 0 if positive else value >= 0):
                 raise ValueError(f"{section}.{name}: must be a number {'>' if positive else '>='} 0, got {value!r}")
-    radius = config.matching.coherence_radius
-    if isinstance(radius, bool) or not isinstance(radius, int) or not 0 <= radius <= 15:
-        raise ValueError(f"matching.coherence_radius: must be an integer from 0 to 15, got {radius!r}")
+    # Checked here too, not only by dmlo_rs at the first pair, so that a bad config fails when it is loaded.
+    radius, largest = config.matching.coherence_radius, dmlo_rs.MAX_COHERENCE_RADIUS
+    if isinstance(radius, bool) or not isinstance(radius, int) or not 0 <= radius <= largest:
+        raise ValueError(f"matching.coherence_radius: must be an integer from 0 to {largest}, got {radius!r}")
 
 
 def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> PairResult:
