@@ -1,6 +1,7 @@
 """The DMLO odometry pipeline: `Odometry` registers scans one by one; `run_sequence` runs a dataset."""
 
 from dmlo.odometry.config import (
+    LargeMotionConfig,
     MappingConfig,
     MatchingConfig,
     MotionModelConfig,
@@ -11,6 +12,7 @@ from dmlo.odometry.pipeline import FrameDiagnostics, Odometry, PairResult, Senso
 
 __all__ = [
     "FrameDiagnostics",
+    "LargeMotionConfig",
     "MappingConfig",
     "MatchingConfig",
     "MotionModelConfig",

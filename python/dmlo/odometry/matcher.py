@@ -21,6 +21,7 @@ import dmlo_rs
 FRAME_GRAPH = "frame.onnx"
 WIDE_FRAME_GRAPH = "frame_wide.onnx"  # the same weights with the wide coarse window of §IV-D
 MATCH_GRAPH = "match.onnx"  # any pair of cached features, e.g. the new scan back against the previous one
+ENCODER_GRAPH = "encoder.onnx"  # a scan's features alone (frame.onnx would also match it against zeros)
 INTERFACE_VERSION = "1"
 _CYLINDER_KEYS = (
     "fov_up_deg",
@@ -60,6 +61,8 @@ class Matcher(Protocol):
     def match(
         self, reference: Features, target: Features
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...
+
+    def encode(self, image: npt.NDArray[np.float32]) -> Features: ...
 
 
 def default_model_path() -> Path:
@@ -116,12 +119,10 @@ class OnnxMatcher:
         )
         self._options, self._providers = options, providers
         self._match_session: Any = self._open_match_graph() if match_graph else None  # else on the first `match`
+        self._encoder_session: Any = None  # on the first `encode`
 
     def frame(self, image: npt.NDArray[np.float32], previous: Features | None) -> FrameOutput:
-        if image.shape != (2, self.height, self.width):
-            raise ModelError(
-                f"scan image {image.shape} does not fit the model's input (2, {self.height}, {self.width})"
-            )
+        self._check_image(image)
         prev = previous or self._zeros
         flow, confidence, coarse, refine = self._session.run(
             None,
@@ -154,17 +155,36 @@ class OnnxMatcher:
         )
         return flow[0], confidence[0]
 
+    def encode(self, image: npt.NDArray[np.float32]) -> Features:
+        """A scan's features alone (`encoder.onnx` beside `frame.onnx`, the same weights), for scans that are
+        only ever matched through `match` or as a `frame` call's `previous`."""
+        self._check_image(image)
+        if self._encoder_session is None:
+            self._encoder_session = self._open_graph(ENCODER_GRAPH, "encoder", "encode a scan on its own")
+        coarse, refine = self._encoder_session.run(None, {"scan": image[None].astype(np.float32, copy=False)})
+        return Features(coarse=coarse, refine=refine)
+
+    def _check_image(self, image: npt.NDArray[np.float32]) -> None:
+        if image.shape != (2, self.height, self.width):
+            raise ModelError(
+                f"scan image {image.shape} does not fit the model's input (2, {self.height}, {self.width})"
+            )
+
     def _open_match_graph(self) -> Any:
-        graph = self.path.with_name(MATCH_GRAPH)
+        return self._open_graph(MATCH_GRAPH, "match", "match a scan back against the previous one")
+
+    def _open_graph(self, name: str, kind: str, purpose: str) -> Any:
+        """A graph exported beside `frame.onnx`, checked to belong to the same model and input size."""
+        graph = self.path.with_name(name)
         if not graph.is_file():
             raise ModelError(
-                f"{self.path.parent} has no {MATCH_GRAPH} to match a scan back against the previous one; export "
-                "one with `dmlo export CHECKPOINT --out DIR` (it writes all three graphs)"
+                f"{self.path.parent} has no {name} to {purpose}; export one with `dmlo export CHECKPOINT "
+                "--out DIR` (it writes all three graphs)"
             )
         session = _open_session(graph, self._options, self._providers)
         metadata = session.get_modelmeta().custom_metadata_map
-        if metadata.get("dmlo.graph") != "match" or json.loads(metadata.get("dmlo.model_config", "null")) != self.model_config:
-            raise ModelError(f"{graph}: not the match graph of {self.path.name}'s model")
+        if metadata.get("dmlo.graph") != kind or json.loads(metadata.get("dmlo.model_config", "null")) != self.model_config:
+            raise ModelError(f"{graph}: not the {kind} graph of {self.path.name}'s model")
         if (int(metadata.get("dmlo.height", -1)), int(metadata.get("dmlo.width", -1))) != (self.height, self.width):
             raise ModelError(f"{graph}: input size differs from {self.path.name}'s {self.height}×{self.width}")
         return session

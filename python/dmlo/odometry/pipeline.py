@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 import warnings
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -89,6 +90,7 @@ class PairResult:
     source_points: npt.NDArray[np.float64]
     target_points: npt.NDArray[np.float64]
     inliers: npt.NDArray[np.bool_]
+    rounds: int = 1  # with `large_motion`: matching rounds whose estimate was kept (`LargeMotionConfig`)
 
     @property
     def inlier_ratio(self) -> float:
@@ -213,19 +215,50 @@ class Odometry:
         """The motion `T_tgt_ref` between two scans, with no motion model, map or initial guess.
 
         `large_motion` matches with the model's wide-window graph (the paper's D = 40 at inference,
-        §IV-D) for scans far apart, e.g. several frames or metres; it matches one way only, whatever
-        `matching.symmetric` says.
+        §IV-D) for scans far apart, e.g. several frames or metres, and then again with the reference moved
+        by the estimate (`config.large_motion`); it matches one way only, whatever `matching.symmetric`
+        says. The result's points are in the frames of the scans given.
         """
-        matcher = self._wide_matcher() if large_motion else self.matcher
-        ref_image, ref_range = self._project(_as_scan(reference, "reference"))
+        reference_cloud = _as_scan(reference, "reference")
         tgt_image, tgt_range = self._project(_as_scan(target, "target"))
-        ref_features = matcher.frame(ref_image, None).features
-        output = matcher.frame(tgt_image, ref_features)
         if large_motion:
-            assert output.flow is not None and output.confidence is not None
-            return self._match(ref_range, tgt_range, output.flow, output.confidence)
+            return self._register_far(reference_cloud, tgt_image, tgt_range)
+        ref_image, ref_range = self._project(reference_cloud)
+        ref_features = self.matcher.encode(ref_image)
+        output = self.matcher.frame(tgt_image, ref_features)
         pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features)
         return pair
+
+    def _register_far(
+        self, reference: npt.NDArray[np.float32], tgt_image: npt.NDArray[np.float32], tgt_range: npt.NDArray[np.float32]
+    ) -> PairResult:
+        """The wide-window graph once, then rounds of the model's own window with the reference moved by the
+        estimate so far (see `LargeMotionConfig`). The target is encoded once."""
+        c = self.config.large_motion
+        ref_image, ref_range = self._project(reference)
+        output = self._wide_matcher().frame(tgt_image, self.matcher.encode(ref_image))
+        assert output.flow is not None and output.confidence is not None
+        result = self._match(ref_range, tgt_range, output.flow, output.confidence)
+        correction = result.T_tgt_ref
+        for round_ in range(2, c.max_rounds + 1):
+            moved, turned = _pose_difference(np.eye(4), correction)
+            if moved < c.min_step and turned < c.min_step_deg:
+                break
+            estimate = result.T_tgt_ref
+            ref_image, ref_range = self._project(_moved(reference, estimate))
+            flow, confidence = self.matcher.match(self.matcher.encode(ref_image), output.features)
+            pair = self._match(ref_range, tgt_range, flow, confidence)
+            if pair.num_inliers < self.config.motion_model.min_inliers:
+                break  # lost the scene: the estimate so far is the better one
+            correction, back = pair.T_tgt_ref, np.linalg.inv(estimate)
+            result = dataclasses.replace(
+                pair,
+                T_tgt_ref=correction @ estimate,
+                # The matches' reference points go back to the reference scan's own frame.
+                source_points=pair.source_points @ back[:3, :3].T + back[:3, 3],
+                rounds=round_,
+            )
+        return result
 
     def _wide_matcher(self) -> Matcher:
         if self._wide is None:
@@ -516,6 +549,7 @@ def _check_limits(config: OdometryConfig) -> None:
     limits = {
         "matching": ("consistency_px", "coherence_px"),
         "motion_model": ("max_deviation", "max_deviation_deg", "guided_fraction"),
+        "large_motion": ("min_step", "min_step_deg"),
         "mapping": (
             "keyframe_distance",
             "keyframe_angle_deg",
@@ -531,6 +565,9 @@ def _check_limits(config: OdometryConfig) -> None:
             positive = (section, name) in _POSITIVE_LIMITS
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value > 0 if positive else value >= 0):
                 raise ValueError(f"{section}.{name}: must be a number {'>' if positive else '>='} 0, got {value!r}")
+    rounds = config.large_motion.max_rounds
+    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
+        raise ValueError(f"large_motion.max_rounds: must be an integer >= 1, got {rounds!r}")
     # Checked here too, not only by dmlo_rs at the first pair, so that a bad config fails when it is loaded.
     radius, largest = config.matching.coherence_radius, dmlo_rs.MAX_COHERENCE_RADIUS
     if isinstance(radius, bool) or not isinstance(radius, int) or not 0 <= radius <= largest:
@@ -611,6 +648,15 @@ def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
     if cloud.shape[1] == 3:
         cloud = np.concatenate([cloud, np.zeros((len(cloud), 1), cloud.dtype)], axis=1)
     return np.ascontiguousarray(cloud, dtype=np.float32)
+
+
+def _moved(cloud: npt.NDArray[np.float32], transform: Matrix4) -> npt.NDArray[np.float32]:
+    """An N×4 scan with its points moved by `transform` (reflectance kept)."""
+    if np.array_equal(transform, np.eye(4)):
+        return cloud
+    moved = cloud.copy()
+    moved[:, :3] = cloud[:, :3].astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]
+    return moved
 
 
 def _as_mask(mask: npt.ArrayLike, count: int) -> npt.NDArray[np.bool_]:
