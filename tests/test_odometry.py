@@ -181,6 +181,26 @@ def test_register_pair_returns_a_rigid_motion(scans: list[np.ndarray]) -> None:
     assert result.num_inliers == int(result.inliers.sum())
 
 
+@pytest.mark.parametrize("large_motion", [False, True])
+def test_register_pair_refuses_a_scan_too_sparse_to_register(scans: list[np.ndarray], large_motion: bool) -> None:
+    odometry = Odometry.from_default()
+    nan_rows = scans[0].copy()
+    nan_rows[: len(nan_rows) - 500, 0] = np.nan  # 500 finite points left
+    for name, reference, target in (
+        ("reference", np.zeros((0, 4), np.float32), scans[1]),
+        ("reference", scans[0][:10], scans[1]),
+        ("target", scans[0], nan_rows),
+    ):
+        with pytest.raises(ValueError, match=rf"{name}: \d+ finite points, fewer than the 1000 needed"):
+            odometry.register_pair(reference, target, large_motion=large_motion)
+    # Non-finite rows are dropped, not passed on: the finite rest registers as the whole scan does.
+    with_nan = np.concatenate([scans[0], np.full((50, 4), np.nan, np.float32)])
+    np.testing.assert_array_equal(
+        odometry.register_pair(with_nan, scans[1], large_motion=large_motion).T_tgt_ref,
+        odometry.register_pair(scans[0], scans[1], large_motion=large_motion).T_tgt_ref,
+    )
+
+
 def test_a_file_that_is_not_a_model_is_refused(tmp_path: Path) -> None:
     bogus = tmp_path / "frame.onnx"
     bogus.write_bytes(b"not an onnx file")

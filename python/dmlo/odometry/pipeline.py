@@ -217,10 +217,12 @@ class Odometry:
         `large_motion` matches with the model's wide-window graph (the paper's D = 40 at inference,
         §IV-D) for scans far apart, e.g. several frames or metres, and then again with the reference moved
         by the estimate (`config.large_motion`); it matches one way only, whatever `matching.symmetric`
-        says. The result's points are in the frames of the scans given.
+        says. The result's points are in the frames of the scans given. A scan with fewer than
+        `config.min_points` finite points is refused (ValueError): with no motion model to fall back on,
+        the identity would be a silent wrong answer.
         """
-        reference_cloud = _as_scan(reference, "reference")
-        tgt_image, tgt_range = self._project(_as_scan(target, "target"))
+        reference_cloud = self._finite_scan(reference, "reference")
+        tgt_image, tgt_range = self._project(self._finite_scan(target, "target"))
         if large_motion:
             return self._register_far(reference_cloud, tgt_image, tgt_range)
         ref_image, ref_range = self._project(reference_cloud)
@@ -228,6 +230,16 @@ class Odometry:
         output = self.matcher.frame(tgt_image, ref_features)
         pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features)
         return pair
+
+    def _finite_scan(self, points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
+        cloud = _as_scan(points, name)
+        cloud = cloud[np.isfinite(cloud).all(axis=1)]
+        if len(cloud) < self.config.min_points:
+            raise ValueError(
+                f"{name}: {len(cloud)} finite points, fewer than the {self.config.min_points} needed to register "
+                "a pair (config.min_points)"
+            )
+        return cloud
 
     def _register_far(
         self, reference: npt.NDArray[np.float32], tgt_image: npt.NDArray[np.float32], tgt_range: npt.NDArray[np.float32]
