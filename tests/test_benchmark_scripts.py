@@ -32,7 +32,7 @@ def test_large_motion_benchmark_tabulates_every_method(drive: Path) -> None:
     table = large_motion.run([drive], gaps=[2], pairs=2, model=None).splitlines()
     assert table[0].startswith("| gap | method | success |")
     rows = table[2:]
-    assert any("DMLO (wide window, re-matched)" in row for row in rows)
+    assert any("DMLO (wide window, searched, re-matched)" in row for row in rows)
     assert any("DMLO (wide window once, the paper)" in row for row in rows)
     assert all(row.startswith("| 2 |") for row in rows)
 

@@ -244,32 +244,30 @@ class Odometry:
     def _register_far(
         self, reference: npt.NDArray[np.float32], tgt_image: npt.NDArray[np.float32], tgt_range: npt.NDArray[np.float32]
     ) -> PairResult:
-        """The wide-window graph once, then rounds of the model's own window with the reference moved by the
-        estimate so far (see `LargeMotionConfig`). The target is encoded once."""
-        c = self.config.large_motion
-        ref_image, ref_range = self._project(reference)
-        output = self._wide_matcher().frame(tgt_image, self.matcher.encode(ref_image))
-        assert output.flow is not None and output.confidence is not None
-        result = self._match(ref_range, tgt_range, output.flow, output.confidence)
-        correction = result.T_tgt_ref
+        """The wide-window graph from every start, the best of them on through rounds of the model's own
+        window with the reference moved by the estimate so far (see `LargeMotionConfig`)."""
+        c, wide = self.config.large_motion, self._wide_matcher()
+        best: tuple[PairResult, Matrix4] | None = None
+        for start in _search_starts(c.search_ahead_m, c.search_yaw_deg):
+            ref_image, ref_range = self._project(_moved(reference, start))
+            output = wide.frame(tgt_image, self.matcher.encode(ref_image))
+            assert output.flow is not None and output.confidence is not None
+            pair = self._match(ref_range, tgt_range, output.flow, output.confidence)
+            if best is None or pair.num_inliers > best[0].num_inliers:
+                best = (pair, start)
+        assert best is not None
+        tgt_features = output.features
+        result, correction = _in_given_frames(best[0], best[1], rounds=1), best[0].T_tgt_ref
         for round_ in range(2, c.max_rounds + 1):
             moved, turned = _pose_difference(np.eye(4), correction)
             if moved < c.min_step and turned < c.min_step_deg:
                 break
-            estimate = result.T_tgt_ref
-            ref_image, ref_range = self._project(_moved(reference, estimate))
-            flow, confidence = self.matcher.match(self.matcher.encode(ref_image), output.features)
+            ref_image, ref_range = self._project(_moved(reference, result.T_tgt_ref))
+            flow, confidence = self.matcher.match(self.matcher.encode(ref_image), tgt_features)
             pair = self._match(ref_range, tgt_range, flow, confidence)
             if pair.num_inliers < self.config.motion_model.min_inliers:
                 break  # lost the scene: the estimate so far is the better one
-            correction, back = pair.T_tgt_ref, np.linalg.inv(estimate)
-            result = dataclasses.replace(
-                pair,
-                T_tgt_ref=correction @ estimate,
-                # The matches' reference points go back to the reference scan's own frame.
-                source_points=pair.source_points @ back[:3, :3].T + back[:3, 3],
-                rounds=round_,
-            )
+            result, correction = _in_given_frames(pair, result.T_tgt_ref, rounds=round_), pair.T_tgt_ref
         return result
 
     def _wide_matcher(self) -> Matcher:
@@ -577,6 +575,12 @@ def _check_limits(config: OdometryConfig) -> None:
             positive = (section, name) in _POSITIVE_LIMITS
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value > 0 if positive else value >= 0):
                 raise ValueError(f"{section}.{name}: must be a number {'>' if positive else '>='} 0, got {value!r}")
+    for name in ("search_ahead_m", "search_yaw_deg"):
+        starts = getattr(config.large_motion, name)
+        if isinstance(starts, (str, bytes)) or not hasattr(starts, "__len__") or len(starts) == 0 or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in starts
+        ):
+            raise ValueError(f"large_motion.{name}: must be a non-empty list of finite numbers, got {starts!r}")
     rounds = config.large_motion.max_rounds
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
         raise ValueError(f"large_motion.max_rounds: must be an integer >= 1, got {rounds!r}")
@@ -660,6 +664,31 @@ def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
     if cloud.shape[1] == 3:
         cloud = np.concatenate([cloud, np.zeros((len(cloud), 1), cloud.dtype)], axis=1)
     return np.ascontiguousarray(cloud, dtype=np.float32)
+
+
+def _search_starts(ahead_m: tuple[float, ...], yaw_deg: tuple[float, ...]) -> list[Matrix4]:
+    """The guesses `T_tgt_ref` of a target `ahead` metres along the reference's x axis, turned by `yaw`."""
+    starts = []
+    for yaw in yaw_deg:
+        for ahead in ahead_m:
+            cos, sin = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
+            T_ref_tgt = np.eye(4)
+            T_ref_tgt[:2, :2] = [[cos, -sin], [sin, cos]]
+            T_ref_tgt[0, 3] = ahead
+            starts.append(np.linalg.inv(T_ref_tgt))
+    return starts
+
+
+def _in_given_frames(pair: PairResult, start: Matrix4, rounds: int) -> PairResult:
+    """A pair matched with the reference moved by `start`, as the motion between the scans given: the
+    motion composed with `start`, the matches' reference points moved back."""
+    back = np.linalg.inv(start)
+    return dataclasses.replace(
+        pair,
+        T_tgt_ref=pair.T_tgt_ref @ start,
+        source_points=pair.source_points @ back[:3, :3].T + back[:3, 3],
+        rounds=rounds,
+    )
 
 
 def _moved(cloud: npt.NDArray[np.float32], transform: Matrix4) -> npt.NDArray[np.float32]:
