@@ -110,6 +110,48 @@ def test_user_mistakes_are_one_line(args: list[str], message: str, drive: Path) 
     assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
 
+def test_register_command_prints_and_writes_the_motion_between_two_scan_files(drive: Path, tmp_path: Path) -> None:
+    from dmlo.datasets import write_bin
+    from dmlo.metrics import registration_errors
+
+    sequence = open_sequence(drive)
+    write_bin(tmp_path / "a.bin", sequence[0].points)
+    write_bin(tmp_path / "b.bin", sequence[1].points)
+    truth = np.linalg.inv(sequence[1].pose) @ sequence[0].pose
+    for flags in ([], ["--large-motion"]):
+        out = tmp_path / f"T{len(flags)}.txt"
+        result = dmlo("register", str(tmp_path / "a.bin"), str(tmp_path / "b.bin"), "--json", "--out", str(out), *flags)
+        assert result.returncode == 0, result.stderr
+        report = json.loads(result.stdout)
+        transform = np.array(report["T_b_a"])
+        errors = registration_errors(transform, truth)
+        assert errors.angular_mean < 0.5 and errors.translation_mean < 0.1, (flags, errors)
+        assert report["inliers"] >= 10 and report["rounds"] >= 1
+        np.testing.assert_allclose(np.loadtxt(out), transform, atol=1e-8)
+    text = dmlo("register", str(tmp_path / "a.bin"), str(tmp_path / "b.bin"))
+    assert text.returncode == 0 and text.stdout.startswith("T_b_a (p_b = T_b_a · p_a):") and "RANSAC inliers" in text.stdout
+
+
+def test_register_command_mistakes_are_one_line(drive: Path, tmp_path: Path) -> None:
+    from dmlo.datasets import write_bin
+
+    sequence = open_sequence(drive)
+    write_bin(tmp_path / "a.bin", sequence[0].points)
+    write_bin(tmp_path / "sparse.bin", sequence[1].points[:10])
+    (tmp_path / "broken.bin").write_bytes(b"\x00" * 10)
+    a = str(tmp_path / "a.bin")
+    for args, message in (
+        ([a, str(tmp_path / "missing.bin")], "target scan not found"),
+        ([a, str(tmp_path / "sparse.bin")], "target: 10 finite points, fewer than the 1000 needed"),
+        ([a, str(tmp_path / "broken.bin")], "broken.bin"),
+        ([a, a, "--mapping"], "a single pair has none"),
+    ):
+        result = dmlo("register", *args)
+        assert result.returncode == 2, args
+        assert message in result.stderr, result.stderr
+        assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
 def test_bench_command_compares_with_kiss_icp(drive: Path, tmp_path: Path) -> None:
     pytest.importorskip("kiss_icp")
     result = dmlo("bench", str(drive), "--peers", "KISS-ICP", "--out", str(tmp_path))

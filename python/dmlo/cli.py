@@ -29,7 +29,7 @@ class UserError(Exception):
 # One module per subcommand under `dmlo.commands`, each with `register(subparsers)` that adds its parser
 # and sets `run`. Command modules import heavy libraries (torch, onnxruntime) inside `run` only, so
 # `dmlo --help` stays fast and the odometry never imports torch.
-_COMMANDS: list[str] = ["demo", "run", "bench", "simulate", "eval", "train", "export"]
+_COMMANDS: list[str] = ["demo", "run", "register", "bench", "simulate", "eval", "train", "export"]
 
 
 def build_parser() -> argparse.ArgumentParser:

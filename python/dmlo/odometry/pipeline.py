@@ -668,14 +668,14 @@ def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
 
 def _search_starts(ahead_m: tuple[float, ...], yaw_deg: tuple[float, ...]) -> list[Matrix4]:
     """The guesses `T_tgt_ref` of a target `ahead` metres along the reference's x axis, turned by `yaw`."""
-    starts = []
+    starts: list[Matrix4] = []
     for yaw in yaw_deg:
         for ahead in ahead_m:
             cos, sin = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
             T_ref_tgt = np.eye(4)
             T_ref_tgt[:2, :2] = [[cos, -sin], [sin, cos]]
             T_ref_tgt[0, 3] = ahead
-            starts.append(np.linalg.inv(T_ref_tgt))
+            starts.append(np.linalg.inv(T_ref_tgt).astype(np.float64))
     return starts
 
 
