@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import time
 import warnings
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ import numpy.typing as npt
 import dmlo_rs
 from dmlo.metrics.trajectory import rotation_angle_deg
 from dmlo.odometry.config import OdometryConfig
+from dmlo.odometry.large_motion import register_far
 from dmlo.odometry.matcher import (
     Features,
     FrameOutput,
@@ -244,31 +244,10 @@ class Odometry:
     def _register_far(
         self, reference: npt.NDArray[np.float32], tgt_image: npt.NDArray[np.float32], tgt_range: npt.NDArray[np.float32]
     ) -> PairResult:
-        """The wide-window graph from every start, the best of them on through rounds of the model's own
-        window with the reference moved by the estimate so far (see `LargeMotionConfig`)."""
-        c, wide = self.config.large_motion, self._wide_matcher()
-        best: tuple[PairResult, Matrix4] | None = None
-        for start in _search_starts(c.search_ahead_m, c.search_yaw_deg):
-            ref_image, ref_range = self._project(_moved(reference, start))
-            output = wide.frame(tgt_image, self.matcher.encode(ref_image))
-            assert output.flow is not None and output.confidence is not None
-            pair = self._match(ref_range, tgt_range, output.flow, output.confidence)
-            if best is None or pair.num_inliers > best[0].num_inliers:
-                best = (pair, start)
-        assert best is not None
-        tgt_features = output.features
-        result, correction = _in_given_frames(best[0], best[1], rounds=1), best[0].T_tgt_ref
-        for round_ in range(2, c.max_rounds + 1):
-            moved, turned = _pose_difference(np.eye(4), correction)
-            if moved < c.min_step and turned < c.min_step_deg:
-                break
-            ref_image, ref_range = self._project(_moved(reference, result.T_tgt_ref))
-            flow, confidence = self.matcher.match(self.matcher.encode(ref_image), tgt_features)
-            pair = self._match(ref_range, tgt_range, flow, confidence)
-            if pair.num_inliers < self.config.motion_model.min_inliers:
-                break  # lost the scene: the estimate so far is the better one
-            result, correction = _in_given_frames(pair, result.T_tgt_ref, rounds=round_), pair.T_tgt_ref
-        return result
+        return register_far(
+            reference, tgt_image, tgt_range, wide=self._wide_matcher(), matcher=self.matcher, project=self._project,
+            match=self._match, config=self.config.large_motion, min_inliers=self.config.motion_model.min_inliers,
+        )
 
     def _wide_matcher(self) -> Matcher:
         if self._wide is None:
@@ -664,40 +643,6 @@ def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
     if cloud.shape[1] == 3:
         cloud = np.concatenate([cloud, np.zeros((len(cloud), 1), cloud.dtype)], axis=1)
     return np.ascontiguousarray(cloud, dtype=np.float32)
-
-
-def _search_starts(ahead_m: tuple[float, ...], yaw_deg: tuple[float, ...]) -> list[Matrix4]:
-    """The guesses `T_tgt_ref` of a target `ahead` metres along the reference's x axis, turned by `yaw`."""
-    starts: list[Matrix4] = []
-    for yaw in yaw_deg:
-        for ahead in ahead_m:
-            cos, sin = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
-            T_ref_tgt = np.eye(4)
-            T_ref_tgt[:2, :2] = [[cos, -sin], [sin, cos]]
-            T_ref_tgt[0, 3] = ahead
-            starts.append(np.linalg.inv(T_ref_tgt).astype(np.float64))
-    return starts
-
-
-def _in_given_frames(pair: PairResult, start: Matrix4, rounds: int) -> PairResult:
-    """A pair matched with the reference moved by `start`, as the motion between the scans given: the
-    motion composed with `start`, the matches' reference points moved back."""
-    back = np.linalg.inv(start)
-    return dataclasses.replace(
-        pair,
-        T_tgt_ref=pair.T_tgt_ref @ start,
-        source_points=pair.source_points @ back[:3, :3].T + back[:3, 3],
-        rounds=rounds,
-    )
-
-
-def _moved(cloud: npt.NDArray[np.float32], transform: Matrix4) -> npt.NDArray[np.float32]:
-    """An N×4 scan with its points moved by `transform` (reflectance kept)."""
-    if np.array_equal(transform, np.eye(4)):
-        return cloud
-    moved = cloud.copy()
-    moved[:, :3] = cloud[:, :3].astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]
-    return moved
 
 
 def _as_mask(mask: npt.ArrayLike, count: int) -> npt.NDArray[np.bool_]:

@@ -1,0 +1,101 @@
+"""Registration of scans far apart, with no initial guess (§IV-D, and beyond it: see `LargeMotionConfig`).
+
+The wide-window graph matches the pair from several starts — the reference moved as if the target lay
+some metres ahead and turned by some yaw — and the start whose matches have the most RANSAC inliers goes
+on: the reference moved by the estimate so far is matched again with the model's own window until a round
+corrects less than the configured steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+import numpy.typing as npt
+
+from dmlo.metrics.trajectory import rotation_angle_deg
+from dmlo.odometry.config import LargeMotionConfig
+from dmlo.odometry.matcher import Matcher
+
+if TYPE_CHECKING:
+    from dmlo.odometry.pipeline import PairResult
+
+Matrix4 = npt.NDArray[np.float64]
+Image = npt.NDArray[np.float32]
+
+
+def register_far(
+    reference: npt.NDArray[np.float32],
+    tgt_image: Image,
+    tgt_range: Image,
+    *,
+    wide: Matcher,
+    matcher: Matcher,
+    project: Callable[[npt.NDArray[np.float32]], tuple[Image, Image]],
+    match: Callable[[Image, Image, Image, Image], PairResult],
+    config: LargeMotionConfig,
+    min_inliers: int,
+) -> PairResult:
+    """`T_tgt_ref` of the N×4 `reference` scan and the projected target: `wide` (the wide-window graph) from
+    every start, then rounds of `matcher` (the model's own window), `project` and `match` the odometry's
+    projection and back end. A round with fewer than `min_inliers` inliers keeps the estimate before it."""
+    best: tuple[PairResult, Matrix4] | None = None
+    for start in search_starts(config.search_ahead_m, config.search_yaw_deg):
+        ref_image, ref_range = project(moved(reference, start))
+        output = wide.frame(tgt_image, matcher.encode(ref_image))
+        assert output.flow is not None and output.confidence is not None
+        pair = match(ref_range, tgt_range, output.flow, output.confidence)
+        if best is None or pair.num_inliers > best[0].num_inliers:
+            best = (pair, start)
+    assert best is not None, "at least one start (checked with the config)"
+    tgt_features = output.features
+    result, correction = in_given_frames(best[0], best[1], rounds=1), best[0].T_tgt_ref
+    for round_ in range(2, config.max_rounds + 1):
+        if (
+            np.linalg.norm(correction[:3, 3]) < config.min_step
+            and rotation_angle_deg(correction[:3, :3]) < config.min_step_deg
+        ):
+            break
+        ref_image, ref_range = project(moved(reference, result.T_tgt_ref))
+        flow, confidence = matcher.match(matcher.encode(ref_image), tgt_features)
+        pair = match(ref_range, tgt_range, flow, confidence)
+        if pair.num_inliers < min_inliers:
+            break  # lost the scene: the estimate so far is the better one
+        result, correction = in_given_frames(pair, result.T_tgt_ref, rounds=round_), pair.T_tgt_ref
+    return result
+
+
+def search_starts(ahead_m: tuple[float, ...], yaw_deg: tuple[float, ...]) -> list[Matrix4]:
+    """The guesses `T_tgt_ref` of a target `ahead` metres along the reference's x axis, turned by `yaw`."""
+    starts: list[Matrix4] = []
+    for yaw in yaw_deg:
+        for ahead in ahead_m:
+            cos, sin = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
+            T_ref_tgt = np.eye(4)
+            T_ref_tgt[:2, :2] = [[cos, -sin], [sin, cos]]
+            T_ref_tgt[0, 3] = ahead
+            starts.append(np.linalg.inv(T_ref_tgt).astype(np.float64))
+    return starts
+
+
+def in_given_frames(pair: PairResult, start: Matrix4, rounds: int) -> PairResult:
+    """A pair matched with the reference moved by `start`, as the motion between the scans given: the
+    motion composed with `start`, the matches' reference points moved back."""
+    back = np.linalg.inv(start)
+    return dataclasses.replace(
+        pair,
+        T_tgt_ref=pair.T_tgt_ref @ start,
+        source_points=pair.source_points @ back[:3, :3].T + back[:3, 3],
+        rounds=rounds,
+    )
+
+
+def moved(cloud: npt.NDArray[np.float32], transform: Matrix4) -> npt.NDArray[np.float32]:
+    """An N×4 scan with its points moved by `transform` (reflectance kept)."""
+    if np.array_equal(transform, np.eye(4)):
+        return cloud
+    out = cloud.copy()
+    out[:, :3] = cloud[:, :3].astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]
+    return out
