@@ -20,6 +20,7 @@ def test_round_trip_through_a_file(tmp_path: Path) -> None:
     config = OdometryConfig()
     config.ransac.seed = 7
     config.mapping.enabled = True
+    config.large_motion.search_yaw_deg = (0.0, 90.0)  # tuples come back from JSON's lists
     config.save(tmp_path / "config.json")
     assert OdometryConfig.load(tmp_path / "config.json") == config
 

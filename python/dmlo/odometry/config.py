@@ -142,5 +142,9 @@ def _build(cls: type[T], data: dict[str, Any], where: str) -> T:
     values: dict[str, Any] = {}
     for name, value in data.items():
         default = getattr(cls(), name)
-        values[name] = _build(type(default), value, f"{where}.{name}") if is_dataclass(default) else value
+        if is_dataclass(default):
+            value = _build(type(default), value, f"{where}.{name}")
+        elif isinstance(default, tuple) and isinstance(value, list):
+            value = tuple(value)  # JSON has lists only
+        values[name] = value
     return cls(**values)
