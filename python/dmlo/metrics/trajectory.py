@@ -25,6 +25,7 @@ __all__ = [
     "RpeResult",
     "Alignment",
     "absolute_trajectory_error",
+    "pose_difference",
     "relative_pose_error",
     "rotation_angle_deg",
     "umeyama_alignment",
@@ -45,6 +46,12 @@ def rotation_angle_deg(rotations: ArrayLike) -> NDArray[np.float64]:
     sine = 0.5 * np.linalg.norm(skew, axis=-1)
     cosine = 0.5 * (np.trace(r, axis1=-2, axis2=-1) - 1.0)
     return np.degrees(np.arctan2(sine, cosine))
+
+
+def pose_difference(a: ArrayLike, b: ArrayLike) -> tuple[float, float]:
+    """Distance (m) and angle (°) between two 4×4 poses: of the motion ``a⁻¹·b``."""
+    step = np.linalg.inv(np.asarray(a, dtype=np.float64)) @ np.asarray(b, dtype=np.float64)
+    return float(np.linalg.norm(step[:3, 3])), float(rotation_angle_deg(step[:3, :3]))
 
 
 def umeyama_alignment(

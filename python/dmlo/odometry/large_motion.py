@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from dmlo.metrics.trajectory import rotation_angle_deg
+from dmlo.metrics.trajectory import pose_difference
 from dmlo.odometry.config import LargeMotionConfig
 from dmlo.odometry.matcher import Matcher
 
@@ -53,10 +53,8 @@ def register_far(
     tgt_features = output.features
     result, correction = in_given_frames(best[0], best[1], rounds=1), best[0].T_tgt_ref
     for round_ in range(2, config.max_rounds + 1):
-        if (
-            np.linalg.norm(correction[:3, 3]) < config.min_step
-            and rotation_angle_deg(correction[:3, :3]) < config.min_step_deg
-        ):
+        moved_m, turned_deg = pose_difference(np.eye(4), correction)
+        if moved_m < config.min_step and turned_deg < config.min_step_deg:
             break
         ref_image, ref_range = project(moved(reference, result.T_tgt_ref))
         flow, confidence = matcher.match(matcher.encode(ref_image), tgt_features)

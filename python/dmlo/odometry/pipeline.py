@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 import dmlo_rs
-from dmlo.metrics.trajectory import rotation_angle_deg
+from dmlo.metrics.trajectory import pose_difference
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far
 from dmlo.odometry.matcher import (
@@ -397,7 +397,7 @@ class Odometry:
             # a simulated drive) is replaced by the prediction rather than chained into the trajectory.
             # Never twice in a row: then the prediction is the stale one (say, measured from a wrong
             # pair before any velocity was known), and DMLO is trusted again.
-            moved, turned = _pose_difference(pair.T_tgt_ref, predicted)
+            moved, turned = pose_difference(pair.T_tgt_ref, predicted)
             limits = self.config.motion_model
             if moved > limits.max_deviation * gap or turned > limits.max_deviation_deg * gap:
                 guided = self._consensus_near(pair, predicted)
@@ -480,7 +480,7 @@ class Odometry:
         if self._last_keyframe is None:
             return True
         c = self.config.mapping
-        moved, turned = _pose_difference(self._last_keyframe, pose)
+        moved, turned = pose_difference(self._last_keyframe, pose)
         return moved >= c.keyframe_distance or turned >= c.keyframe_angle_deg
 
     def _refine_with_map(
@@ -495,7 +495,7 @@ class Odometry:
             # Before any velocity is measured the prediction is "standing still", and the map's ground
             # rings, which move with the sensor, score that wrong start highly.
             predicted = self._predict()
-            moved, turned = _pose_difference(pose, predicted)
+            moved, turned = pose_difference(pose, predicted)
             if moved > c.motion_model_start_distance or turned > c.motion_model_start_angle_deg:
                 starts["motion_model"] = predicted
         results = {}
@@ -626,12 +626,6 @@ def _midpoint(a: Matrix4, b: Matrix4) -> Matrix4:
     middle[:3, :3] = u @ fix @ vt
     middle[:3, 3] = (a[:3, 3] + b[:3, 3]) / 2
     return middle
-
-
-def _pose_difference(a: Matrix4, b: Matrix4) -> tuple[float, float]:
-    """Distance (m) and angle (°) between two poses."""
-    step = np.linalg.inv(a) @ b
-    return float(np.linalg.norm(step[:3, 3])), float(rotation_angle_deg(step[:3, :3]))
 
 
 def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
