@@ -1,8 +1,8 @@
 """Registration under large motion (paper §IV-D): scan pairs k frames apart, no initial guess.
 
 DMLO (the wide-window graph from several starts and re-matched in rounds, as `register_pair(...,
-large_motion=True)` does by default, and once as in the paper) against ICP started from identity (small_gicp GICP, Open3D point-to-plane)
-and Open3D FPFH + RANSAC, on the same pairs, in one run. A pair succeeds when the rotation error is
+large_motion=True)` does by default, and once as in the paper) against ICP started from identity
+(small_gicp GICP, Open3D point-to-plane) and Open3D FPFH + RANSAC, on the same pairs, in one run. A pair succeeds when the rotation error is
 below 5° and the translation error below 2 m (the usual global-registration criterion); errors are the
 paper's (angular `2·asin(‖R−R̄‖_F/(2√2))`, translation ‖t−t̄‖) over the successful pairs.
 
