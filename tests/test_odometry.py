@@ -152,8 +152,9 @@ def test_unusable_scan_is_bridged_and_recorded(scans: list[np.ndarray], bad_scan
     pose = odometry.register(bad_scan)
     assert odometry.diagnostics[-1].fallback == "too_few_points"
     assert np.isfinite(pose).all()
-    odometry.register(scans[3])  # matched against scan 1, the last usable one
-    assert odometry.diagnostics[-1].fallback in (None, "constant_velocity")
+    odometry.register(scans[3])  # matched against scan 1, the last usable one, and again from the prediction
+    assert odometry.diagnostics[-1].fallback in (None, "rematched_from_prediction")
+    assert odometry.diagnostics[-1].rematch_rounds is not None
     assert len(odometry.poses) == 4
 
 

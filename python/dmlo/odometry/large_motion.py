@@ -17,7 +17,7 @@ import numpy.typing as npt
 
 from dmlo.metrics.trajectory import pose_difference
 from dmlo.odometry.config import LargeMotionConfig
-from dmlo.odometry.matcher import Matcher
+from dmlo.odometry.matcher import Features, Matcher
 
 if TYPE_CHECKING:
     from dmlo.odometry.pipeline import PairResult
@@ -50,18 +50,46 @@ def register_far(
         if best is None or pair.num_inliers > best[0].num_inliers:
             best = (pair, start)
     assert best is not None, "at least one start (checked with the config)"
-    tgt_features = output.features
-    result, correction = in_given_frames(best[0], best[1], rounds=1), best[0].T_tgt_ref
-    for round_ in range(2, config.max_rounds + 1):
-        moved_m, turned_deg = pose_difference(np.eye(4), correction)
-        if moved_m < config.min_step and turned_deg < config.min_step_deg:
-            break
-        ref_image, ref_range = project(moved(reference, result.T_tgt_ref))
+    refined = rematch(
+        reference, best[0].T_tgt_ref @ best[1], tgt_range, output.features, rounds=range(2, config.max_rounds + 1),
+        last_correction=best[0].T_tgt_ref, matcher=matcher, project=project, match=match, config=config,
+        min_inliers=min_inliers,
+    )
+    return refined or in_given_frames(best[0], best[1], rounds=1)
+
+
+def rematch(
+    reference: npt.NDArray[np.float32],
+    estimate: Matrix4,
+    tgt_range: Image,
+    tgt_features: Features,
+    *,
+    rounds: range,
+    last_correction: Matrix4 | None,
+    matcher: Matcher,
+    project: Callable[[npt.NDArray[np.float32]], tuple[Image, Image]],
+    match: Callable[[Image, Image, Image, Image], PairResult],
+    config: LargeMotionConfig,
+    min_inliers: int,
+) -> PairResult | None:
+    """Rounds of matching the reference moved by the `estimate` so far (`T_tgt_ref`) against the target's
+    features with the model's own window, until a round — or the `last_correction` that led to `estimate` —
+    corrects less than the configured steps. None when not one round kept `min_inliers` inliers: a round with
+    fewer lost the scene, and the estimate before it is the better one."""
+    result: PairResult | None = None
+    correction = last_correction
+    for round_ in rounds:
+        if correction is not None:
+            moved_m, turned_deg = pose_difference(np.eye(4), correction)
+            if moved_m < config.min_step and turned_deg < config.min_step_deg:
+                break
+        ref_image, ref_range = project(moved(reference, estimate))
         flow, confidence = matcher.match(matcher.encode(ref_image), tgt_features)
         pair = match(ref_range, tgt_range, flow, confidence)
         if pair.num_inliers < min_inliers:
-            break  # lost the scene: the estimate so far is the better one
-        result, correction = in_given_frames(pair, result.T_tgt_ref, rounds=round_), pair.T_tgt_ref
+            break
+        result, correction = in_given_frames(pair, estimate, rounds=round_), pair.T_tgt_ref
+        estimate = result.T_tgt_ref
     return result
 
 

@@ -18,8 +18,10 @@ import numpy.typing as npt
 import dmlo_rs
 from dmlo.metrics.trajectory import pose_difference
 from dmlo.odometry.config import OdometryConfig
-from dmlo.odometry.large_motion import register_far
+from dmlo.odometry.large_motion import register_far, rematch
 from dmlo.odometry.matcher import (
+    ENCODER_GRAPH,
+    MATCH_GRAPH,
     Features,
     FrameOutput,
     Matcher,
@@ -51,8 +53,13 @@ class FrameDiagnostics:
     inlier_ratio: float = 0.0
     # "constant_velocity" when RANSAC found too few inliers; when its motion was far from the prediction,
     # "guided_consensus" (the matches agreeing with the prediction were solved) or "implausible_motion" (too
-    # few agreed: the prediction was taken); "too_few_points" / "unreadable_scan" for scans not matched
+    # few agreed: the prediction was taken); "rematched_from_prediction" when the pair matched again from the
+    # prediction gave the motion (`motion_model.rematch_gap`); "too_few_points" / "unreadable_scan" for scans
+    # not matched
     fallback: str | None = None
+    # with motion_model.rematch_gap: the rounds of matching from the prediction whose motion was taken, 0 when
+    # they were tried and the pair's own motion kept; None when not tried
+    rematch_rounds: int | None = None
     # with matching.symmetric: RANSAC inliers of the new scan matched back against the previous one
     backward_inliers: int | None = None
     ndt_converged: bool | None = None
@@ -70,6 +77,7 @@ class FrameDiagnostics:
             "num_inliers": self.num_inliers,
             "inlier_ratio": round(self.inlier_ratio, 4),
             "fallback": self.fallback,
+            "rematch_rounds": self.rematch_rounds,
             "backward_inliers": self.backward_inliers,
             "ndt_converged": self.ndt_converged,
             "ndt_degenerate_directions": self.ndt_degenerate_directions,
@@ -99,6 +107,7 @@ class PairResult:
 
 @dataclass
 class _Scan:
+    cloud: npt.NDArray[np.float32]  # N×4, the points matched (moving ones and non-finite left out)
     range: npt.NDArray[np.float32]
     features: Features
     pose: Matrix4
@@ -141,6 +150,21 @@ class Odometry:
         self._last_keyframe: Matrix4 | None = None  # pose of the newest scan in the map
         self._wide: Matcher | None = None  # loaded on the first large-motion pair
         self._warned_sensor = False
+        self._rematch_gap = self._available_rematch_gap()
+
+    def _available_rematch_gap(self) -> int | None:
+        """`motion_model.rematch_gap`, or None with a warning when the model lacks the graphs it needs."""
+        gap = self.config.motion_model.rematch_gap
+        missing = [name for name in (ENCODER_GRAPH, MATCH_GRAPH) if not self.matcher.path.with_name(name).is_file()]
+        if gap is not None and missing:
+            warnings.warn(
+                f"{self.matcher.path.parent} has no {' or '.join(missing)}: pairs across missing scans are not matched "
+                "again from the prediction (motion_model.rematch_gap); `dmlo export CHECKPOINT --out DIR` writes "
+                "every graph",
+                stacklevel=3,
+            )
+            return None
+        return gap
 
     @classmethod
     def from_default(cls, config: OdometryConfig | None = None) -> Odometry:
@@ -188,7 +212,7 @@ class Odometry:
                 self._last_keyframe = pose
             watch.lap("map_update")
 
-        self._reference = _Scan(range=ranges, features=output.features, pose=pose)
+        self._reference = _Scan(cloud=cloud, range=ranges, features=output.features, pose=pose)
         self._reference_index = diagnostics.index
         return self._record(pose, diagnostics)
 
@@ -388,6 +412,9 @@ class Odometry:
         diagnostics.backward_inliers = None if backward is None else backward.num_inliers
         gap = diagnostics.index - self._reference_index
         predicted = self._predicted_motion(gap)
+        pair = self._rematched_if_better(pair, previous, tgt_range, output.features, predicted, gap, diagnostics)
+        if watch and diagnostics.rematch_rounds is not None:
+            watch.lap("rematch")
         if pair.num_inliers < self.config.motion_model.min_inliers:
             diagnostics.fallback = "constant_velocity"  # the motion model of §III-D-c
             return predicted
@@ -397,9 +424,7 @@ class Odometry:
             # a simulated drive) is replaced by the prediction rather than chained into the trajectory.
             # Never twice in a row: then the prediction is the stale one (say, measured from a wrong
             # pair before any velocity was known), and DMLO is trusted again.
-            moved, turned = pose_difference(pair.T_tgt_ref, predicted)
-            limits = self.config.motion_model
-            if moved > limits.max_deviation * gap or turned > limits.max_deviation_deg * gap:
+            if self._implausible(pair, predicted, gap):
                 guided = self._consensus_near(pair, predicted)
                 if guided is not None:
                     # The static scene usually still agrees with the prediction: a larger wrong consensus
@@ -410,6 +435,48 @@ class Odometry:
                 self._gated_last = True
                 return predicted
         return pair.T_tgt_ref
+
+    def _rematched_if_better(
+        self,
+        pair: PairResult,
+        previous: _Scan,
+        tgt_range: npt.NDArray[np.float32],
+        tgt_features: Features,
+        predicted: Matrix4,
+        gap: int,
+        diagnostics: FrameDiagnostics,
+    ) -> PairResult:
+        """The pair, or the pair matched again from the prediction (`motion_model.rematch_gap`): across missing
+        scans the motion outgrows the network's window, while the prediction's error stays within it."""
+        if self._rematch_gap is None or not self._velocity_measured:
+            return pair  # before any velocity is measured the prediction is "standing still", the pair itself
+        # As the gate below has it: after a replaced motion the prediction is the stale one, not the pair.
+        gives_way = pair.num_inliers < self.config.motion_model.min_inliers or (
+            not self._gated_last and self._implausible(pair, predicted, gap)
+        )
+        if gap < self._rematch_gap and not gives_way:
+            return pair
+        again = rematch(
+            previous.cloud, predicted, tgt_range, tgt_features, rounds=range(1, self.config.large_motion.max_rounds + 1),
+            last_correction=None, matcher=self.matcher, project=self._project, match=self._match,
+            config=self.config.large_motion, min_inliers=self.config.motion_model.min_inliers,
+        )
+        diagnostics.rematch_rounds = 0
+        if again is None or self._implausible(again, predicted, gap):
+            return pair
+        if not gives_way and again.num_inliers <= pair.num_inliers:
+            return pair
+        diagnostics.rematch_rounds = again.rounds
+        diagnostics.fallback = "rematched_from_prediction"
+        diagnostics.num_matches, diagnostics.num_inliers = again.num_matches, again.num_inliers
+        diagnostics.inlier_ratio = again.inlier_ratio
+        return again
+
+    def _implausible(self, pair: PairResult, predicted: Matrix4, gap: int) -> bool:
+        """Whether a motion lies further from the prediction than a car's change of speed allows."""
+        moved, turned = pose_difference(pair.T_tgt_ref, predicted)
+        limits = self.config.motion_model
+        return bool(moved > limits.max_deviation * gap or turned > limits.max_deviation_deg * gap)
 
     def _consensus_near(self, pair: PairResult, predicted: Matrix4) -> Matrix4 | None:
         """The SVD solve (Eq. 12–14) of the matches that agree with a predicted motion, refined once on its
@@ -560,6 +627,9 @@ def _check_limits(config: OdometryConfig) -> None:
             isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in starts
         ):
             raise ValueError(f"large_motion.{name}: must be a non-empty list of finite numbers, got {starts!r}")
+    gap = config.motion_model.rematch_gap
+    if gap is not None and (isinstance(gap, bool) or not isinstance(gap, int) or gap < 1):
+        raise ValueError(f"motion_model.rematch_gap: must be an integer >= 1 (frames) or None, got {gap!r}")
     rounds = config.large_motion.max_rounds
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
         raise ValueError(f"large_motion.max_rounds: must be an integer >= 1, got {rounds!r}")
