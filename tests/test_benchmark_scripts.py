@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dmlo.benchmarks import large_motion, matching, network
+from dmlo.benchmarks import large_motion, matching, missing_scans, network
 from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
 
@@ -35,6 +35,21 @@ def test_large_motion_benchmark_tabulates_every_method(drive: Path) -> None:
     assert any("DMLO (wide window, searched, re-matched)" in row for row in rows)
     assert any("DMLO (wide window once, the paper)" in row for row in rows)
     assert all(row.startswith("| 2 |") for row in rows)
+
+
+def test_missing_scans_benchmark_tabulates_dmlo_and_the_peers(tmp_path: Path) -> None:
+    simulate_sequence(tmp_path, frames=7, seed=13, progress=False)
+    table = missing_scans.run([tmp_path], gaps=[2], cases=1, model=None, peers=["KISS-ICP"], lead_in=5).splitlines()
+    assert table[0].startswith("| gap (frames) | method | bridged |")
+    methods = [row.split(" | ")[1] for row in table[2:]]
+    assert methods == ["DMLO (re-matched from the prediction)", "DMLO (the paper: the prediction when the pair fails)",
+                       "DMLO + mapping", "KISS-ICP"]
+    # A slow simulated drive: every method bridges a single missing scan.
+    assert all(row.startswith("| 2 |") and " | 1/1 | " in row for row in table[2:])
+    with pytest.raises(SystemExit, match="too few for a gap of 3"):
+        missing_scans.run([tmp_path], gaps=[3], cases=1, model=None, peers=[], lead_in=5)
+    with pytest.raises(SystemExit, match="unknown peer 'KISS'"):
+        missing_scans.run([tmp_path], gaps=[2], cases=1, model=None, peers=["KISS"], lead_in=5)
 
 
 def test_network_benchmark_compares_model_folders_without_writing_beside_them(

@@ -129,6 +129,43 @@ def test_a_model_without_the_graphs_to_rematch_warns_and_bridges_gaps_as_the_pap
     assert odometry.diagnostics[-1].rematch_rounds is None
 
 
+def test_when_the_models_own_window_finds_nothing_the_wide_window_starts_the_rounds(highway: Path, tmp_path: Path) -> None:
+    # Fault injection: the first re-matching pass returns noise (as when the prediction is too far off for the
+    # model's window); the wide-window graph, started from the prediction, then leads the rounds.
+    for graph in ("frame.onnx", "encoder.onnx", "match.onnx"):
+        shutil.copy(default_model_path() / graph, tmp_path / graph)
+    results = {}
+    for name, model in (("with wide graph", default_model_path()), ("without", tmp_path)):
+        odometry = Odometry(model, OdometryConfig())
+        honest_match = odometry.matcher.match
+        calls = []
+
+        def noisy_first_match(reference, target):  # type: ignore[no-untyped-def]
+            flow, confidence = honest_match(reference, target)
+            calls.append(len(odometry.poses))
+            if len(calls) == 1:
+                flow = np.random.default_rng(0).uniform(-40, 40, flow.shape).astype(np.float32)
+            return flow, confidence
+
+        odometry.matcher.match = noisy_first_match  # type: ignore[method-assign]
+        sequence = open_sequence(highway)
+        for index in range(3):
+            odometry.register(sequence[index].points)
+        for _ in range(GAP - 1):
+            odometry.predict_skipped()
+        odometry.register(sequence[2 + GAP].points)
+        motion = np.linalg.inv(odometry.poses[-1]) @ odometry.poses[2]
+        truth = np.linalg.inv(sequence[2 + GAP].pose) @ sequence[2].pose
+        results[name] = (odometry.diagnostics[-1], registration_errors(motion, truth), len(calls))
+    found, errors, calls = results["with wide graph"]
+    assert found.fallback == "rematched_from_prediction" and found.rematch_rounds is not None and found.rematch_rounds >= 2
+    assert errors.translation_mean < 0.08 and errors.angular_mean < 0.3, errors
+    assert calls >= 2  # the noisy pass, then the rounds after the wide one
+    lost, lost_errors, calls = results["without"]
+    assert lost.fallback in ("constant_velocity", "implausible_motion") and lost.rematch_rounds == 0 and calls == 1
+    assert lost_errors.translation_mean > 0.1
+
+
 @pytest.mark.parametrize("gap", [0, -2, 1.5, True, "2"])
 def test_a_bad_rematch_gap_is_refused_up_front(gap: object) -> None:
     config = OdometryConfig()

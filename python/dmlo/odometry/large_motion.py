@@ -37,12 +37,14 @@ def register_far(
     match: Callable[[Image, Image, Image, Image], PairResult],
     config: LargeMotionConfig,
     min_inliers: int,
+    starts: list[Matrix4] | None = None,
 ) -> PairResult:
     """`T_tgt_ref` of the N×4 `reference` scan and the projected target: `wide` (the wide-window graph) from
-    every start, then rounds of `matcher` (the model's own window), `project` and `match` the odometry's
-    projection and back end. A round with fewer than `min_inliers` inliers keeps the estimate before it."""
+    every start (`T_tgt_ref` guesses; default the configured search), then rounds of `matcher` (the model's
+    own window), `project` and `match` the odometry's projection and back end. A round with fewer than
+    `min_inliers` inliers keeps the estimate before it."""
     best: tuple[PairResult, Matrix4] | None = None
-    for start in search_starts(config.search_ahead_m, config.search_yaw_deg):
+    for start in starts or search_starts(config.search_ahead_m, config.search_yaw_deg):
         ref_image, ref_range = project(moved(reference, start))
         output = wide.frame(tgt_image, matcher.encode(ref_image))
         assert output.flow is not None and output.confidence is not None

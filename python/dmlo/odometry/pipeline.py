@@ -26,6 +26,7 @@ from dmlo.odometry.matcher import (
     FrameOutput,
     Matcher,
     OnnxMatcher,
+    WIDE_FRAME_GRAPH,
     default_model_path,
     wide_graph_path,
 )
@@ -151,6 +152,7 @@ class Odometry:
         self._wide: Matcher | None = None  # loaded on the first large-motion pair
         self._warned_sensor = False
         self._rematch_gap = self._available_rematch_gap()
+        self._wide_graph_beside = self.matcher.path.with_name(WIDE_FRAME_GRAPH).is_file()
 
     def _available_rematch_gap(self) -> int | None:
         """`motion_model.rematch_gap`, or None with a warning when the model lacks the graphs it needs."""
@@ -199,7 +201,7 @@ class Odometry:
         if previous is None:
             pose = self._predict()
         else:
-            motion = self._motion_from_flow(previous, ranges, output, diagnostics, watch)
+            motion = self._motion_from_flow(previous, image, ranges, output, diagnostics, watch)
             pose = previous.pose @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
             if self._map is not None:
                 pose = self._refine_with_map(cloud, pose, diagnostics)
@@ -400,6 +402,7 @@ class Odometry:
     def _motion_from_flow(
         self,
         previous: _Scan,
+        tgt_image: npt.NDArray[np.float32],
         tgt_range: npt.NDArray[np.float32],
         output: FrameOutput,
         diagnostics: FrameDiagnostics,
@@ -412,7 +415,7 @@ class Odometry:
         diagnostics.backward_inliers = None if backward is None else backward.num_inliers
         gap = diagnostics.index - self._reference_index
         predicted = self._predicted_motion(gap)
-        pair = self._rematched_if_better(pair, previous, tgt_range, output.features, predicted, gap, diagnostics)
+        pair = self._rematched_if_better(pair, previous, tgt_image, tgt_range, output.features, predicted, gap, diagnostics)
         if watch and diagnostics.rematch_rounds is not None:
             watch.lap("rematch")
         if pair.num_inliers < self.config.motion_model.min_inliers:
@@ -440,6 +443,7 @@ class Odometry:
         self,
         pair: PairResult,
         previous: _Scan,
+        tgt_image: npt.NDArray[np.float32],
         tgt_range: npt.NDArray[np.float32],
         tgt_features: Features,
         predicted: Matrix4,
@@ -447,7 +451,9 @@ class Odometry:
         diagnostics: FrameDiagnostics,
     ) -> PairResult:
         """The pair, or the pair matched again from the prediction (`motion_model.rematch_gap`): across missing
-        scans the motion outgrows the network's window, while the prediction's error stays within it."""
+        scans the motion outgrows the network's window, while the prediction's error mostly stays within it;
+        when it does not (a turn during the gap: 10° off after 12 frames), the wide-window graph, when the
+        model has one, starts the rounds instead."""
         if self._rematch_gap is None or not self._velocity_measured:
             return pair  # before any velocity is measured the prediction is "standing still", the pair itself
         # As the gate below has it: after a replaced motion the prediction is the stale one, not the pair.
@@ -456,13 +462,24 @@ class Odometry:
         )
         if gap < self._rematch_gap and not gives_way:
             return pair
+        min_inliers = self.config.motion_model.min_inliers
         again = rematch(
             previous.cloud, predicted, tgt_range, tgt_features, rounds=range(1, self.config.large_motion.max_rounds + 1),
             last_correction=None, matcher=self.matcher, project=self._project, match=self._match,
-            config=self.config.large_motion, min_inliers=self.config.motion_model.min_inliers,
+            config=self.config.large_motion, min_inliers=min_inliers,
         )
+
+        def usable(result: PairResult | None) -> bool:
+            return result is not None and result.num_inliers >= min_inliers and not self._implausible(result, predicted, gap)
+
+        if not usable(again) and self._wide_graph_beside:
+            again = register_far(
+                previous.cloud, tgt_image, tgt_range, wide=self._wide_matcher(), matcher=self.matcher,
+                project=self._project, match=self._match, config=self.config.large_motion, min_inliers=min_inliers,
+                starts=[predicted],
+            )
         diagnostics.rematch_rounds = 0
-        if again is None or self._implausible(again, predicted, gap):
+        if again is None or not usable(again):
             return pair
         if not gives_way and again.num_inliers <= pair.num_inliers:
             return pair
