@@ -1,9 +1,11 @@
 """Pairs the network's window cannot span on its own — across missing scans, or a pair whose motion would
-give way to the prediction — matched again from the constant-velocity prediction (`motion_model.rematch_gap`)."""
+give way to the prediction — matched again from the constant-velocity prediction (`motion_model.rematch_gap`);
+scans missing in time alone (no file missing) counted from the timestamps."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 from pathlib import Path
 
@@ -12,7 +14,9 @@ import pytest
 
 from dmlo.datasets import open_sequence
 from dmlo.metrics import registration_errors
-from dmlo.odometry import Odometry, OdometryConfig
+from dmlo.odometry import Odometry, OdometryConfig, TimestampWarning
+from dmlo.odometry.clock import FrameClock
+from dmlo.odometry.run import run_sequence
 from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
 
@@ -172,3 +176,54 @@ def test_a_bad_rematch_gap_is_refused_up_front(gap: object) -> None:
     config.motion_model.rematch_gap = gap  # type: ignore[assignment]
     with pytest.raises(ValueError, match=r"motion_model.rematch_gap: must be an integer >= 1"):
         Odometry.from_default(config)
+
+
+def test_frames_are_counted_from_the_timestamps() -> None:
+    clock = FrameClock()
+    assert [clock.advance(t) for t in (0.0, 0.1, 0.2, 0.5, 0.6)] == [0, 1, 2, 5, 6]  # two scans dropped
+    assert clock.period == pytest.approx(0.1)
+    # Jitter of a few per cent is still one frame; an unstamped scan counts one; the first interval may
+    # itself span a gap, the median of the later ones corrects the period.
+    jittery = FrameClock()
+    assert [jittery.advance(t) for t in (10.0, 10.104, 10.199, 10.305, None, 10.498, 10.9)] == [0, 1, 2, 3, 4, 5, 9]
+    late_start = FrameClock()
+    assert [late_start.advance(t) for t in (0.0, 0.7, 0.8, 0.9, 1.0, 1.1, 1.4)] == [0, 1, 2, 3, 4, 5, 8]
+    unstamped = FrameClock()
+    assert [unstamped.advance(), unstamped.advance()] == [0, 1] and unstamped.period is None
+    backwards = FrameClock()
+    backwards.advance(1.0)
+    with pytest.warns(TimestampWarning, match="not after the previous scan's 1.0: taken for the next frame"):
+        assert backwards.advance(1.0) == 1
+    for bad in (float("nan"), "0.1", True):
+        with pytest.raises(ValueError, match="timestamp: expected a finite number"):
+            FrameClock().advance(bad)  # type: ignore[arg-type]
+
+
+def test_scans_dropped_in_time_alone_are_bridged_like_missing_files(highway: Path, tmp_path: Path) -> None:
+    # The log kept scans 0–2 and 2 + GAP with their times: no file is missing, the timestamps say 6 scans are.
+    sequence = open_sequence(highway)
+    kept = [0, 1, 2, 2 + GAP]
+    (tmp_path / "velodyne").mkdir()
+    for new, old in enumerate(kept):
+        shutil.copy(highway / "velodyne" / f"{old:06d}.bin", tmp_path / "velodyne" / f"{new:06d}.bin")
+    times = (highway / "times.txt").read_text().split()
+    (tmp_path / "times.txt").write_text("".join(f"{times[old]}\n" for old in kept))
+    dropped = open_sequence(tmp_path)
+    assert len(dropped) == 4 and dropped[3].timestamp == pytest.approx(float(times[2 + GAP]))
+
+    summary = run_sequence(dropped, Odometry.from_default(), tmp_path / "run", progress=False)
+    rows = [json.loads(line) for line in (tmp_path / "run" / "diagnostics.jsonl").read_text().splitlines()]
+    assert [row["gap"] for row in rows] == [None, 1, 1, GAP]
+    assert rows[3]["fallback"] == "rematched_from_prediction" and summary.fallbacks == {"rematched_from_prediction": 1}
+    poses = np.loadtxt(tmp_path / "run" / "poses_kitti.txt").reshape(-1, 3, 4)
+    assert len(poses) == 4  # one pose per scan given, none for the dropped ones
+    last, before = (np.vstack([poses[i], [0, 0, 0, 1]]) for i in (3, 2))
+    truth = np.linalg.inv(sequence[2 + GAP].pose) @ sequence[2].pose
+    errors = registration_errors(np.linalg.inv(last) @ before, truth)
+    assert errors.translation_mean < 0.08 and errors.angular_mean < 0.3, errors
+    # Without the timestamps the same scans look consecutive: a 9 m step the prediction of one frame cannot
+    # explain, so the pair gives way to it.
+    blind = Odometry.from_default()
+    for index in range(4):
+        blind.register(dropped[index].points)
+    assert blind.diagnostics[3].gap == 1 and blind.diagnostics[3].fallback in ("constant_velocity", "implausible_motion")

@@ -1,5 +1,6 @@
 """The DMLO odometry pipeline: `Odometry` registers scans one by one; `run_sequence` runs a dataset."""
 
+from dmlo.odometry.clock import TimestampWarning
 from dmlo.odometry.config import (
     LargeMotionConfig,
     MappingConfig,
@@ -21,4 +22,5 @@ __all__ = [
     "PairResult",
     "RansacConfig",
     "SensorMismatchWarning",
+    "TimestampWarning",
 ]

@@ -17,6 +17,7 @@ import numpy.typing as npt
 
 import dmlo_rs
 from dmlo.metrics.trajectory import pose_difference
+from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch
 from dmlo.odometry.matcher import (
@@ -49,6 +50,9 @@ class FrameDiagnostics:
 
     index: int
     num_points: int
+    # frames since the scan this one was matched against: > 1 after missing scans (skipped files, or a
+    # timestamp several sensor periods after the previous scan's); None for scans not matched
+    gap: int | None = None
     num_matches: int = 0
     num_inliers: int = 0
     inlier_ratio: float = 0.0
@@ -74,6 +78,7 @@ class FrameDiagnostics:
         return {
             "index": self.index,
             "num_points": self.num_points,
+            "gap": self.gap,
             "num_matches": self.num_matches,
             "num_inliers": self.num_inliers,
             "inlier_ratio": round(self.inlier_ratio, 4),
@@ -143,7 +148,9 @@ class Odometry:
         self.poses: list[Matrix4] = []
         self.diagnostics: list[FrameDiagnostics] = []
         self._reference: _Scan | None = None  # the last usable scan, matched against the next one
-        self._reference_index = -1
+        self._clock = FrameClock()  # frame numbers: one per scan, more across gaps in the timestamps
+        self._reference_frame = -1  # the reference scan's frame number
+        self._pose_frame = -1  # the newest pose's frame number
         self._velocity = np.eye(4)  # T_tgt_ref per frame, for the constant-velocity model
         self._velocity_measured = False  # until then the prediction is "standing still", a guess
         self._gated_last = False  # the previous matched frame's motion was replaced as implausible
@@ -175,14 +182,19 @@ class Odometry:
 
     # -- one scan -------------------------------------------------------------------------------
 
-    def register(self, points: npt.ArrayLike, moving: npt.ArrayLike | None = None) -> Matrix4:
+    def register(
+        self, points: npt.ArrayLike, moving: npt.ArrayLike | None = None, timestamp: float | None = None
+    ) -> Matrix4:
         """Adds the next scan and returns its pose `T_world_lidar` (the first scan is the world).
 
         `moving` is an optional per-point boolean mask of points on moving objects (§III-D-c); they
-        are left out of matching. A scan with fewer than `min_points` finite points is not matched:
-        its pose comes from the motion model and the diagnostics say so.
+        are left out of matching. `timestamp` (seconds, or any increasing unit) lets the motion model see
+        scans the sensor or the log dropped: a scan two median sensor periods after the previous one comes
+        after one missing scan. A scan with fewer than `min_points` finite points is not matched: its pose
+        comes from the motion model and the diagnostics say so.
         """
         cloud = _as_scan(points, "points")
+        self._clock.advance(timestamp)
         diagnostics = FrameDiagnostics(index=len(self.poses), num_points=len(cloud))
         watch = _Stopwatch(diagnostics.timings_ms)
         if moving is not None:
@@ -206,7 +218,7 @@ class Odometry:
             if self._map is not None:
                 pose = self._refine_with_map(cloud, pose, diagnostics)
                 watch.lap("ndt")
-            self._update_velocity(previous.pose, pose, diagnostics.index - self._reference_index)
+            self._update_velocity(previous.pose, pose, self._clock.frame - self._reference_frame)
         if self._map is not None:
             diagnostics.map_keyframe = self._is_keyframe(pose)
             if diagnostics.map_keyframe:
@@ -215,7 +227,7 @@ class Odometry:
             watch.lap("map_update")
 
         self._reference = _Scan(cloud=cloud, range=ranges, features=output.features, pose=pose)
-        self._reference_index = diagnostics.index
+        self._reference_frame = self._clock.frame
         return self._record(pose, diagnostics)
 
     def _check_sensor(self, image_fill: float) -> None:
@@ -233,6 +245,7 @@ class Odometry:
 
     def predict_skipped(self, reason: str = "unreadable_scan") -> Matrix4:
         """Records a scan that could not be read: its pose comes from the motion model."""
+        self._clock.advance()
         return self._skip(FrameDiagnostics(index=len(self.poses), num_points=0), reason)
 
     def register_pair(
@@ -413,7 +426,7 @@ class Odometry:
         diagnostics.num_inliers = forward.num_inliers
         diagnostics.inlier_ratio = forward.inlier_ratio
         diagnostics.backward_inliers = None if backward is None else backward.num_inliers
-        gap = diagnostics.index - self._reference_index
+        gap = diagnostics.gap = self._clock.frame - self._reference_frame
         predicted = self._predicted_motion(gap)
         pair = self._rematched_if_better(pair, previous, tgt_image, tgt_range, output.features, predicted, gap, diagnostics)
         if watch and diagnostics.rematch_rounds is not None:
@@ -529,8 +542,10 @@ class Odometry:
         return np.linalg.matrix_power(self._velocity, frames)
 
     def _predict(self) -> Matrix4:
-        """The constant-velocity pose of the next scan; the first scan defines the world."""
-        return self.poses[-1] @ np.linalg.inv(self._predicted_motion(1)) if self.poses else np.eye(4)
+        """The constant-velocity pose of the newest scan; the first scan defines the world."""
+        if not self.poses:
+            return np.eye(4)
+        return self.poses[-1] @ np.linalg.inv(self._predicted_motion(self._clock.frame - self._pose_frame))
 
     def _update_velocity(self, reference_pose: Matrix4, pose: Matrix4, frames: int) -> None:
         # Across a gap left by skipped scans the motion spans several frames; the velocity measured
@@ -544,6 +559,7 @@ class Odometry:
         return self._record(self._predict(), diagnostics)
 
     def _record(self, pose: Matrix4, diagnostics: FrameDiagnostics) -> Matrix4:
+        self._pose_frame = self._clock.frame
         self.poses.append(pose)
         self.diagnostics.append(diagnostics)
         return pose.copy()

@@ -27,7 +27,7 @@ from dmlo.poses import PoseWriter, write_kitti_poses
 class RunSummary:
     frames: int
     skipped: list[int]
-    fallbacks: dict[str, int]  # reason (constant_velocity, too_few_points, unreadable_scan) → frames
+    fallbacks: dict[str, int]  # `FrameDiagnostics.fallback` reason (constant_velocity, rematched_from_prediction, …) → frames
     seconds: float
     metrics: dict[str, Any] | None
     out_dir: Path
@@ -78,7 +78,7 @@ def run_sequence(
                 moving = None
                 if remove_moving and frame.labels is not None:
                     moving = moving_mask(frame.labels)
-                pose = odometry.register(frame.points, moving=moving)
+                pose = odometry.register(frame.points, moving=moving, timestamp=frame.timestamp)
                 record = odometry.diagnostics[-1].to_dict()
                 timestamp = float(frame.timestamp) if frame.timestamp is not None else float(index)
             timestamps.append(timestamp)
