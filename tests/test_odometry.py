@@ -353,6 +353,7 @@ def test_large_motion_settings_are_checked() -> None:
             Odometry.from_default(config)
 
 
+@pytest.mark.filterwarnings("ignore:.*not matched again from the prediction")  # the model folders lack graphs on purpose
 def test_encoder_graph_gives_the_frame_graphs_features_and_a_missing_one_is_named(
     scans: list[np.ndarray], tmp_path: Path
 ) -> None:
@@ -371,6 +372,7 @@ def test_encoder_graph_gives_the_frame_graphs_features_and_a_missing_one_is_name
         Odometry(tmp_path).register_pair(scans[0], scans[1], large_motion=True)
 
 
+@pytest.mark.filterwarnings("ignore:.*not matched again from the prediction")  # the model folders lack graphs on purpose
 def test_large_motion_without_a_wide_graph_says_how_to_make_one(scans: list[np.ndarray], tmp_path: Path) -> None:
     import shutil
 

@@ -170,6 +170,28 @@ def test_when_the_models_own_window_finds_nothing_the_wide_window_starts_the_rou
     assert lost_errors.translation_mean > 0.1
 
 
+@pytest.mark.parametrize("mapping", [False, True], ids=["dmlo", "mapping"])
+def test_beyond_the_prediction_horizon_the_prediction_is_only_a_guess(highway: Path, mapping: bool) -> None:
+    # A 4 s pause in the log (40 periods) after which the car has moved one frame on, as if it had stopped:
+    # the prediction says 50 m; the scans say 1.3 m.
+    sequence = open_sequence(highway)
+    truth = np.linalg.inv(sequence[3].pose) @ sequence[2].pose
+    errors = {}
+    for horizon in (20, 100):
+        config = OdometryConfig()
+        config.motion_model.prediction_horizon = horizon
+        config.mapping.enabled = mapping
+        odometry = Odometry.from_default(config)
+        for index, time in ((0, 0.0), (1, 0.1), (2, 0.2), (3, 4.2)):
+            odometry.register(sequence[index].points, timestamp=time)
+        assert odometry.diagnostics[3].gap == 40
+        motion = np.linalg.inv(odometry.poses[3]) @ odometry.poses[2]
+        errors[horizon] = registration_errors(motion, truth)
+    # Judged against the 50 m guess, the true motion is implausible, and the guess wins.
+    assert errors[100].translation_mean > 10
+    assert errors[20].translation_mean < 0.05 and errors[20].angular_mean < 0.3, errors[20]
+
+
 @pytest.mark.parametrize("gap", [0, -2, 1.5, True, "2"])
 def test_a_bad_rematch_gap_is_refused_up_front(gap: object) -> None:
     config = OdometryConfig()
@@ -227,3 +249,11 @@ def test_scans_dropped_in_time_alone_are_bridged_like_missing_files(highway: Pat
     for index in range(4):
         blind.register(dropped[index].points)
     assert blind.diagnostics[3].gap == 1 and blind.diagnostics[3].fallback in ("constant_velocity", "implausible_motion")
+
+
+@pytest.mark.parametrize("horizon", [0, 2.5, None])
+def test_a_bad_prediction_horizon_is_refused_up_front(horizon: object) -> None:
+    config = OdometryConfig()
+    config.motion_model.prediction_horizon = horizon  # type: ignore[assignment]
+    with pytest.raises(ValueError, match=r"motion_model.prediction_horizon: must be an integer >= 1"):
+        Odometry.from_default(config)

@@ -64,6 +64,10 @@ class MotionModelConfig:
     # 6–12 missing scans the prediction is off by 0.1–1.3 m and up to 11°, re-matching by 1–5 cm and
     # 0.1–0.5° (README, "Missing scans"). None: never (the paper).
     rematch_gap: int | None = 2
+    # Across more frames than this (2 s at 10 Hz: a paused log, a stop at a light while no scans came) the
+    # prediction is a guess: no motion is judged implausible against it, and when re-matching from it finds
+    # nothing the wide-window search also starts from the large-motion starts around standing still.
+    prediction_horizon: int = 20
 
 
 @dataclass

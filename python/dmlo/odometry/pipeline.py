@@ -19,7 +19,7 @@ import dmlo_rs
 from dmlo.metrics.trajectory import pose_difference
 from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
-from dmlo.odometry.large_motion import register_far, rematch
+from dmlo.odometry.large_motion import register_far, rematch, search_starts
 from dmlo.odometry.matcher import (
     ENCODER_GRAPH,
     MATCH_GRAPH,
@@ -486,10 +486,14 @@ class Odometry:
             return result is not None and result.num_inliers >= min_inliers and not self._implausible(result, predicted, gap)
 
         if not usable(again) and self._wide_graph_beside:
+            starts = [predicted]
+            if gap > self.config.motion_model.prediction_horizon:
+                large = self.config.large_motion
+                starts += search_starts(large.search_ahead_m, large.search_yaw_deg)
             again = register_far(
                 previous.cloud, tgt_image, tgt_range, wide=self._wide_matcher(), matcher=self.matcher,
                 project=self._project, match=self._match, config=self.config.large_motion, min_inliers=min_inliers,
-                starts=[predicted],
+                starts=starts,
             )
         diagnostics.rematch_rounds = 0
         if again is None or not usable(again):
@@ -503,9 +507,12 @@ class Odometry:
         return again
 
     def _implausible(self, pair: PairResult, predicted: Matrix4, gap: int) -> bool:
-        """Whether a motion lies further from the prediction than a car's change of speed allows."""
-        moved, turned = pose_difference(pair.T_tgt_ref, predicted)
+        """Whether a motion lies further from the prediction than a car's change of speed allows; never
+        beyond the prediction's horizon, where the prediction is a guess."""
         limits = self.config.motion_model
+        if gap > limits.prediction_horizon:
+            return False
+        moved, turned = pose_difference(pair.T_tgt_ref, predicted)
         return bool(moved > limits.max_deviation * gap or turned > limits.max_deviation_deg * gap)
 
     def _consensus_near(self, pair: PairResult, predicted: Matrix4) -> Matrix4 | None:
@@ -591,7 +598,8 @@ class Odometry:
         lies outside NDT's basin, and the start whose alignment scores higher wins."""
         c = self.config.mapping
         starts = {"dmlo": pose}
-        if self._velocity_measured:
+        within_horizon = self._clock.frame - self._reference_frame <= self.config.motion_model.prediction_horizon
+        if self._velocity_measured and within_horizon:
             # Before any velocity is measured the prediction is "standing still", and the map's ground
             # rings, which move with the sensor, score that wrong start highly.
             predicted = self._predict()
@@ -663,6 +671,9 @@ def _check_limits(config: OdometryConfig) -> None:
     gap = config.motion_model.rematch_gap
     if gap is not None and (isinstance(gap, bool) or not isinstance(gap, int) or gap < 1):
         raise ValueError(f"motion_model.rematch_gap: must be an integer >= 1 (frames) or None, got {gap!r}")
+    horizon = config.motion_model.prediction_horizon
+    if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
+        raise ValueError(f"motion_model.prediction_horizon: must be an integer >= 1 (frames), got {horizon!r}")
     rounds = config.large_motion.max_rounds
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
         raise ValueError(f"large_motion.max_rounds: must be an integer >= 1, got {rounds!r}")
