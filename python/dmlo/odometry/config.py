@@ -61,8 +61,8 @@ class MotionModelConfig:
     # from the prediction: the previous scan moved by it, projected again and matched with the model's own
     # window in rounds (`large_motion.max_rounds`, `min_step`, `min_step_deg`). The re-matched motion is
     # taken when it has more inliers than the pair's own, or when the pair's own would give way. Across
-    # 6–12 missing scans the prediction is off by 0.1–1.3 m and up to 11°, re-matching by 1–5 cm and
-    # 0.1–0.5° (README, "Missing scans"). None: never (the paper).
+    # 7–11 missing scans the paper's fallback errs 0.16–0.69 m and 1.1–6.0° on average, re-matching 2–9 cm
+    # and 0.1–0.6° (README, "Missing scans"). None: never (the paper).
     rematch_gap: int | None = 2
     # Across more frames than this (2 s at 10 Hz: a paused log, a stop at a light while no scans came) the
     # prediction is a guess: no motion is judged implausible against it, and when re-matching from it finds
