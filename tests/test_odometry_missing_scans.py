@@ -31,11 +31,10 @@ def highway(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> Path
     return out
 
 
-def across_the_gap(drive: Path, config: OdometryConfig, model: Path | None = None) -> tuple[Odometry, np.ndarray, np.ndarray]:
-    """Scans 0–2 registered, 3 … 2 + GAP − 1 missing, 2 + GAP registered: the odometry, its motion across
-    the gap and the true one (`T_tgt_ref`)."""
+def across_the_gap(drive: Path, odometry: Odometry) -> tuple[np.ndarray, np.ndarray]:
+    """Scans 0–2 registered, 3 … 2 + GAP − 1 missing, 2 + GAP registered: the odometry's motion across the
+    gap and the true one (`T_tgt_ref`)."""
     sequence = open_sequence(drive)
-    odometry = Odometry(model, config) if model else Odometry.from_default(config)
     for index in range(3):
         odometry.register(sequence[index].points)
     for _ in range(GAP - 1):
@@ -43,13 +42,14 @@ def across_the_gap(drive: Path, config: OdometryConfig, model: Path | None = Non
     odometry.register(sequence[2 + GAP].points)
     estimated = np.linalg.inv(odometry.poses[-1]) @ odometry.poses[2]
     truth = np.linalg.inv(sequence[2 + GAP].pose) @ sequence[2].pose
-    return odometry, estimated, truth
+    return estimated, truth
 
 
 def test_a_pair_across_missing_scans_is_matched_again_from_the_prediction(highway: Path) -> None:
     paper = OdometryConfig()
     paper.motion_model.rematch_gap = None
-    lost, lost_motion, truth = across_the_gap(highway, paper)
+    lost = Odometry.from_default(paper)
+    lost_motion, truth = across_the_gap(highway, lost)
     assert np.linalg.norm(truth[:3, 3]) > 8.5
     lost_errors = registration_errors(lost_motion, truth)
     # The pair alone is out of the window: its motion gives way to the prediction, decimetres off.
@@ -57,7 +57,8 @@ def test_a_pair_across_missing_scans_is_matched_again_from_the_prediction(highwa
     assert lost_errors.translation_mean > 0.1, lost_errors
     assert lost.diagnostics[-1].rematch_rounds is None
 
-    found, motion, truth = across_the_gap(highway, OdometryConfig())
+    found = Odometry.from_default()
+    motion, truth = across_the_gap(highway, found)
     errors = registration_errors(motion, truth)
     last = found.diagnostics[-1]
     assert last.fallback == "rematched_from_prediction" and last.rematch_rounds is not None and last.rematch_rounds >= 1
@@ -129,7 +130,8 @@ def test_a_consecutive_pair_that_would_give_way_is_matched_again(highway: Path) 
 def test_a_model_without_the_graphs_to_rematch_warns_and_bridges_gaps_as_the_paper(highway: Path, tmp_path: Path) -> None:
     shutil.copy(default_model_path() / "frame.onnx", tmp_path / "frame.onnx")
     with pytest.warns(UserWarning, match=r"no encoder.onnx or match.onnx: pairs across missing scans are not matched again"):
-        odometry, _, _ = across_the_gap(highway, OdometryConfig(), model=tmp_path)
+        odometry = Odometry(tmp_path)
+    across_the_gap(highway, odometry)
     assert odometry.diagnostics[-1].rematch_rounds is None
 
 
@@ -152,14 +154,7 @@ def test_when_the_models_own_window_finds_nothing_the_wide_window_starts_the_rou
             return flow, confidence
 
         odometry.matcher.match = noisy_first_match  # type: ignore[method-assign]
-        sequence = open_sequence(highway)
-        for index in range(3):
-            odometry.register(sequence[index].points)
-        for _ in range(GAP - 1):
-            odometry.predict_skipped()
-        odometry.register(sequence[2 + GAP].points)
-        motion = np.linalg.inv(odometry.poses[-1]) @ odometry.poses[2]
-        truth = np.linalg.inv(sequence[2 + GAP].pose) @ sequence[2].pose
+        motion, truth = across_the_gap(highway, odometry)
         results[name] = (odometry.diagnostics[-1], registration_errors(motion, truth), len(calls))
     found, errors, calls = results["with wide graph"]
     assert found.fallback == "rematched_from_prediction" and found.rematch_rounds is not None and found.rematch_rounds >= 2
