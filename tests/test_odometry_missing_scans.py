@@ -135,7 +135,7 @@ def test_a_model_without_the_graphs_to_rematch_warns_and_bridges_gaps_as_the_pap
     assert odometry.diagnostics[-1].rematch_rounds is None
 
 
-def test_when_the_models_own_window_finds_nothing_the_wide_window_starts_the_rounds(highway: Path, tmp_path: Path) -> None:
+def test_the_wide_window_from_the_prediction_takes_over_when_the_models_own_finds_nothing(highway: Path, tmp_path: Path) -> None:
     # Fault injection: the first re-matching pass returns noise (as when the prediction is too far off for the
     # model's window); the wide-window graph, started from the prediction, then leads the rounds.
     for graph in ("frame.onnx", "encoder.onnx", "match.onnx"):

@@ -464,9 +464,10 @@ class Odometry:
         diagnostics: FrameDiagnostics,
     ) -> PairResult:
         """The pair, or the pair matched again from the prediction (`motion_model.rematch_gap`): across missing
-        scans the motion outgrows the network's window, while the prediction's error mostly stays within it;
-        when it does not (a turn during the gap: 10° off after 12 frames), the wide-window graph, when the
-        model has one, starts the rounds instead."""
+        scans the motion outgrows the network's window, while the prediction's error mostly stays within it.
+        When it does not (a turn during the gap: 10° off after 12 frames; the highway's 17 m), the wide-window
+        graph, when the model has one, started from the prediction does better: both start the rounds, and the
+        one with more inliers wins."""
         if self._rematch_gap is None or not self._velocity_measured:
             return pair  # before any velocity is measured the prediction is "standing still", the pair itself
         # As the gate below has it: after a replaced motion the prediction is the stale one, not the pair.
@@ -476,28 +477,31 @@ class Odometry:
         if gap < self._rematch_gap and not gives_way:
             return pair
         min_inliers = self.config.motion_model.min_inliers
-        again = rematch(
-            previous.cloud, predicted, tgt_range, tgt_features, rounds=range(1, self.config.large_motion.max_rounds + 1),
-            last_correction=None, matcher=self.matcher, project=self._project, match=self._match,
-            config=self.config.large_motion, min_inliers=min_inliers,
-        )
-
-        def usable(result: PairResult | None) -> bool:
-            return result is not None and result.num_inliers >= min_inliers and not self._implausible(result, predicted, gap)
-
-        if not usable(again) and self._wide_graph_beside:
+        tried = [
+            rematch(
+                previous.cloud, predicted, tgt_range, tgt_features, rounds=range(1, self.config.large_motion.max_rounds + 1),
+                last_correction=None, matcher=self.matcher, project=self._project, match=self._match,
+                config=self.config.large_motion, min_inliers=min_inliers,
+            )
+        ]
+        if self._wide_graph_beside:
             starts = [predicted]
             if gap > self.config.motion_model.prediction_horizon:
                 large = self.config.large_motion
                 starts += search_starts(large.search_ahead_m, large.search_yaw_deg)
-            again = register_far(
+            tried.append(register_far(
                 previous.cloud, tgt_image, tgt_range, wide=self._wide_matcher(), matcher=self.matcher,
                 project=self._project, match=self._match, config=self.config.large_motion, min_inliers=min_inliers,
                 starts=starts,
-            )
+            ))
+        usable = [
+            result for result in tried
+            if result is not None and result.num_inliers >= min_inliers and not self._implausible(result, predicted, gap)
+        ]
         diagnostics.rematch_rounds = 0
-        if again is None or not usable(again):
+        if not usable:
             return pair
+        again = max(usable, key=lambda result: result.num_inliers)  # the model's own window first on a tie
         if not gives_way and again.num_inliers <= pair.num_inliers:
             return pair
         diagnostics.rematch_rounds = again.rounds
