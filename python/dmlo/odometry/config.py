@@ -58,15 +58,16 @@ class MotionModelConfig:
     guided_fraction: float = 0.5
     # Beyond the paper: a pair spanning this many frames or more (scans missing between them) and a pair
     # whose own motion would give way to the prediction (too few inliers, or implausible) are matched again
-    # from the prediction: the previous scan moved by it, projected again and matched with the model's own
-    # window in rounds (`large_motion.max_rounds`, `min_step`, `min_step_deg`). The re-matched motion is
-    # taken when it has more inliers than the pair's own, or when the pair's own would give way. Across
+    # from the prediction: the previous scan moved by it, projected again and matched in rounds
+    # (`large_motion.max_rounds`, `min_step`, `min_step_deg`), once started by the model's own window and once
+    # by the wide one (when the model has `frame_wide.onnx`), the more inliers winning. The re-matched motion
+    # is taken when it has more inliers than the pair's own, or when the pair's own would give way. Across
     # 7–11 missing scans the paper's fallback errs 0.16–0.69 m and 1.1–6.0° on average, re-matching 2–9 cm
     # and 0.1–0.6° (README, "Missing scans"). None: never (the paper).
     rematch_gap: int | None = 2
     # Across more frames than this (2 s at 10 Hz: a paused log, a stop at a light while no scans came) the
-    # prediction is a guess: no motion is judged implausible against it, and when re-matching from it finds
-    # nothing the wide-window search also starts from the large-motion starts around standing still.
+    # prediction is a guess: no motion is judged implausible against it, NDT does not start from it, and the
+    # wide window of the re-matching also starts from the large-motion starts (`large_motion.search_ahead_m`).
     prediction_horizon: int = 20
 
 
