@@ -62,8 +62,8 @@ class MotionModelConfig:
     # (`large_motion.max_rounds`, `min_step`, `min_step_deg`), once started by the model's own window and once
     # by the wide one (when the model has `frame_wide.onnx`), the more inliers winning. The re-matched motion
     # is taken when it has more inliers than the pair's own, or when the pair's own would give way. Across
-    # 7–11 missing scans the paper's fallback errs 0.16–0.69 m and 1.1–6.0° on average, re-matching 2–9 cm
-    # and 0.1–0.6° (README, "Missing scans"). None: never (the paper).
+    # 7–11 missing scans the paper's fallback errs 0.16–0.69 m and 1.1–6.0° on average, re-matching 2–3 cm
+    # and 0.1–0.3° (README, "Missing scans"). None: never (the paper).
     rematch_gap: int | None = 2
     # Across more frames than this (2 s at 10 Hz: a paused log, a stop at a light while no scans came) the
     # prediction is a guess: no motion is judged implausible against it, NDT does not start from it, and the
