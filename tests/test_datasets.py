@@ -268,6 +268,9 @@ def test_times_count_mismatch_and_bad_times(tmp_path: Path) -> None:
     (tmp_path / "times.txt").write_text("0\nyesterday\n0.2\n0.3\n")
     with pytest.raises(D.DatasetError, match="times.txt:2"):
         D.open_sequence(tmp_path)
+    (tmp_path / "times.txt").write_text("0\n0.1\nnan\n0.3\n")
+    with pytest.raises(D.DatasetError, match="times.txt:3: timestamp 'nan' is not a finite number"):
+        D.open_sequence(tmp_path)
 
 
 def test_truncated_bin(tmp_path: Path) -> None:

@@ -47,10 +47,15 @@ def read_timestamps(path: PathLike) -> NDArray[np.float64]:
             if not text:
                 continue
             try:
-                stamps.append(float(text))
-                continue
+                seconds = float(text)
             except ValueError:
                 pass
+            else:
+                # The odometry counts missing scans from the intervals: a NaN would count nothing.
+                if not np.isfinite(seconds):
+                    raise DatasetError(f"{path}:{number}: timestamp {text!r} is not a finite number")
+                stamps.append(seconds)
+                continue
             try:
                 moment = np.datetime64(text.replace(" ", "T"), "ns")
             except ValueError:
