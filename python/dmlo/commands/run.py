@@ -19,7 +19,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "run",
         help="run DMLO odometry over a sequence of scans",
         description="Run DMLO odometry over a sequence; write poses (KITTI and TUM), per-frame "
-        "diagnostics, the config used, and metrics + a plot when ground truth exists.",
+        "diagnostics, the config used, and metrics + a plot when ground truth exists. Unreadable scan files, "
+        "and scans missing from the timestamps (times.txt, KITTI raw timestamps.txt, Argoverse), are bridged: "
+        "the next scan is matched again from the motion model's prediction.",
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
