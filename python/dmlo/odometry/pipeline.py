@@ -281,11 +281,16 @@ class Odometry:
         return cloud
 
     def _register_far(
-        self, reference: npt.NDArray[np.float32], tgt_image: npt.NDArray[np.float32], tgt_range: npt.NDArray[np.float32]
+        self,
+        reference: npt.NDArray[np.float32],
+        tgt_image: npt.NDArray[np.float32],
+        tgt_range: npt.NDArray[np.float32],
+        starts: list[Matrix4] | None = None,
     ) -> PairResult:
         return register_far(
             reference, tgt_image, tgt_range, wide=self._wide_matcher(), matcher=self.matcher, project=self._project,
             match=self._match, config=self.config.large_motion, min_inliers=self.config.motion_model.min_inliers,
+            starts=starts,
         )
 
     def _wide_matcher(self) -> Matcher:
@@ -489,11 +494,7 @@ class Odometry:
             if gap > self.config.motion_model.prediction_horizon:
                 large = self.config.large_motion
                 starts += search_starts(large.search_ahead_m, large.search_yaw_deg)
-            tried.append(register_far(
-                previous.cloud, tgt_image, tgt_range, wide=self._wide_matcher(), matcher=self.matcher,
-                project=self._project, match=self._match, config=self.config.large_motion, min_inliers=min_inliers,
-                starts=starts,
-            ))
+            tried.append(self._register_far(previous.cloud, tgt_image, tgt_range, starts))
         usable = [
             result for result in tried
             if result is not None and result.num_inliers >= min_inliers and not self._implausible(result, predicted, gap)
