@@ -8,6 +8,7 @@
 //! | [`ground_truth`] | Eq. 5–8 | per-cell training flow and validity for a pair with known motion |
 //! | [`matches`] | §III-D | network output (flow + confidence) → 3D point pairs |
 //! | [`coherence`] | — | confidence weighted by how well a match agrees with its neighbours |
+//! | [`deskew`] | — | motion compensation of a spinning sensor's sweep (constant velocity) |
 //! | [`nms`] | §III-D-a | greedy non-maximum suppression on the cylinder grid |
 //! | [`rigid`] | Eq. 12–14 | closed-form weighted rigid solve (faer SVD, reflection fixed) |
 //! | [`ransac`] | §III-D-b | seeded RANSAC with rayon-parallel hypothesis scoring |
@@ -22,6 +23,7 @@
 //! feature, which maturin enables.
 
 pub mod coherence;
+pub mod deskew;
 pub mod error;
 pub mod ground_truth;
 pub mod matches;

@@ -1,4 +1,4 @@
-//! Bindings of the core: projection, ground truth, rigid solve, RANSAC, NMS, match decoding.
+//! Bindings of the core: projection, ground truth, rigid solve, RANSAC, NMS, match decoding, deskewing.
 //!
 //! Every function checks dtype, shape and finiteness at the boundary (naming the argument), copies
 //! non-contiguous or float64 input where a float32 buffer is needed, releases the GIL around the work,
@@ -744,6 +744,89 @@ fn coherent_confidence<'py>(
     Ok(image_array(h, w, weighted)?.into_pyarray(py))
 }
 
+// ---- deskewing -------------------------------------------------------------------------------------
+
+/// An `N×3` or `N×4` float array as row-major float32 data and its column count.
+fn scan_points<'py>(obj: &Bound<'py, PyAny>) -> PyResult<(Floats<'py>, usize)> {
+    let array = floats("points", obj)?;
+    let shape = array.shape().to_vec();
+    if shape.len() != 2 || !(shape[1] == 3 || shape[1] == 4) {
+        return Err(shape_error("points", "(N, 4) or (N, 3)", &shape));
+    }
+    Ok((array, shape[1]))
+}
+
+/// Sweep times of `points` (N×4 or N×3) from their azimuth: fractions of a sweep period, 0 at the
+/// moment the sensor looks at `reference_azimuth_deg` (x forward = 0), e.g. −0.25 for a point 90°
+/// counter-clockwise of it on a `clockwise` sensor (KITTI's HDL-64E). A non-finite point gets 0.
+#[pyfunction]
+#[pyo3(signature = (points, *, clockwise = true, reference_azimuth_deg = 0.0, num_threads = None))]
+fn sweep_times<'py>(
+    py: Python<'py>,
+    points: &Bound<'py, PyAny>,
+    clockwise: bool,
+    reference_azimuth_deg: f64,
+    num_threads: Option<usize>,
+) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    let (array, columns) = scan_points(points)?;
+    let data = array.f32_data();
+    let data_ref: &[f32] = &data;
+    let pattern = crate::deskew::SweepPattern {
+        clockwise,
+        reference_azimuth_deg,
+    };
+    let times = run(py, num_threads, || {
+        crate::deskew::sweep_times(data_ref, columns, &pattern)
+    })?;
+    Ok(Array1::from_vec(times).into_pyarray(py))
+}
+
+/// Motion compensation: `points` (N×4 or N×3; reflectance copied) moved from the sensor frame of the
+/// moment each was measured into that of the sweep's reference moment, as float32.
+///
+/// `motion` (4×4) is the sensor's motion over one sweep period, `T_reference_next` (the inverse of the
+/// odometry's `T_tgt_ref`); `times` (N) are the points' sweep times in periods, 0 at the reference, or
+/// None to take them from the azimuth (`sweep_times` with the same pattern). Between the reference and
+/// time s the sensor turns by s times the motion's rotation vector and moves by s times its translation.
+#[pyfunction]
+#[pyo3(signature = (points, motion, times = None, *, clockwise = true, reference_azimuth_deg = 0.0,
+                    num_threads = None))]
+#[allow(clippy::too_many_arguments)]
+fn deskew<'py>(
+    py: Python<'py>,
+    points: &Bound<'py, PyAny>,
+    motion: &Bound<'py, PyAny>,
+    times: Option<&Bound<'py, PyAny>>,
+    clockwise: bool,
+    reference_azimuth_deg: f64,
+    num_threads: Option<usize>,
+) -> PyResult<Bound<'py, PyArray2<f32>>> {
+    let (array, columns) = scan_points(points)?;
+    let motion = transform("motion", motion)?;
+    let times = times.map(|t| vector_f64("times", t)).transpose()?;
+    let data = array.f32_data();
+    let data_ref: &[f32] = &data;
+    let pattern = crate::deskew::SweepPattern {
+        clockwise,
+        reference_azimuth_deg,
+    };
+    let moved = run(py, num_threads, || {
+        let derived;
+        let times = match &times {
+            Some(times) => times.as_slice(),
+            None => {
+                derived = crate::deskew::sweep_times(data_ref, columns, &pattern)?;
+                derived.as_slice()
+            }
+        };
+        crate::deskew::deskew(data_ref, columns, times, &motion)
+    })?;
+    let count = moved.len() / columns;
+    Array2::from_shape_vec((count, columns), moved)
+        .map(|a| a.into_pyarray(py))
+        .map_err(|e| PyRuntimeError::new_err(format!("internal error in dmlo_rs: {e}")))
+}
+
 pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyCylinderConfig>()?;
     m.add_class::<PyProjection>()?;
@@ -757,6 +840,8 @@ pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(non_maximum_suppression, m)?)?;
     m.add_function(wrap_pyfunction!(decode_matches, m)?)?;
     m.add_function(wrap_pyfunction!(coherent_confidence, m)?)?;
+    m.add_function(wrap_pyfunction!(sweep_times, m)?)?;
+    m.add_function(wrap_pyfunction!(deskew, m)?)?;
     m.add("MAX_COHERENCE_RADIUS", coherence::MAX_RADIUS)?;
     Ok(())
 }
