@@ -15,7 +15,7 @@ def _static_scans(shared_data: Path, count: int) -> list[np.ndarray]:
     return [np.fromfile(f, dtype=np.float32).reshape(-1, 4) for f in files]
 
 
-@pytest.mark.parametrize("name", ["KISS-ICP", "KISS-ICP 0.25 m voxels", "small_gicp GICP"])
+@pytest.mark.parametrize("name", ["KISS-ICP", "KISS-ICP deskewed", "KISS-ICP 0.25 m voxels", "small_gicp GICP"])
 def test_peer_stays_still_on_static_scans(shared_data: Path, name: str) -> None:
     peer = next(p for p in PEERS if p.name == name)
     if not peer.available:
@@ -49,3 +49,20 @@ def test_a_peer_whose_package_is_missing_or_does_not_load_is_unavailable(tmp_pat
     missing = Peer("missing", "no_such_peer_package_here", lambda: None)  # type: ignore[arg-type, return-value]
     assert not missing.available and "not installed" in str(missing.unavailable_reason)
     assert next(p for p in PEERS if p.name == "KISS-ICP").unavailable_reason is None
+
+
+def test_half_motion_is_the_slerp_midpoint() -> None:
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from dmlo.bench.peers import _half_motion
+
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        motion = np.eye(4)
+        rotation = Rotation.from_rotvec(rng.normal(0, 0.3, 3))
+        motion[:3, :3], motion[:3, 3] = rotation.as_matrix(), rng.normal(0, 1, 3)
+        half = _half_motion(motion)
+        middle = Slerp([0, 1], Rotation.concatenate([Rotation.identity(), rotation]))(0.5)
+        assert np.allclose(half[:3, :3], middle.as_matrix(), atol=1e-12)
+        assert np.allclose(half[:3, 3], motion[:3, 3] / 2)
+    assert np.array_equal(_half_motion(np.eye(4)), np.eye(4))

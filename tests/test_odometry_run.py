@@ -171,6 +171,24 @@ def test_bench_rows_say_which_matching_they_ran(drive: Path, tmp_path: Path) -> 
     assert rows == ["DMLO (symmetric, no coherence)", "DMLO (symmetric, no coherence) + mapping"]
 
 
+def test_deskew_flag_reaches_the_config_and_the_diagnostics(drive: Path, tmp_path: Path) -> None:
+    result = dmlo("run", str(drive), "--out", str(tmp_path), "--max-frames", "4", "--deskew")
+    assert result.returncode == 0, result.stderr
+    assert json.loads((tmp_path / "config.json").read_text())["deskew"]["enabled"] is True
+    diagnostics = [json.loads(line) for line in (tmp_path / "diagnostics.jsonl").read_text().splitlines()]
+    assert [d["deskewed"] for d in diagnostics] == [False, False, True, True]  # from the first measured motion on
+
+
+def test_bench_with_deskew_compares_with_kiss_icp_deskewed(drive: Path, tmp_path: Path) -> None:
+    pytest.importorskip("kiss_icp")
+    result = dmlo("bench", str(drive), "--deskew", "--peers", "KISS-ICP deskewed", "--max-frames", "4",
+                  "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    rows = [line.split("|")[1].strip() for line in result.stdout.strip().splitlines()[2:]]
+    assert rows == ["DMLO (deskewed)", "KISS-ICP deskewed"]
+    assert read_kitti_poses(tmp_path / "KISS-ICP_deskewed.txt").shape == (4, 4, 4)
+
+
 def test_bench_names_an_unknown_peer(drive: Path, tmp_path: Path) -> None:
     result = dmlo("bench", str(drive), "--peers", "ICP-9000", "--out", str(tmp_path))
     assert result.returncode == 2

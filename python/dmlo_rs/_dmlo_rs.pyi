@@ -29,6 +29,8 @@ __all__ += [
     "decode_matches",
     "coherent_confidence",
     "MAX_COHERENCE_RADIUS",
+    "sweep_times",
+    "deskew",
 ]
 
 MAX_COHERENCE_RADIUS: int
@@ -221,6 +223,33 @@ def coherent_confidence(
     flow of the (2·radius+1)² cells around it (per component: medians down the window's columns over cells
     with a range, then their median across; a 360° image's columns wrap); 0 without a range or finite
     flow; radius ≤ MAX_COHERENCE_RADIUS (15). Beyond the paper: lowers matches that disagree with their neighbours."""
+
+def sweep_times(
+    points: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    *,
+    clockwise: bool = True,
+    reference_azimuth_deg: float = 0.0,
+    num_threads: int | None = None,
+) -> npt.NDArray[np.float64]:
+    """Sweep times (N,) of points N×4 or N×3 from their azimuth, in sensor periods: 0 when the sensor looks
+    at reference_azimuth_deg (x forward = 0), −0.25 a quarter turn before on a clockwise sensor (KITTI's
+    HDL-64E); within [−0.5, 0.5]; 0 for a non-finite point."""
+
+def deskew(
+    points: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    motion: npt.NDArray[np.float64] | npt.NDArray[np.float32],
+    times: npt.NDArray[np.float64] | npt.NDArray[np.float32] | None = None,
+    *,
+    clockwise: bool = True,
+    reference_azimuth_deg: float = 0.0,
+    num_threads: int | None = None,
+) -> npt.NDArray[np.float32]:
+    """Motion compensation: points N×4 or N×3 (reflectance copied) moved from the sensor frame of the moment
+    each was measured into that of the sweep's reference moment, float32. motion (4×4) is the sensor's motion
+    over one sweep period, T_reference_next (the inverse of the odometry's T_tgt_ref; at most 90° of
+    rotation); times (N) the points' sweep times, or None for sweep_times(points) with the same pattern.
+    Between the reference and time s the sensor turns by s × the rotation vector and moves by s × the
+    translation."""
 
 
 

@@ -48,7 +48,7 @@ def benchmark_sequence(
     from dmlo.metrics import evaluate_trajectory
 
     methods: list[tuple[str, Callable[[], FrameOdometry]]] = list(dmlo_variants.items())
-    wanted = set(peers) if peers is not None else {p.name for p in PEERS} - {"Open3D FPFH+RANSAC"}
+    wanted = set(peers) if peers is not None else {p.name for p in PEERS if p.by_default}
     unknown = wanted - {p.name for p in PEERS}
     if unknown:
         raise UnknownPeerError(f"unknown peer(s): {', '.join(sorted(unknown))}; known: {', '.join(p.name for p in PEERS)}")

@@ -5,11 +5,16 @@ scans when `../shared/data` is present. Every method reads the same files; the t
 and the ratios to KISS-ICP measured in this run.
 
     python -m dmlo.benchmarks.odometry --frames 300 --seeds 1 2 3 --trajectories 07 07 05 --out runs/bench_odometry
+
+With `--motion-distortion` the drives are simulated with skewed sweeps (every column cast from the pose of
+the moment it fires, as a real spinning sensor's) and DMLO runs with and without deskewing
+(`deskew.enabled`); name "KISS-ICP deskewed" among the peers for KISS-ICP's own motion compensation.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 from dmlo.bench.runner import benchmark_sequence, format_table
@@ -20,10 +25,11 @@ from dmlo.simulator import simulate_sequence
 TRAJECTORIES = ("07", "05", "00")  # KITTI sequences whose ground truth the drives follow, by seed
 
 
-def _dmlo(model: Path | None, mapping: bool, symmetric: bool = False) -> Odometry:
+def _dmlo(model: Path | None, mapping: bool, symmetric: bool = False, deskew: bool = False) -> Odometry:
     config = OdometryConfig()
     config.mapping.enabled = mapping
     config.matching.symmetric = symmetric
+    config.deskew.enabled = deskew
     return Odometry(model, config) if model else Odometry.from_default(config)
 
 
@@ -38,6 +44,8 @@ def main() -> None:
     parser.add_argument("--model", type=Path, default=None)
     parser.add_argument("--peers", nargs="*", default=["KISS-ICP", "small_gicp GICP", "Open3D GICP"])
     parser.add_argument("--symmetric", action="store_true", help="add a row for DMLO with symmetric matching")
+    parser.add_argument("--motion-distortion", action="store_true",
+                        help="simulate skewed sweeps and add deskewed DMLO rows")
     parser.add_argument("--out", type=Path, default=Path("runs/bench_odometry"))
     args = parser.parse_args()
 
@@ -46,15 +54,28 @@ def main() -> None:
         drive = args.out / f"drive_seed{seed}"
         if not (drive / "poses.txt").is_file():
             simulate_sequence(drive, frames=args.frames, seed=seed,
-                              trajectory=trajectory if trajectory.is_file() else None)
+                              trajectory=trajectory if trajectory.is_file() else None,
+                              motion_distortion=args.motion_distortion)
+        elif _skewed(drive) != args.motion_distortion:
+            parser.error(f"{drive} holds drives {'with' if _skewed(drive) else 'without'} motion distortion; "
+                         "choose another --out")
         sequence = open_sequence(drive)
         variants = {"DMLO": lambda: _dmlo(args.model, False), "DMLO + mapping": lambda: _dmlo(args.model, True)}
         if args.symmetric:
             variants["DMLO (symmetric)"] = lambda: _dmlo(args.model, False, symmetric=True)
+        if args.motion_distortion:
+            variants["DMLO deskewed"] = lambda: _dmlo(args.model, False, deskew=True)
+            variants["DMLO + mapping, deskewed"] = lambda: _dmlo(args.model, True, deskew=True)
         rows = benchmark_sequence(sequence, variants, args.out / drive.name, peers=args.peers, max_frames=args.frames)
         source = f"KITTI {trajectory.stem}" if trajectory.is_file() else "generated"
         print(f"\n### {drive.name} ({source} trajectory, {len(sequence)} frames)\n")
         print(format_table(rows))
+
+
+def _skewed(drive: Path) -> bool:
+    """Whether the simulated drive in `drive` was cast with motion distortion (its simulation.json)."""
+    info = drive / "simulation.json"
+    return bool(json.loads(info.read_text()).get("motion_distortion", False)) if info.is_file() else False
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ from pathlib import Path
 EXAMPLES = """examples:
   dmlo bench sim_drive/ --max-frames 200
   dmlo bench /data/kitti --sequence 07 --peers KISS-ICP "small_gicp GICP"
+  dmlo bench skewed_drive/ --deskew --mapping
 """
 
 
@@ -25,7 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("path", type=Path, help="dataset folder with ground-truth poses")
     add_dataset_arguments(parser)
     parser.add_argument("--peers", nargs="*", default=None,
-                        help="peer names to run (default: every installed peer except FPFH+RANSAC)")
+                        help="peer names to run (default: every installed peer except FPFH+RANSAC and "
+                        "KISS-ICP deskewed; with --deskew, KISS-ICP deskewed too)")
     parser.add_argument("--out", type=Path, default=Path("runs/bench"))
     add_odometry_arguments(parser)
     parser.set_defaults(run=run)
@@ -43,13 +45,22 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(err)) from err
     if sequence.poses is None:
         raise UserError(f"{args.path} has no ground-truth poses to compare against")
-    settings = [label for label, on in (("symmetric", args.symmetric), ("no coherence", args.no_coherence)) if on]
+    settings = [
+        label
+        for label, on in (("symmetric", args.symmetric), ("no coherence", args.no_coherence), ("deskewed", args.deskew))
+        if on
+    ]
+    peers = args.peers
+    if peers is None and args.deskew:  # compare with the peer that compensates its sweeps too
+        from dmlo.bench.peers import PEERS
+
+        peers = [p.name for p in PEERS if (p.by_default or p.name == "KISS-ICP deskewed") and p.available]
     name = f"DMLO ({', '.join(settings)})" if settings else "DMLO"
     variants = {name: lambda: build_odometry(args, mapping=False)}
     if args.mapping:
         variants[f"{name} + mapping"] = lambda: build_odometry(args, mapping=True)
     try:
-        rows = benchmark_sequence(sequence, variants, args.out, peers=args.peers, max_frames=args.max_frames)
+        rows = benchmark_sequence(sequence, variants, args.out, peers=peers, max_frames=args.max_frames)
     except UnknownPeerError as err:
         raise UserError(str(err)) from err
     print(format_table(rows))

@@ -10,6 +10,7 @@ from dmlo.cli import UserError
 EXAMPLES = """examples:
   dmlo run /data/kitti --sequence 07 --out runs/kitti07
   dmlo run sim_drive/ --mapping --out runs/sim
+  dmlo run /data/kitti_raw/2011_09_26_drive_0005_sync --deskew --out runs/raw05
   dmlo run my_scans/ --format folder --model my_model.onnx
 """
 
@@ -54,6 +55,10 @@ def add_odometry_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--symmetric", action="store_true",
                         help="also match every scan back against the previous one and take the midpoint "
                         "motion: less drift, one more matching pass per frame")
+    parser.add_argument("--deskew", action="store_true",
+                        help="motion-compensate every sweep by the constant-velocity prediction before matching "
+                        "(for skewed sweeps: raw KITTI, live spinning sensors; times from the azimuth, a clockwise "
+                        "sensor with poses at the forward-looking moment; config deskew.* for others)")
     parser.add_argument("--no-coherence", action="store_true",
                         help="rank the matches by the network's confidence alone, as the paper does, instead of "
                         "also by how well each agrees with its neighbours' flow")
@@ -74,6 +79,8 @@ def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # ty
         config.matching.symmetric = True
     if args.no_coherence:
         config.matching.coherence_px = None
+    if args.deskew:
+        config.deskew.enabled = True
     model = args.model or default_model_path()
     try:
         return Odometry(model, config)

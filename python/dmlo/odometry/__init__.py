@@ -2,6 +2,7 @@
 
 from dmlo.odometry.clock import TimestampWarning
 from dmlo.odometry.config import (
+    DeskewConfig,
     LargeMotionConfig,
     MappingConfig,
     MatchingConfig,
@@ -12,6 +13,7 @@ from dmlo.odometry.config import (
 from dmlo.odometry.pipeline import FrameDiagnostics, Odometry, PairResult, SensorMismatchWarning
 
 __all__ = [
+    "DeskewConfig",
     "FrameDiagnostics",
     "LargeMotionConfig",
     "MappingConfig",

@@ -72,6 +72,26 @@ class MotionModelConfig:
 
 
 @dataclass
+class DeskewConfig:
+    """Beyond the paper: motion compensation of every sweep before it is projected.
+
+    A spinning sensor measures its columns one after the other while the vehicle moves (a 10 Hz sweep at
+    15 m/s ends 1.5 m from where it began); raw KITTI and most live sensors deliver such skewed sweeps.
+    With `enabled`, every scan after the first measured motion is moved into the sensor frame of one
+    moment — the one its pose refers to — by the constant-velocity prediction (`dmlo_rs.deskew`), before
+    projection, matching and mapping. The points' times come from `register(..., point_times=)` or else
+    from the azimuth: a sensor turning `clockwise` seen from above (Velodyne, KITTI), the pose at the
+    moment it looks at `reference_azimuth_deg` (0: forward, as KITTI and `dmlo simulate
+    --motion-distortion`). Off by default: a sweep that is already one snapshot (KITTI odometry's are
+    not, the simulator's default ones are) would be skewed by it.
+    """
+
+    enabled: bool = False
+    clockwise: bool = True
+    reference_azimuth_deg: float = 0.0
+
+
+@dataclass
 class MappingConfig:
     """Optional scan-to-map NDT refinement over a local submap of recent scans."""
 
@@ -121,6 +141,7 @@ class OdometryConfig:
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
     motion_model: MotionModelConfig = field(default_factory=MotionModelConfig)
+    deskew: DeskewConfig = field(default_factory=DeskewConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     large_motion: LargeMotionConfig = field(default_factory=LargeMotionConfig)
     threads: int = 0  # onnxruntime intra-op threads; 0 lets it choose

@@ -72,6 +72,7 @@ class FrameDiagnostics:
     map_keyframe: bool | None = None  # with mapping: the scan entered the map (it moved far enough from the last)
     ndt_start: str | None = None  # the NDT start that won: "dmlo", or "motion_model" when DMLO's pose was off
     image_fill: float | None = None  # fraction of the cylinder image's cells holding a point
+    deskewed: bool = False  # with deskew.enabled: the sweep was motion-compensated (from the 3rd scan on)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -90,6 +91,7 @@ class FrameDiagnostics:
             "map_keyframe": self.map_keyframe,
             "ndt_start": self.ndt_start,
             "image_fill": None if self.image_fill is None else round(self.image_fill, 4),
+            "deskewed": self.deskewed,
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
         }
 
@@ -117,6 +119,8 @@ class _Scan:
     range: npt.NDArray[np.float32]
     features: Features
     pose: Matrix4
+    deskewed: bool = False  # motion-compensated (`deskew.enabled`)
+    times: npt.NDArray[np.float64] | None = None  # the points' sweep times given to `register`, if any
 
 
 class _Stopwatch:
@@ -183,25 +187,42 @@ class Odometry:
     # -- one scan -------------------------------------------------------------------------------
 
     def register(
-        self, points: npt.ArrayLike, moving: npt.ArrayLike | None = None, timestamp: float | None = None
+        self,
+        points: npt.ArrayLike,
+        moving: npt.ArrayLike | None = None,
+        timestamp: float | None = None,
+        point_times: npt.ArrayLike | None = None,
     ) -> Matrix4:
         """Adds the next scan and returns its pose `T_world_lidar` (the first scan is the world).
 
         `moving` is an optional per-point boolean mask of points on moving objects (§III-D-c); they
         are left out of matching. `timestamp` (seconds, or any increasing unit) lets the motion model see
         scans the sensor or the log dropped: a scan two median sensor periods after the previous one comes
-        after one missing scan. A scan with fewer than `min_points` finite points is not matched: its pose
-        comes from the motion model and the diagnostics say so.
+        after one missing scan. With `config.deskew.enabled`, `point_times` (one per point, in sensor
+        periods, 0 at the moment the pose refers to, e.g. −0.5…0.5 over a sweep centred on it) says when
+        each point was measured; without it the time comes from the point's azimuth. A scan with fewer
+        than `min_points` finite points is not matched: its pose comes from the motion model and the
+        diagnostics say so.
         """
         cloud = _as_scan(points, "points")
+        times = None if point_times is None else _as_point_times(point_times, len(cloud))
         self._clock.advance(timestamp)
         diagnostics = FrameDiagnostics(index=len(self.poses), num_points=len(cloud))
         watch = _Stopwatch(diagnostics.timings_ms)
+        keep = np.isfinite(cloud).all(axis=1)
         if moving is not None:
-            cloud = cloud[~_as_mask(moving, len(cloud))]
-        cloud = cloud[np.isfinite(cloud).all(axis=1)]
+            keep &= ~_as_mask(moving, len(cloud))
+        cloud = cloud[keep]
         if len(cloud) < self.config.min_points:
             return self._skip(diagnostics, "too_few_points")
+        times = None if times is None else times[keep]
+        deskewed = self.config.deskew.enabled and self._velocity_measured
+        if deskewed:
+            cloud = self._deskew(cloud, times)
+            if self._reference is not None and not self._reference.deskewed:
+                self._deskew_reference(self._reference)
+            diagnostics.deskewed = True
+            watch.lap("deskew")
 
         image, ranges = self._project(cloud)  # Eq. 1
         diagnostics.image_fill = float(np.count_nonzero(ranges) / ranges.size)
@@ -226,9 +247,35 @@ class Odometry:
                 self._last_keyframe = pose
             watch.lap("map_update")
 
-        self._reference = _Scan(cloud=cloud, range=ranges, features=output.features, pose=pose)
+        self._reference = _Scan(
+            cloud=cloud, range=ranges, features=output.features, pose=pose, deskewed=deskewed, times=times
+        )
         self._reference_frame = self._clock.frame
         return self._record(pose, diagnostics)
+
+    def _deskew(self, cloud: npt.NDArray[np.float32], times: npt.NDArray[np.float64] | None) -> npt.NDArray[np.float32]:
+        """The sweep moved into the sensor frame of its pose's moment by the per-frame velocity: the
+        sensor's motion over one period is the inverse of `T_tgt_ref` (a sweep lasts one period however
+        many scans went missing before it)."""
+        c = self.config.deskew
+        return np.asarray(dmlo_rs.deskew(
+            cloud, np.linalg.inv(self._velocity), times, clockwise=c.clockwise,
+            reference_azimuth_deg=c.reference_azimuth_deg,
+        ))
+
+    def _deskew_reference(self, reference: _Scan) -> None:
+        """The first deskewed scan's reference, measured before any velocity was, deskewed too (its own
+        motion is the velocity just measured) and encoded again: a skewed scan matched against a deskewed
+        one loses the skew's cancellation between two sweeps of the same motion (on the highway a 19 cm
+        error and a re-match), and with mapping the map then holds only deskewed scans."""
+        reference.cloud = self._deskew(reference.cloud, reference.times)
+        image, reference.range = self._project(reference.cloud)
+        reference.features = self.matcher.encode(image)
+        reference.deskewed = True
+        if self._map is not None:
+            self._map.clear()
+            self._map.insert_scan(reference.cloud, reference.pose)
+            self._last_keyframe = reference.pose
 
     def _check_sensor(self, image_fill: float) -> None:
         if image_fill < LOW_IMAGE_FILL and not self._warned_sensor:
@@ -682,6 +729,12 @@ def _check_limits(config: OdometryConfig) -> None:
     rounds = config.large_motion.max_rounds
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
         raise ValueError(f"large_motion.max_rounds: must be an integer >= 1, got {rounds!r}")
+    for name in ("enabled", "clockwise"):
+        if not isinstance(getattr(config.deskew, name), bool):
+            raise ValueError(f"deskew.{name}: must be true or false, got {getattr(config.deskew, name)!r}")
+    azimuth = config.deskew.reference_azimuth_deg
+    if isinstance(azimuth, bool) or not isinstance(azimuth, (int, float)) or not np.isfinite(azimuth):
+        raise ValueError(f"deskew.reference_azimuth_deg: must be a finite number (degrees), got {azimuth!r}")
     # Checked here too, not only by dmlo_rs at the first pair, so that a bad config fails when it is loaded.
     radius, largest = config.matching.coherence_radius, dmlo_rs.MAX_COHERENCE_RADIUS
     if isinstance(radius, bool) or not isinstance(radius, int) or not 0 <= radius <= largest:
@@ -756,6 +809,18 @@ def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
     if cloud.shape[1] == 3:
         cloud = np.concatenate([cloud, np.zeros((len(cloud), 1), cloud.dtype)], axis=1)
     return np.ascontiguousarray(cloud, dtype=np.float32)
+
+
+def _as_point_times(times: npt.ArrayLike, count: int) -> npt.NDArray[np.float64]:
+    values = np.asarray(times)
+    if values.shape != (count,):
+        raise ValueError(f"point_times: expected shape ({count},), one per point, got {values.shape}")
+    if not np.issubdtype(values.dtype, np.number) or np.issubdtype(values.dtype, np.complexfloating):
+        raise TypeError(f"point_times: expected real numbers (sensor periods), got {values.dtype}")
+    values = values.astype(np.float64)
+    if not np.isfinite(values).all():
+        raise ValueError(f"point_times: entry {int(np.argmin(np.isfinite(values)))} is not finite")
+    return values
 
 
 def _as_mask(mask: npt.ArrayLike, count: int) -> npt.NDArray[np.bool_]:
