@@ -17,7 +17,7 @@
 //! translates by `s` times its translation: constant angular and linear velocity, the motion model the
 //! simulator's distorted sweeps are cast with.
 
-use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
+use nalgebra::{Isometry3, Matrix3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
@@ -107,10 +107,14 @@ pub fn deskew(
             format!("has {} entries for {count} points", times.len()),
         ));
     }
-    if let Some(i) = times.iter().position(|t| !t.is_finite()) {
+    if let Some(i) = times.iter().position(|t| !(t.abs() <= MAX_SWEEP_TIME)) {
         return Err(Error::invalid(
             "times",
-            format!("entry {i} is not finite ({})", times[i]),
+            format!(
+                "entry {i} is {} periods from the reference; expected sweep times in sensor periods \
+                 (−0.5…0.5 around the reference, at most ±{MAX_SWEEP_TIME})",
+                if times[i].abs() < 1e6 { format!("{}", times[i]) } else { format!("{:e}", times[i]) }
+            ),
         ));
     }
     let rotation = motion.rotation.scaled_axis();
@@ -128,20 +132,68 @@ pub fn deskew(
             ),
         ));
     }
+    let table = PoseTable::new(times, &rotation, &translation);
     let mut out = points.to_vec();
     out.par_chunks_exact_mut(columns)
         .zip(times.par_iter())
         .for_each(|(point, &time)| {
-            let pose = Isometry3::from_parts(
-                Translation3::from(time * translation),
-                UnitQuaternion::from_scaled_axis(time * rotation),
-            );
-            let moved = pose * Point3::new(point[0] as f64, point[1] as f64, point[2] as f64);
+            let (r, t) = table.at(time);
+            let p = Vector3::new(point[0] as f64, point[1] as f64, point[2] as f64);
+            let moved = r * p + t;
             point[0] = moved.x as f32;
             point[1] = moved.y as f32;
             point[2] = moved.z as f32;
         });
     Ok(out)
+}
+
+/// Sweep times further than this from the reference are refused: they are not in periods (seconds of a
+/// clock, nanoseconds) or not of this sweep.
+pub const MAX_SWEEP_TIME: f64 = 2.0;
+
+/// The sweep's poses at evenly spaced times over the range of the points' times, linearly interpolated
+/// in between: the exact pose needs a sine and a cosine per point, the table two lookups. A step turns
+/// at most 1/1024 of the sweep's rotation (< 0.1°), so interpolating the matrices errs by < 1e-9 of
+/// the point's range, far below float32 resolution.
+struct PoseTable {
+    start: f64,
+    step: f64,
+    poses: Vec<(Matrix3<f64>, Vector3<f64>)>,
+}
+
+impl PoseTable {
+    const STEPS: usize = 1024;
+
+    fn new(times: &[f64], rotation: &Vector3<f64>, translation: &Vector3<f64>) -> Self {
+        let (low, high) = times
+            .iter()
+            .fold((0.0f64, 0.0f64), |(lo, hi), &t| (lo.min(t), hi.max(t)));
+        let step = (high - low) / Self::STEPS as f64;
+        let poses = (0..=Self::STEPS)
+            .map(|k| {
+                let time = low + step * k as f64;
+                let turn = UnitQuaternion::from_scaled_axis(time * rotation);
+                (*turn.to_rotation_matrix().matrix(), time * translation)
+            })
+            .collect();
+        PoseTable {
+            start: low,
+            step,
+            poses,
+        }
+    }
+
+    fn at(&self, time: f64) -> (Matrix3<f64>, Vector3<f64>) {
+        if self.step == 0.0 {
+            return self.poses[0];
+        }
+        let position = (time - self.start) / self.step;
+        let index = (position.floor().max(0.0) as usize).min(Self::STEPS - 1);
+        let fraction = position - index as f64;
+        let (r0, t0) = &self.poses[index];
+        let (r1, t1) = &self.poses[index + 1];
+        (r0 + (r1 - r0) * fraction, t0 + (t1 - t0) * fraction)
+    }
 }
 
 fn check_layout(points: &[f32], columns: usize) -> Result<()> {
@@ -167,7 +219,7 @@ fn check_layout(points: &[f32], columns: usize) -> Result<()> {
 mod tests {
     use super::*;
     use approx::assert_relative_eq;
-    use nalgebra::Vector3;
+    use nalgebra::{Point3, Translation3};
 
     fn flat(points: &[[f32; 4]]) -> Vec<f32> {
         points.iter().flatten().copied().collect()
@@ -283,8 +335,10 @@ mod tests {
             message(deskew(&points, 4, &[0.0, 0.1], &still).unwrap_err()).starts_with("times:")
         );
         assert!(
-            message(deskew(&points, 4, &[f64::NAN], &still).unwrap_err()).contains("not finite")
+            message(deskew(&points, 4, &[f64::NAN], &still).unwrap_err()).contains("NaN periods")
         );
+        let nanoseconds = deskew(&points, 4, &[1.6e18], &still).unwrap_err();
+        assert!(message(nanoseconds).contains("expected sweep times in sensor periods"));
         assert!(message(deskew(&points[..3], 4, &[], &still).unwrap_err()).starts_with("points:"));
         assert!(
             message(deskew(&points, 2, &[0.0, 0.0], &still).unwrap_err()).starts_with("points:")
