@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +52,21 @@ def test_missing_scans_benchmark_tabulates_dmlo_and_the_peers(tmp_path: Path) ->
         missing_scans.run([tmp_path], gaps=[3], cases=1, model=None, peers=[], lead_in=5)
     with pytest.raises(SystemExit, match="unknown peer 'KISS'"):
         missing_scans.run([tmp_path], gaps=[2], cases=1, model=None, peers=["KISS"], lead_in=5)
+
+
+def test_odometry_benchmark_on_skewed_sweeps_adds_the_deskewed_rows(tmp_path: Path) -> None:
+    def bench(*flags: str) -> subprocess.CompletedProcess[str]:
+        command = [sys.executable, "-m", "dmlo.benchmarks.odometry", "--frames", "4", "--seeds", "1", "--poses",
+                   str(tmp_path / "no_poses"), "--peers", "--out", str(tmp_path), *flags]
+        return subprocess.run(command, capture_output=True, text=True)
+
+    result = bench("--motion-distortion")
+    assert result.returncode == 0, result.stderr
+    methods = [row.split(" | ")[0].strip("| ") for row in result.stdout.strip().splitlines()[-4:]]
+    assert methods == ["DMLO", "DMLO + mapping", "DMLO deskewed", "DMLO + mapping, deskewed"]
+    # The drive in --out was cast skewed: a run that expects snapshots must not reuse it.
+    refused = bench()
+    assert refused.returncode == 2 and "holds drives with motion distortion" in refused.stderr
 
 
 def test_network_benchmark_compares_model_folders_without_writing_beside_them(
