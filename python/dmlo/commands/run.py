@@ -10,7 +10,7 @@ from dmlo.cli import UserError
 EXAMPLES = """examples:
   dmlo run /data/kitti --sequence 07 --out runs/kitti07
   dmlo run sim_drive/ --mapping --out runs/sim
-  dmlo run /data/kitti_raw/2011_09_26_drive_0005_sync --deskew --out runs/raw05
+  dmlo run raw_drive/ --format folder --deskew --mapping --out runs/raw
   dmlo run my_scans/ --format folder --model my_model.onnx
 """
 

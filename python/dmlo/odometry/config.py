@@ -82,8 +82,8 @@ class DeskewConfig:
     projection, matching and mapping. The points' times come from `register(..., point_times=)` or else
     from the azimuth: a sensor turning `clockwise` seen from above (Velodyne, KITTI), the pose at the
     moment it looks at `reference_azimuth_deg` (0: forward, as KITTI and `dmlo simulate
-    --motion-distortion`). Off by default: a sweep that is already one snapshot (KITTI odometry's are
-    not, the simulator's default ones are) would be skewed by it.
+    --motion-distortion`). Off by default: a sweep that is already one snapshot (the simulator's
+    default ones, a driver's or a dataset's motion-compensated scans) would be skewed by it.
     """
 
     enabled: bool = False
