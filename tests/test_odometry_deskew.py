@@ -3,6 +3,7 @@ where a raw sweep is up to 0.7 m off its snapshot."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 import dmlo_rs
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
+from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
 
 
@@ -51,6 +53,20 @@ def test_deskewing_starts_with_the_first_measured_motion(highway: tuple[list[np.
     # one it erred 19 cm and had to be matched again from the prediction.
     assert all(d.fallback is None for d in odometry.diagnostics)
     assert _pair_errors(estimate, truth[:6]).max() < 0.05
+
+
+def test_a_model_with_the_frame_graph_alone_deskews_the_same(
+    highway: tuple[list[np.ndarray], np.ndarray], tmp_path: Path
+) -> None:
+    # Without encoder.onnx the first deskewed scan's reference is encoded by the frame graph.
+    shutil.copy(default_model_path() / "frame.onnx", tmp_path / "frame.onnx")
+    config = OdometryConfig()
+    config.deskew.enabled = True
+    with pytest.warns(UserWarning, match="no encoder.onnx"):
+        alone = Odometry(tmp_path, config)
+    bundled = _odometry(deskew=True)
+    for points in highway[0][:4]:
+        assert np.allclose(alone.register(points), bundled.register(points), atol=1e-6)
 
 
 def test_mapping_on_skewed_sweeps_drifts_less_deskewed(highway: tuple[list[np.ndarray], np.ndarray]) -> None:

@@ -26,6 +26,7 @@ from dmlo.odometry.matcher import (
     Features,
     FrameOutput,
     Matcher,
+    ModelError,
     OnnxMatcher,
     WIDE_FRAME_GRAPH,
     default_model_path,
@@ -270,12 +271,20 @@ class Odometry:
         error and a re-match), and with mapping the map then holds only deskewed scans."""
         reference.cloud = self._deskew(reference.cloud, reference.times)
         image, reference.range = self._project(reference.cloud)
-        reference.features = self.matcher.encode(image)
+        reference.features = self._encode(image)
         reference.deskewed = True
         if self._map is not None:
             self._map.clear()
             self._map.insert_scan(reference.cloud, reference.pose)
             self._last_keyframe = reference.pose
+
+    def _encode(self, image: npt.NDArray[np.float32]) -> Features:
+        """A scan's features alone: `encoder.onnx`, or for a model without one the frame graph matched
+        against nothing (the same features, a matching pass more)."""
+        try:
+            return self.matcher.encode(image)
+        except ModelError:
+            return self.matcher.frame(image, None).features
 
     def _check_sensor(self, image_fill: float) -> None:
         if image_fill < LOW_IMAGE_FILL and not self._warned_sensor:
