@@ -67,7 +67,7 @@ def test_no_counted_cell_gives_a_zero_loss_in_the_graph() -> None:
     confidence = torch.full((1, 2, 2), 0.5, requires_grad=True)
     loss = confidence_loss(confidence, torch.zeros(1, 2, 2, 2), torch.zeros(1, 2, 2, 2), torch.zeros(1, 2, 2, dtype=torch.bool))
     loss.backward()
-    assert float(loss) == 0 and torch.equal(confidence.grad, torch.zeros_like(confidence))
+    assert float(loss.detach()) == 0 and torch.equal(confidence.grad, torch.zeros_like(confidence))
 
 
 def test_mismatched_shapes_are_named() -> None:
