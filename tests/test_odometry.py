@@ -381,14 +381,18 @@ def test_large_motion_without_a_wide_graph_says_how_to_make_one(scans: list[np.n
         Odometry(tmp_path).register_pair(scans[0], scans[1], large_motion=True)
 
 
-def test_real_scans_of_a_standing_car_give_no_motion(shared_data: Path) -> None:
+@pytest.mark.parametrize("deskew", [False, True])
+def test_real_scans_of_a_standing_car_give_no_motion(shared_data: Path, deskew: bool) -> None:
     from dmlo.datasets import read_bin
     from dmlo.metrics import registration_errors
 
     files = sorted((shared_data / "kitti_raw_static").glob("*.bin"))[:4]
-    odometry = Odometry.from_default()
+    config = OdometryConfig()
+    config.deskew.enabled = deskew  # a standing car's sweeps are not skewed: deskewing must not invent motion
+    odometry = Odometry.from_default(config)
     poses = np.stack([odometry.register(read_bin(f)) for f in files])
     assert all(d.fallback is None for d in odometry.diagnostics)
+    assert [d.deskewed for d in odometry.diagnostics] == [False, False, deskew, deskew]
     motions = np.linalg.inv(poses[1:]) @ poses[:-1]
     errors = registration_errors(motions, np.broadcast_to(np.eye(4), motions.shape))
     assert errors.translation_max < 0.02, errors  # the real motion is a few millimetres at most
