@@ -203,6 +203,21 @@ def test_demo_simulates_runs_and_reports(tmp_path: Path) -> None:
     assert (tmp_path / "odometry" / "trajectory.png").is_file()
 
 
+def test_demo_on_skewed_sweeps_deskews(tmp_path: Path) -> None:
+    result = dmlo("demo", "--frames", "4", "--motion-distortion", "--deskew", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    assert json.loads((tmp_path / "drive" / "simulation.json").read_text())["motion_distortion"] is True
+    diagnostics = (tmp_path / "odometry" / "diagnostics.jsonl").read_text().splitlines()
+    assert [json.loads(line)["deskewed"] for line in diagnostics] == [False, False, True, True]
+
+
+def test_register_has_no_deskew_flag(drive: Path) -> None:
+    # Two scans have no motion model to deskew them by: the flag would do nothing, so it is not offered.
+    scans = sorted((drive / "velodyne").glob("*.bin"))
+    result = dmlo("register", str(scans[0]), str(scans[1]), "--deskew")
+    assert result.returncode == 2 and "unrecognized arguments: --deskew" in result.stderr
+
+
 def test_command_dataset_formats_are_the_reader_registry() -> None:
     from dmlo.commands.run import DATASET_FORMATS
     from dmlo.datasets import FORMATS

@@ -8,6 +8,7 @@ from pathlib import Path
 EXAMPLES = """examples:
   dmlo demo                       # 100 frames, seed 1, results in runs/demo
   dmlo demo --frames 300 --seed 7 --mapping
+  dmlo demo --motion-distortion --deskew --mapping   # skewed sweeps, as a real spinning sensor's
 """
 
 
@@ -25,6 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--frames", type=int, default=100, help="scans to simulate (default: 100)")
     parser.add_argument("--seed", type=int, default=1, help="scene and drive seed (default: 1)")
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (default: runs/demo)")
+    parser.add_argument("--motion-distortion", action="store_true",
+                        help="simulate skewed sweeps (each column cast from the pose of its own moment)")
     add_odometry_arguments(parser)
     parser.set_defaults(run=run)
 
@@ -39,8 +42,9 @@ def run(args: argparse.Namespace) -> int:
     if args.frames < 2:
         raise UserError("--frames must be at least 2")
     drive = args.out / "drive"
-    print(f"simulating {args.frames} scans (seed {args.seed}) into {drive}/")
-    simulate_sequence(drive, frames=args.frames, seed=args.seed)
+    skew = ", skewed sweeps" if args.motion_distortion else ""
+    print(f"simulating {args.frames} scans (seed {args.seed}{skew}) into {drive}/")
+    simulate_sequence(drive, frames=args.frames, seed=args.seed, motion_distortion=args.motion_distortion)
     odometry = build_odometry(args)
     summary = run_sequence(open_sequence(drive), odometry, args.out / "odometry")
     print(format_summary(summary))

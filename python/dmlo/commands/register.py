@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
                         help="scans far apart: the wide-window graph from several starts, then re-matched")
     parser.add_argument("--loop", action="store_true",
                         help="like --large-motion, and also from every 30° of yaw (a loop closure)")
-    add_odometry_arguments(parser)
+    add_odometry_arguments(parser, sequence=False)
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.add_argument("--out", type=Path, default=None, metavar="FILE",
                         help="also write T_b_a to FILE as 4 rows of 4 numbers")

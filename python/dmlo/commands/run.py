@@ -47,7 +47,9 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many scans")
 
 
-def add_odometry_arguments(parser: argparse.ArgumentParser) -> None:
+def add_odometry_arguments(parser: argparse.ArgumentParser, sequence: bool = True) -> None:
+    """The odometry's flags; `sequence=False` (a pair of scans: no motion model) leaves out those that
+    need one."""
     parser.add_argument("--model", type=Path, default=None, help="ONNX model (default: the bundled model)")
     parser.add_argument("--config", type=Path, default=None, help="odometry config JSON (see config.json of a run)")
     parser.add_argument("--mapping", action="store_true",
@@ -55,10 +57,11 @@ def add_odometry_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--symmetric", action="store_true",
                         help="also match every scan back against the previous one and take the midpoint "
                         "motion: less drift, one more matching pass per frame")
-    parser.add_argument("--deskew", action="store_true",
-                        help="motion-compensate every sweep by the constant-velocity prediction before matching "
-                        "(for skewed sweeps: raw KITTI, live spinning sensors; times from the azimuth, a clockwise "
-                        "sensor with poses at the forward-looking moment; config deskew.* for others)")
+    if sequence:
+        parser.add_argument("--deskew", action="store_true",
+                            help="motion-compensate every sweep by the constant-velocity prediction before "
+                            "matching (for skewed sweeps: raw KITTI, live spinning sensors; times from the azimuth, "
+                            "a clockwise sensor with poses at the forward-looking moment; config deskew.* for others)")
     parser.add_argument("--no-coherence", action="store_true",
                         help="rank the matches by the network's confidence alone, as the paper does, instead of "
                         "also by how well each agrees with its neighbours' flow")
@@ -79,7 +82,7 @@ def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # ty
         config.matching.symmetric = True
     if args.no_coherence:
         config.matching.coherence_px = None
-    if args.deskew:
+    if getattr(args, "deskew", False):
         config.deskew.enabled = True
     model = args.model or default_model_path()
     try:
