@@ -52,9 +52,13 @@ def test_a_peer_whose_package_is_missing_or_does_not_load_is_unavailable(tmp_pat
 
 
 def test_half_motion_is_the_slerp_midpoint() -> None:
+    # KISS-ICP deskewed's poses are moved back by half its last motion: the midpoint with the identity.
     from scipy.spatial.transform import Rotation, Slerp
 
-    from dmlo.bench.peers import _half_motion
+    from dmlo.poses import midpoint_motion
+
+    def _half_motion(motion: np.ndarray) -> np.ndarray:
+        return midpoint_motion(np.eye(4), motion)
 
     rng = np.random.default_rng(3)
     for _ in range(5):

@@ -95,6 +95,18 @@ def _rigid_inverse(transforms: NDArray[np.float64]) -> NDArray[np.float64]:
 # Quaternions (Hamilton, stored x y z w as in TUM files)
 
 
+def midpoint_motion(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rigid motion halfway between two: the rotation is the projection of R_a + R_b onto SO(3)
+    (for two rotations their geodesic midpoint), the translation the mean. With `a` the identity: half
+    of `b` (half its angle about the same axis, half its translation)."""
+    u, _, vt = np.linalg.svd(a[:3, :3] + b[:3, :3])
+    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    middle = np.eye(4)
+    middle[:3, :3] = u @ fix @ vt
+    middle[:3, 3] = (a[:3, 3] + b[:3, 3]) / 2
+    return middle
+
+
 def quaternion_to_matrix(quaternions_xyzw: ArrayLike) -> NDArray[np.float64]:
     """Rotation matrices ``(N, 3, 3)`` from quaternions ``(N, 4)`` ordered ``x y z w`` (normalised here)."""
     q = np.asarray(quaternions_xyzw, dtype=np.float64).reshape(-1, 4)

@@ -17,6 +17,8 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+from dmlo.poses import midpoint_motion
+
 Matrix4 = npt.NDArray[np.float64]
 Points = npt.NDArray[np.float32]
 
@@ -80,21 +82,8 @@ class KissIcpOdometry:
             return np.asarray(self._kiss.last_pose, dtype=np.float64).copy()
         self._kiss.register_frame(xyz, 0.5 + np.asarray(dmlo_rs.sweep_times(xyz)))
         end_of_sweep = np.asarray(self._kiss.last_pose, dtype=np.float64)
-        return end_of_sweep @ np.linalg.inv(_half_motion(np.asarray(self._kiss.last_delta, dtype=np.float64)))
-
-
-def _half_motion(motion: Matrix4) -> Matrix4:
-    """Half of a rigid motion: half its rotation angle about the same axis, half its translation."""
-    rotation = motion[:3, :3]
-    angle = np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))
-    half = np.eye(4)
-    half[:3, 3] = motion[:3, 3] / 2
-    if angle > 1e-12:
-        axis = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]])
-        axis /= 2 * np.sin(angle)
-        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-        half[:3, :3] = np.eye(3) + np.sin(angle / 2) * k + (1 - np.cos(angle / 2)) * (k @ k)
-    return half
+        half_motion = midpoint_motion(np.eye(4), np.asarray(self._kiss.last_delta, dtype=np.float64))
+        return end_of_sweep @ np.linalg.inv(half_motion)
 
 
 def small_gicp_align(registration_type: str) -> Callable[[np.ndarray, np.ndarray, Matrix4], Matrix4]:

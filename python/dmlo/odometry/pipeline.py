@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 import dmlo_rs
 from dmlo.metrics.trajectory import pose_difference
+from dmlo.poses import midpoint_motion
 from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
@@ -781,7 +782,7 @@ def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> P
     if len(usable) < 2:
         return usable[0] if usable else forward
     return PairResult(
-        T_tgt_ref=_midpoint(forward.T_tgt_ref, reverse.T_tgt_ref),
+        T_tgt_ref=midpoint_motion(forward.T_tgt_ref, reverse.T_tgt_ref),
         num_matches=forward.num_matches + reverse.num_matches,
         num_inliers=forward.num_inliers + reverse.num_inliers,
         source_points=np.concatenate([forward.source_points, reverse.source_points]),
@@ -807,17 +808,6 @@ def _round_trip_error(
     at_row, at_col = np.clip(at_row, 0, height - 1), np.clip(at_col, 0, width - 1)
     error = np.hypot(flow[0] + back_flow[0, at_row, at_col], flow[1] + back_flow[1, at_row, at_col])
     return np.where(inside, error, np.inf).astype(np.float32)
-
-
-def _midpoint(a: Matrix4, b: Matrix4) -> Matrix4:
-    """The rigid motion halfway between two: the rotation is the projection of R_a + R_b onto SO(3)
-    (for two rotations their geodesic midpoint), the translation the mean."""
-    u, _, vt = np.linalg.svd(a[:3, :3] + b[:3, :3])
-    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    middle = np.eye(4)
-    middle[:3, :3] = u @ fix @ vt
-    middle[:3, 3] = (a[:3, 3] + b[:3, 3]) / 2
-    return middle
 
 
 def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
