@@ -107,7 +107,10 @@ pub fn deskew(
             format!("has {} entries for {count} points", times.len()),
         ));
     }
-    if let Some(i) = times.iter().position(|t| !(t.abs() <= MAX_SWEEP_TIME)) {
+    if let Some(i) = times
+        .iter()
+        .position(|t| t.is_nan() || t.abs() > MAX_SWEEP_TIME)
+    {
         return Err(Error::invalid(
             "times",
             format!(

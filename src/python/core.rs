@@ -133,6 +133,16 @@ fn points3(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Vec<Point3<f64>>> {
         .collect())
 }
 
+/// An `N×4` or `N×3` scan (x, y, z[, reflectance]) of float32 or float64, and its column count.
+fn scan_points<'py>(obj: &Bound<'py, PyAny>) -> PyResult<(Floats<'py>, usize)> {
+    let array = floats("points", obj)?;
+    let shape = array.shape().to_vec();
+    if shape.len() != 2 || !(shape[1] == 3 || shape[1] == 4) {
+        return Err(shape_error("points", "(N, 4) or (N, 3)", &shape));
+    }
+    Ok((array, shape[1]))
+}
+
 /// A 1-D float array (any float width) → float64 values, checked finite.
 fn vector_f64(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Vec<f64>> {
     let array = floats(name, obj)?;
@@ -212,7 +222,8 @@ fn points_to_numpy<'py>(py: Python<'py>, points: &[Point3<f64>]) -> Bound<'py, P
     Array2::from_shape_fn((points.len(), 3), |(i, j)| points[i][j]).into_pyarray(py)
 }
 
-/// A row-major `height × width` image the crate returned as a flat vector.
+/// A row-major `height × width` image (or any 2-D array, e.g. N points × columns) the crate returned as a
+/// flat vector.
 fn image_array<T>(height: usize, width: usize, values: Vec<T>) -> PyResult<Array2<T>> {
     Array2::from_shape_vec((height, width), values)
         .map_err(|e| PyRuntimeError::new_err(format!("internal error in dmlo_rs: {e}")))
@@ -396,16 +407,12 @@ fn project(
     config: &PyCylinderConfig,
     num_threads: Option<usize>,
 ) -> PyResult<PyProjection> {
-    let array = floats("points", points)?;
-    let shape = array.shape().to_vec();
-    if shape.len() != 2 || !(shape[1] == 3 || shape[1] == 4) {
-        return Err(shape_error("points", "(N, 4) or (N, 3)", &shape));
-    }
+    let (array, columns) = scan_points(points)?;
     let data = array.f32_data();
     let config = config.inner;
     let data_ref: &[f32] = &data;
     let image = run(py, num_threads, || {
-        projection::project_flat(data_ref, shape[1], &config)
+        projection::project_flat(data_ref, columns, &config)
     })?;
     let (h, w) = (image.height, image.width);
     Ok(PyProjection {
@@ -746,16 +753,6 @@ fn coherent_confidence<'py>(
 
 // ---- deskewing -------------------------------------------------------------------------------------
 
-/// An `N×3` or `N×4` float array as row-major float32 data and its column count.
-fn scan_points<'py>(obj: &Bound<'py, PyAny>) -> PyResult<(Floats<'py>, usize)> {
-    let array = floats("points", obj)?;
-    let shape = array.shape().to_vec();
-    if shape.len() != 2 || !(shape[1] == 3 || shape[1] == 4) {
-        return Err(shape_error("points", "(N, 4) or (N, 3)", &shape));
-    }
-    Ok((array, shape[1]))
-}
-
 /// Sweep times of `points` (N×4 or N×3) from their azimuth: fractions of a sweep period, 0 at the
 /// moment the sensor looks at `reference_azimuth_deg` (x forward = 0), e.g. −0.25 for a point 90°
 /// counter-clockwise of it on a `clockwise` sensor (KITTI's HDL-64E). A non-finite point gets 0.
@@ -821,10 +818,7 @@ fn deskew<'py>(
         };
         crate::deskew::deskew(data_ref, columns, times, &motion)
     })?;
-    let count = moved.len() / columns;
-    Array2::from_shape_vec((count, columns), moved)
-        .map(|a| a.into_pyarray(py))
-        .map_err(|e| PyRuntimeError::new_err(format!("internal error in dmlo_rs: {e}")))
+    Ok(image_array(moved.len() / columns, columns, moved)?.into_pyarray(py))
 }
 
 pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
