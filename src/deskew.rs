@@ -269,8 +269,8 @@ mod tests {
             Vector3::new(0.0, 0.0, 3f64.to_radians()),
         );
         // Away from the seam behind the sensor, where a point's firing time jumps by a whole period.
-        let world: Vec<Point3<f64>> = (0..360)
-            .filter(|i| (*i as i32 - 180).abs() > 10)
+        let world: Vec<Point3<f64>> = (0..360_i32)
+            .filter(|i| (i - 180).abs() > 10)
             .map(|i| {
                 let a = (i as f64).to_radians();
                 Point3::new(20.0 * a.cos(), 15.0 * a.sin(), -1.5 + 0.01 * i as f64)

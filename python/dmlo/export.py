@@ -20,8 +20,10 @@ and the new scan in, the flow from the previous scan into the new one and the ne
 ``tgt_refine_features`` → ``flow``, ``confidence`` (any pair of encoded scans, reference → target).
 
 Every graph carries metadata properties: ``dmlo.graph`` (frame / encoder / match), ``dmlo.interface_version``,
-``dmlo.height``, ``dmlo.width``, ``dmlo.model_config`` (MatcherConfig JSON) and ``dmlo.cylinder_config``
-(the cylinder projection's settings as JSON).
+``dmlo.height``, ``dmlo.width``, ``dmlo.model_config`` (MatcherConfig JSON), ``dmlo.cylinder_config``
+(the cylinder projection's settings as JSON) and ``dmlo.similarity_scales`` (JSON ``{"coarse", "refine"}``:
+the learned softmax temperatures, so that `dmlo_rs.match_features` can run the matching stage on cached
+features outside the graph).
 """
 
 from __future__ import annotations
@@ -59,6 +61,17 @@ def cylinder_config_dict(config: Any) -> dict[str, Any]:
         ):
             values[name] = value
     return values
+
+
+def similarity_scales(model: Any) -> dict[str, float]:
+    """The matcher's learned softmax temperatures as the graph uses them (float32 ``exp`` of the log scales)."""
+    import torch
+
+    with torch.no_grad():
+        return {
+            "coarse": float(model.coarse_log_scale.detach().float().exp()),
+            "refine": float(model.refine_log_scale.detach().float().exp()),
+        }
 
 
 def _wrappers():  # type: ignore[no-untyped-def]
@@ -149,6 +162,7 @@ def export_onnx(
         "dmlo.width": str(width),
         "dmlo.model_config": config.to_json(),
         "dmlo.cylinder_config": json.dumps(cylinder_config_dict(cylinder_config), sort_keys=True),
+        "dmlo.similarity_scales": json.dumps(similarity_scales(model)),
     }
     paths = {}
     try:
@@ -193,6 +207,8 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     values: dict[str, Any] = dict(raw)
     for key in ("dmlo.model_config", "dmlo.cylinder_config"):
         values[key] = json.loads(raw[key])
+    if "dmlo.similarity_scales" in raw:  # newer than interface 1's first exports
+        values["dmlo.similarity_scales"] = json.loads(raw["dmlo.similarity_scales"])
     for key in ("dmlo.height", "dmlo.width"):
         values[key] = int(raw[key])
     return values

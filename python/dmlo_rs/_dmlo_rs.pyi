@@ -13,7 +13,7 @@ class RegistrationError(ValueError):
 
 # ---- core (issue 2): projection, ground truth, matches, NMS, rigid solve, RANSAC ----------------------
 
-from typing import final
+from typing import Literal, final
 
 __all__ += [
     "CylinderConfig",
@@ -29,6 +29,7 @@ __all__ += [
     "decode_matches",
     "coherent_confidence",
     "MAX_COHERENCE_RADIUS",
+    "match_features",
     "sweep_times",
     "deskew",
 ]
@@ -223,6 +224,25 @@ def coherent_confidence(
     flow of the (2·radius+1)² cells around it (per component: medians down the window's columns over cells
     with a range, then their median across; a 360° image's columns wrap); 0 without a range or finite
     flow; radius ≤ MAX_COHERENCE_RADIUS (15). Beyond the paper: lowers matches that disagree with their neighbours."""
+
+def match_features(
+    ref_coarse: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    ref_refine: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    tgt_coarse: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    tgt_refine: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    *,
+    coarse_window: int,
+    refine_window: int,
+    coarse_scale: float,
+    refine_scale: float,
+    refine_offset: Literal["window", "peak_centroid"] = "window",
+    stride: tuple[int, int] = (4, 8),
+    num_threads: int | None = None,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """The network's matching stage on the CPU (what match.onnx computes from two scans' cached features):
+    (flow float32 [2, H, W] (Δrow, Δcol), confidence float32 [H, W] Q*). Features (1, C, h, w) or (C, h, w),
+    coarse at `stride`, refine at full resolution; the scales are the model's learned softmax temperatures
+    (the exported graphs' dmlo.similarity_scales); windows odd ≥ 3; non-finite features are refused."""
 
 def sweep_times(
     points: npt.NDArray[np.float32] | npt.NDArray[np.float64],

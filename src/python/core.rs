@@ -29,7 +29,7 @@ use super::pool::run;
 // ---- plumbing --------------------------------------------------------------------------------------
 
 /// A numpy array of floats, whichever width it came in.
-enum Floats<'py> {
+pub(super) enum Floats<'py> {
     F32(PyReadonlyArrayDyn<'py, f32>),
     F64(PyReadonlyArrayDyn<'py, f64>),
 }
@@ -56,7 +56,7 @@ fn dtype_name(array: &Bound<'_, PyUntypedArray>) -> String {
     array.dtype().to_string()
 }
 
-fn floats<'py>(name: &str, obj: &Bound<'py, PyAny>) -> PyResult<Floats<'py>> {
+pub(super) fn floats<'py>(name: &str, obj: &Bound<'py, PyAny>) -> PyResult<Floats<'py>> {
     let array = as_array(name, obj)?;
     if is_dtype::<f32>(array) {
         Ok(Floats::F32(array.extract()?))
@@ -71,7 +71,7 @@ fn floats<'py>(name: &str, obj: &Bound<'py, PyAny>) -> PyResult<Floats<'py>> {
 }
 
 impl Floats<'_> {
-    fn shape(&self) -> &[usize] {
+    pub(super) fn shape(&self) -> &[usize] {
         match self {
             Floats::F32(a) => a.shape(),
             Floats::F64(a) => a.shape(),
@@ -79,7 +79,7 @@ impl Floats<'_> {
     }
 
     /// Row-major float32 data, borrowed when already contiguous float32.
-    fn f32_data(&self) -> Cow<'_, [f32]> {
+    pub(super) fn f32_data(&self) -> Cow<'_, [f32]> {
         match self {
             // `as_slice` also accepts Fortran order, whose memory order is not the row-major we need.
             Floats::F32(a) if a.is_c_contiguous() => match a.as_slice() {
@@ -224,7 +224,7 @@ fn points_to_numpy<'py>(py: Python<'py>, points: &[Point3<f64>]) -> Bound<'py, P
 
 /// A row-major `height × width` image (or any 2-D array, e.g. N points × columns) the crate returned as a
 /// flat vector.
-fn image_array<T>(height: usize, width: usize, values: Vec<T>) -> PyResult<Array2<T>> {
+pub(super) fn image_array<T>(height: usize, width: usize, values: Vec<T>) -> PyResult<Array2<T>> {
     Array2::from_shape_vec((height, width), values)
         .map_err(|e| PyRuntimeError::new_err(format!("internal error in dmlo_rs: {e}")))
 }

@@ -2,6 +2,7 @@
 //! Python exceptions. Only compiled with the `python` feature.
 
 mod core;
+mod dense_match;
 mod ndt;
 mod pool;
 mod sim;
@@ -36,6 +37,7 @@ fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("RegistrationError", m.py().get_type::<RegistrationError>())?;
     core::register(m)?;
+    dense_match::register(m)?;
     sim::register(m)?;
     ndt::register(m)?;
     Ok(())

@@ -1,7 +1,15 @@
 """The matching network at run time: the exported per-frame ONNX graph in onnxruntime.
 
-The odometry calls the `frame` graph once per scan (ONNX-NOTES item 10): it encodes the new scan and
-matches the previous scan's cached features against it in one session, so each scan is encoded once.
+The odometry calls the matcher once per scan: it encodes the new scan and matches the previous scan's
+cached features against it, so each scan is encoded once. Where the matching stage (correlation and
+window decoding, three quarters of the exported `frame` graph's time on a CPU) runs is a choice:
+
+- ``graph``: the `frame` graph does both in one onnxruntime session (ONNX-NOTES item 10) — on a GPU, all
+  of it runs there;
+- ``crate``: `encoder.onnx` encodes the scan and `dmlo_rs.match_features` matches the cached features on
+  the CPU (the same computation, ~3× faster there; it needs the graphs' ``dmlo.similarity_scales``);
+- ``auto`` (the default): ``crate`` when onnxruntime runs on the CPU and the model allows it, else ``graph``.
+
 The graph's metadata carries the cylinder configuration it was trained for; the projection is built
 from it, so a model and its input geometry cannot drift apart.
 """
@@ -23,6 +31,7 @@ WIDE_FRAME_GRAPH = "frame_wide.onnx"  # the same weights with the wide coarse wi
 MATCH_GRAPH = "match.onnx"  # any pair of cached features, e.g. the new scan back against the previous one
 ENCODER_GRAPH = "encoder.onnx"  # a scan's features alone (frame.onnx would also match it against zeros)
 INTERFACE_VERSION = "1"
+MATCHING_STAGES = ("auto", "crate", "graph")
 _CYLINDER_KEYS = (
     "fov_up_deg",
     "fov_down_deg",
@@ -84,12 +93,14 @@ def wide_graph_path(frame_graph: Path) -> Path:
 class OnnxMatcher:
     """Runs an exported `frame.onnx` (or a folder holding one) on the CPU, or CUDA when available.
 
-    `match_graph` opens the `match.onnx` beside it at once (a missing one is an error here rather than
-    on the first `match`)."""
+    `match_graph` opens what `match` needs at once (a missing graph is an error here rather than on the
+    first `match`); `matching` chooses where the matching stage runs (module docs)."""
 
-    def __init__(self, path: Path, threads: int = 0, match_graph: bool = False) -> None:
+    def __init__(self, path: Path, threads: int = 0, match_graph: bool = False, matching: str = "auto") -> None:
         import onnxruntime as ort
 
+        if matching not in MATCHING_STAGES:
+            raise ValueError(f"matching: expected one of {', '.join(MATCHING_STAGES)}, got {matching!r}")
         graph = path / FRAME_GRAPH if path.is_dir() else path
         if not graph.is_file():
             raise ModelError(f"model not found: {graph}")
@@ -118,11 +129,35 @@ class OnnxMatcher:
             refine=np.zeros(shapes["prev_refine_features"], np.float32),
         )
         self._options, self._providers = options, providers
-        self._match_session: Any = self._open_match_graph() if match_graph else None  # else on the first `match`
+        self._threads = threads if threads > 0 else None
+        self._scales = json.loads(metadata["dmlo.similarity_scales"]) if "dmlo.similarity_scales" in metadata else None
+        self._match_session: Any = None  # on the first `match` of the graph stage
         self._encoder_session: Any = None  # on the first `encode`
+        self.matching = self._choose_matching(matching)
+        if self.matching == "crate":
+            self._encoder_session = self._open_graph(ENCODER_GRAPH, "encoder", "encode a scan on its own")
+        elif match_graph:
+            self._match_session = self._open_match_graph()
+
+    def _choose_matching(self, requested: str) -> str:
+        on_cpu = self._session.get_providers()[0] == "CPUExecutionProvider"
+        crate_possible = self._scales is not None and self.path.with_name(ENCODER_GRAPH).is_file()
+        if requested == "auto":
+            return "crate" if on_cpu and crate_possible else "graph"
+        if requested == "crate" and not crate_possible:
+            missing = "dmlo.similarity_scales metadata" if self._scales is None else ENCODER_GRAPH
+            raise ModelError(
+                f"{self.path}: matching in the crate needs {missing} (export the model again with `dmlo export`)"
+            )
+        return requested
 
     def frame(self, image: npt.NDArray[np.float32], previous: Features | None) -> FrameOutput:
         self._check_image(image)
+        if self.matching == "crate":
+            features = self.encode(image)
+            if previous is None:
+                return FrameOutput(features, None, None)
+            return FrameOutput(features, *self._match_in_crate(previous, features))
         prev = previous or self._zeros
         flow, confidence, coarse, refine = self._session.run(
             None,
@@ -141,7 +176,9 @@ class OnnxMatcher:
         self, reference: Features, target: Features
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """Flow `[2, H, W]` and confidence `[H, W]` from `reference` to `target`, both scans' cached
-        features (`match.onnx` beside `frame.onnx`, the same weights): no scan is encoded again."""
+        features (`match.onnx` beside `frame.onnx`, the same weights, or the crate): no scan is encoded again."""
+        if self.matching == "crate":
+            return self._match_in_crate(reference, target)
         if self._match_session is None:
             self._match_session = self._open_match_graph()
         flow, confidence = self._match_session.run(
@@ -163,6 +200,18 @@ class OnnxMatcher:
             self._encoder_session = self._open_graph(ENCODER_GRAPH, "encoder", "encode a scan on its own")
         coarse, refine = self._encoder_session.run(None, {"scan": image[None].astype(np.float32, copy=False)})
         return Features(coarse=coarse, refine=refine)
+
+    def _match_in_crate(
+        self, reference: Features, target: Features
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        assert self._scales is not None  # `_choose_matching` chose the crate only with them
+        config = self.model_config
+        return dmlo_rs.match_features(
+            reference.coarse, reference.refine, target.coarse, target.refine,
+            coarse_window=config["coarse_window"], refine_window=config["refine_window"],
+            coarse_scale=self._scales["coarse"], refine_scale=self._scales["refine"],
+            refine_offset=config["refine_offset"], num_threads=self._threads,
+        )
 
     def _check_image(self, image: npt.NDArray[np.float32]) -> None:
         if image.shape != (2, self.height, self.width):

@@ -1,0 +1,426 @@
+#![forbid(unsafe_code)]
+//! The network's matching stage on cached features (paper §III-C): coarse correlation in a D×D window
+//! (Eq. 2), softmax window decoding (Eq. 3, 11), then the refine correlation around the upsampled coarse
+//! match at full resolution, decoded the same way. This is `Matcher.match` of the Python package's
+//! `dmlo.model.matcher` — same windows, clamping, zero features outside the image and first-maximum
+//! tie-breaking — for the CPU, where the exported graph spends three quarters of a frame here: a few
+//! dot products and exponentials per window cell are memory-light work that onnxruntime's general
+//! MatMul / Gather / Transpose kernels do several times slower than a loop over each cell's window.
+//!
+//! Features come as the network writes them, channel-major `(C, h, w)`; how the target is laid out for
+//! the window reads depends on the channel count (`correlation`).
+
+mod correlation;
+mod window;
+
+use rayon::prelude::*;
+
+use correlation::{lane_layout, CellFeatures, PaddedTarget};
+
+pub use window::{decode, OffsetRule, WindowLayout, WindowMatch};
+
+use crate::error::{Error, Result};
+
+/// One scan's features at one stage, channel-major `(channels, height, width)` as the network outputs
+/// them.
+#[derive(Debug, Clone, Copy)]
+pub struct FeatureMap<'a> {
+    /// `channels · height · width` values, channel by channel, each row-major.
+    pub data: &'a [f32],
+    /// Feature channels.
+    pub channels: usize,
+    /// Rows.
+    pub height: usize,
+    /// Columns.
+    pub width: usize,
+}
+
+/// A scan's cached features: coarse (stride `stride`) and refine (full resolution).
+#[derive(Debug, Clone, Copy)]
+pub struct ScanFeatures<'a> {
+    /// Coarse features, `(C, H / stride[0], W / stride[1])`.
+    pub coarse: FeatureMap<'a>,
+    /// Refine features, `(Cr, H, W)`.
+    pub refine: FeatureMap<'a>,
+}
+
+/// The matching stage's settings: the model's `MatcherConfig` and its two learned softmax temperatures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DenseMatchConfig {
+    /// Coarse window size D (odd), in coarse cells.
+    pub coarse_window: usize,
+    /// Refine window size (odd), in pixels.
+    pub refine_window: usize,
+    /// Rows and columns of the image one coarse cell covers.
+    pub stride: [usize; 2],
+    /// Similarity scale of the coarse softmax (the exported `exp(coarse_log_scale)`).
+    pub coarse_scale: f32,
+    /// Similarity scale of the refine softmax.
+    pub refine_scale: f32,
+    /// How the refine window becomes a sub-pixel flow.
+    pub refine_offset: OffsetRule,
+}
+
+/// The flow of every reference cell into the target scan and its confidence.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DenseFlow {
+    /// `(2, H, W)`: Δrow of every cell, then Δcol, in pixels; cell `(i, j)` matches `(i + Δrow, j + Δcol)`.
+    pub flow: Vec<f32>,
+    /// `(H, W)` Q* of the refine window.
+    pub confidence: Vec<f32>,
+    /// Image rows.
+    pub height: usize,
+    /// Image columns.
+    pub width: usize,
+}
+
+/// Matches `reference` into `target` (both encoded by the same network): [`DenseFlow`] at full resolution.
+pub fn match_features(
+    reference: &ScanFeatures<'_>,
+    target: &ScanFeatures<'_>,
+    config: &DenseMatchConfig,
+) -> Result<DenseFlow> {
+    check_config(config)?;
+    check_features(reference, target, config)?;
+    let coarse_origins = coarse_stage(&reference.coarse, &target.coarse, config);
+    Ok(refine_stage(
+        &reference.refine,
+        &target.refine,
+        &coarse_origins,
+        config,
+    ))
+}
+
+fn check_config(config: &DenseMatchConfig) -> Result<()> {
+    for (name, window) in [
+        ("coarse_window", config.coarse_window),
+        ("refine_window", config.refine_window),
+    ] {
+        if window < 3 || window % 2 == 0 {
+            return Err(Error::invalid(
+                name,
+                format!("must be odd and >= 3, got {window}"),
+            ));
+        }
+    }
+    if config.stride.contains(&0) {
+        return Err(Error::invalid("stride", "must be >= 1 in both directions"));
+    }
+    for (name, scale) in [
+        ("coarse_scale", config.coarse_scale),
+        ("refine_scale", config.refine_scale),
+    ] {
+        if !(scale.is_finite() && scale > 0.0) {
+            return Err(Error::invalid(
+                name,
+                format!("must be finite and > 0, got {scale}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+fn check_features(
+    reference: &ScanFeatures<'_>,
+    target: &ScanFeatures<'_>,
+    config: &DenseMatchConfig,
+) -> Result<()> {
+    let maps = [
+        ("ref_coarse", &reference.coarse),
+        ("ref_refine", &reference.refine),
+        ("tgt_coarse", &target.coarse),
+        ("tgt_refine", &target.refine),
+    ];
+    for (name, map) in maps {
+        let expected = map.channels * map.height * map.width;
+        if map.channels == 0 || map.height == 0 || map.width == 0 || map.data.len() != expected {
+            return Err(Error::invalid(
+                name,
+                format!(
+                    "{} values for ({}, {}, {}) features",
+                    map.data.len(),
+                    map.channels,
+                    map.height,
+                    map.width
+                ),
+            ));
+        }
+        if let Some(i) = map.data.iter().position(|v| !v.is_finite()) {
+            return Err(Error::invalid(
+                name,
+                format!("feature value {i} is not finite ({})", map.data[i]),
+            ));
+        }
+    }
+    let shape = |m: &FeatureMap<'_>| (m.channels, m.height, m.width);
+    if shape(&reference.coarse) != shape(&target.coarse) {
+        return Err(Error::invalid(
+            "tgt_coarse",
+            format!(
+                "shape {:?} differs from ref_coarse {:?}",
+                shape(&target.coarse),
+                shape(&reference.coarse)
+            ),
+        ));
+    }
+    if shape(&reference.refine) != shape(&target.refine) {
+        return Err(Error::invalid(
+            "tgt_refine",
+            format!(
+                "shape {:?} differs from ref_refine {:?}",
+                shape(&target.refine),
+                shape(&reference.refine)
+            ),
+        ));
+    }
+    let (coarse, refine) = (&reference.coarse, &reference.refine);
+    if coarse.height * config.stride[0] != refine.height
+        || coarse.width * config.stride[1] != refine.width
+    {
+        return Err(Error::invalid(
+            "ref_refine",
+            format!(
+                "{}×{} is not the coarse {}×{} times the stride {:?}",
+                refine.height, refine.width, coarse.height, coarse.width, config.stride
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Unclamped integer window origin of every coarse cell, in full-resolution pixels (Δrow, Δcol): the
+/// coarse match times the stride, rounded half to even like `torch.round`.
+fn coarse_stage(
+    reference: &FeatureMap<'_>,
+    target: &FeatureMap<'_>,
+    config: &DenseMatchConfig,
+) -> Vec<[i64; 2]> {
+    let (height, width) = (reference.height, reference.width);
+    let layout = lane_layout(config.coarse_window);
+    let padded = PaddedTarget::new(target, layout);
+    let mut origins = vec![[0i64; 2]; height * width];
+    origins
+        .par_chunks_mut(width)
+        .enumerate()
+        .for_each(|(row, row_origins)| {
+            let mut logits = vec![0.0f32; layout.len()];
+            let mut weights = vec![0.0f32; layout.len()];
+            let mut features = CellFeatures::for_target(&padded);
+            for (col, origin) in row_origins.iter_mut().enumerate() {
+                features.load(reference, row, col);
+                // Origin 0: each window is centred on its own cell.
+                padded.window_logits(
+                    &features,
+                    (row, col),
+                    layout,
+                    config.coarse_scale,
+                    &mut logits,
+                );
+                let found = decode(&logits, &mut weights, layout, OffsetRule::BestWindow);
+                *origin = [
+                    (found.offset[0] * config.stride[0] as f32).round_ties_even() as i64,
+                    (found.offset[1] * config.stride[1] as f32).round_ties_even() as i64,
+                ];
+            }
+        });
+    origins
+}
+
+fn refine_stage(
+    reference: &FeatureMap<'_>,
+    target: &FeatureMap<'_>,
+    coarse_origins: &[[i64; 2]],
+    config: &DenseMatchConfig,
+) -> DenseFlow {
+    let (height, width) = (reference.height, reference.width);
+    let layout = lane_layout(config.refine_window);
+    let padded = PaddedTarget::new(target, layout);
+    let coarse_width = width / config.stride[1];
+    let mut flow = vec![0.0f32; 2 * height * width];
+    let mut confidence = vec![0.0f32; height * width];
+    let (flow_rows, flow_cols) = flow.split_at_mut(height * width);
+    flow_rows
+        .par_chunks_mut(width)
+        .zip(flow_cols.par_chunks_mut(width))
+        .zip(confidence.par_chunks_mut(width))
+        .enumerate()
+        .for_each(|(row, ((row_flow_rows, row_flow_cols), row_confidence))| {
+            let mut logits = vec![0.0f32; layout.len()];
+            let mut weights = vec![0.0f32; layout.len()];
+            let mut features = CellFeatures::for_target(&padded);
+            let block_origins =
+                &coarse_origins[(row / config.stride[0]) * coarse_width..][..coarse_width];
+            for col in 0..width {
+                let [origin_row, origin_col] = block_origins[col / config.stride[1]];
+                // The window centre clamped into the image, as `clamp_origin` does.
+                let centre_row = (row as i64 + origin_row).clamp(0, height as i64 - 1) as usize;
+                let centre_col = (col as i64 + origin_col).clamp(0, width as i64 - 1) as usize;
+                features.load(reference, row, col);
+                padded.window_logits(
+                    &features,
+                    (centre_row, centre_col),
+                    layout,
+                    config.refine_scale,
+                    &mut logits,
+                );
+                let found = decode(&logits, &mut weights, layout, config.refine_offset);
+                row_flow_rows[col] = (centre_row as f32 - row as f32) + found.offset[0];
+                row_flow_cols[col] = (centre_col as f32 - col as f32) + found.offset[1];
+                row_confidence[col] = found.confidence;
+            }
+        });
+    DenseFlow {
+        flow,
+        confidence,
+        height,
+        width,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use approx::assert_relative_eq;
+
+    /// Deterministic pseudo-random features, unit length per cell like the network's.
+    fn features(channels: usize, height: usize, width: usize, seed: u64) -> Vec<f32> {
+        let mut state = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        let mut values: Vec<f32> = (0..channels * height * width)
+            .map(|_| {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((state >> 40) as f32 / (1u64 << 24) as f32) - 0.5
+            })
+            .collect();
+        let cells = height * width;
+        for cell in 0..cells {
+            let norm = (0..channels)
+                .map(|c| values[c * cells + cell].powi(2))
+                .sum::<f32>()
+                .sqrt();
+            for c in 0..channels {
+                values[c * cells + cell] /= norm;
+            }
+        }
+        values
+    }
+
+    /// The target as the reference shifted by `(rows, cols)` cells: target(i, j) = reference(i − rows,
+    /// j − cols), random outside.
+    fn shifted(
+        reference: &[f32],
+        channels: usize,
+        height: usize,
+        width: usize,
+        shift: (isize, isize),
+    ) -> Vec<f32> {
+        let mut target = features(channels, height, width, 99);
+        for c in 0..channels {
+            for i in 0..height as isize {
+                for j in 0..width as isize {
+                    let (si, sj) = (i - shift.0, j - shift.1);
+                    if si >= 0 && si < height as isize && sj >= 0 && sj < width as isize {
+                        target[c * height * width + (i as usize) * width + j as usize] =
+                            reference[c * height * width + (si as usize) * width + sj as usize];
+                    }
+                }
+            }
+        }
+        target
+    }
+
+    fn config() -> DenseMatchConfig {
+        DenseMatchConfig {
+            coarse_window: 5,
+            refine_window: 5,
+            stride: [4, 8],
+            coarse_scale: 30.0,
+            refine_scale: 30.0,
+            refine_offset: OffsetRule::BestWindow,
+        }
+    }
+
+    #[test]
+    fn a_shifted_scene_is_matched_by_its_shift_away_from_the_borders() {
+        let (height, width) = (16, 64);
+        // Coarse shift of (1, 1) coarse cells = (4, 8) pixels, then exact in the refine stage.
+        let coarse_ref = features(16, 4, 8, 1);
+        let coarse_tgt = shifted(&coarse_ref, 16, 4, 8, (1, 1));
+        let refine_ref = features(16, height, width, 2);
+        let refine_tgt = shifted(&refine_ref, 16, height, width, (4, 8));
+        fn map(data: &[f32], channels: usize, height: usize, width: usize) -> FeatureMap<'_> {
+            FeatureMap {
+                data,
+                channels,
+                height,
+                width,
+            }
+        }
+        let reference = ScanFeatures {
+            coarse: map(&coarse_ref, 16, 4, 8),
+            refine: map(&refine_ref, 16, height, width),
+        };
+        let target = ScanFeatures {
+            coarse: map(&coarse_tgt, 16, 4, 8),
+            refine: map(&refine_tgt, 16, height, width),
+        };
+        let result = match_features(&reference, &target, &config()).unwrap();
+        // Cells whose coarse cell and refine window stay inside the image: the whole shift, confidently.
+        for i in 0..8 {
+            for j in 0..48 {
+                let cell = i * width + j;
+                assert_relative_eq!(result.flow[cell], 4.0, epsilon = 0.51);
+                assert_relative_eq!(result.flow[height * width + cell], 8.0, epsilon = 0.51);
+                assert!(result.confidence[cell] > 0.5, "cell ({i}, {j})");
+            }
+        }
+    }
+
+    #[test]
+    fn bad_shapes_settings_and_values_are_named() {
+        let coarse = features(4, 4, 8, 1);
+        let refine = features(4, 16, 64, 2);
+        let scan = |coarse: &'static [f32], refine: &'static [f32]| ScanFeatures {
+            coarse: FeatureMap {
+                data: coarse,
+                channels: 4,
+                height: 4,
+                width: 8,
+            },
+            refine: FeatureMap {
+                data: refine,
+                channels: 4,
+                height: 16,
+                width: 64,
+            },
+        };
+        let coarse: &'static [f32] = Box::leak(coarse.into_boxed_slice());
+        let refine: &'static [f32] = Box::leak(refine.into_boxed_slice());
+        let good = scan(coarse, refine);
+        let message = |r: Result<DenseFlow>| r.unwrap_err().to_string();
+
+        let mut even = config();
+        even.refine_window = 4;
+        assert!(message(match_features(&good, &good, &even)).starts_with("refine_window"));
+        let mut cold = config();
+        cold.coarse_scale = 0.0;
+        assert!(message(match_features(&good, &good, &cold)).starts_with("coarse_scale"));
+
+        let mut nan = refine.to_vec();
+        nan[17] = f32::NAN;
+        let nan: &'static [f32] = Box::leak(nan.into_boxed_slice());
+        let with_nan = scan(coarse, nan);
+        assert!(message(match_features(&good, &with_nan, &config())).starts_with("tgt_refine"));
+
+        let mut short = good;
+        short.refine.data = &refine[1..];
+        assert!(message(match_features(&short, &good, &config())).starts_with("ref_refine"));
+
+        let mut wrong_stride = config();
+        wrong_stride.stride = [2, 8];
+        assert!(message(match_features(&good, &good, &wrong_stride)).starts_with("ref_refine"));
+    }
+}

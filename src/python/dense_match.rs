@@ -1,0 +1,113 @@
+//! Binding of the network's matching stage on cached features (`dmlo_rs.match_features`).
+
+use numpy::ndarray::Array3;
+use numpy::{IntoPyArray, PyArray2, PyArray3};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+use crate::dense_match::{self, DenseMatchConfig, FeatureMap, OffsetRule, ScanFeatures};
+
+use super::core::{floats, image_array, Floats};
+use super::pool::run;
+
+/// Flow `[2, H, W]` and confidence `[H, W]` as numpy arrays.
+type FlowArrays<'py> = (Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<f32>>);
+
+pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(match_features, m)?)?;
+    Ok(())
+}
+
+/// A feature array as the network outputs it, `(1, C, h, w)` or `(C, h, w)` float32/float64, and its
+/// `(C, h, w)`.
+fn feature_array<'py>(name: &str, obj: &Bound<'py, PyAny>) -> PyResult<(Floats<'py>, [usize; 3])> {
+    let array = floats(name, obj)?;
+    let shape = match *array.shape() {
+        [1, c, h, w] | [c, h, w] => [c, h, w],
+        ref other => {
+            return Err(PyValueError::new_err(format!(
+                "{name}: expected shape (1, C, h, w) or (C, h, w), got {other:?}"
+            )))
+        }
+    };
+    Ok((array, shape))
+}
+
+fn offset_rule(name: &str) -> PyResult<OffsetRule> {
+    match name {
+        "window" => Ok(OffsetRule::BestWindow),
+        "peak_centroid" => Ok(OffsetRule::PeakCentroid),
+        other => Err(PyValueError::new_err(format!(
+            "refine_offset: expected 'window' or 'peak_centroid', got {other:?}"
+        ))),
+    }
+}
+
+/// The network's matching stage on the CPU: the flow of every reference cell into the target and its
+/// confidence, from both scans' cached features (what `match.onnx` computes, `Matcher.match` in
+/// `dmlo.model`). Features `(1, C, h, w)` or `(C, h, w)`: coarse at `stride`, refine at full resolution.
+/// `coarse_scale` / `refine_scale` are the model's learned softmax temperatures (`exp` of its log
+/// scales); `refine_offset` is "window" (Eq. 11) or "peak_centroid".
+/// → (flow float32 `[2, H, W]` (Δrow, Δcol), confidence float32 `[H, W]`).
+#[pyfunction]
+#[pyo3(signature = (ref_coarse, ref_refine, tgt_coarse, tgt_refine, *, coarse_window, refine_window,
+                    coarse_scale, refine_scale, refine_offset = "window", stride = (4, 8),
+                    num_threads = None))]
+#[allow(clippy::too_many_arguments)]
+fn match_features<'py>(
+    py: Python<'py>,
+    ref_coarse: &Bound<'py, PyAny>,
+    ref_refine: &Bound<'py, PyAny>,
+    tgt_coarse: &Bound<'py, PyAny>,
+    tgt_refine: &Bound<'py, PyAny>,
+    coarse_window: usize,
+    refine_window: usize,
+    coarse_scale: f32,
+    refine_scale: f32,
+    refine_offset: &str,
+    stride: (usize, usize),
+    num_threads: Option<usize>,
+) -> PyResult<FlowArrays<'py>> {
+    let config = DenseMatchConfig {
+        coarse_window,
+        refine_window,
+        stride: [stride.0, stride.1],
+        coarse_scale,
+        refine_scale,
+        refine_offset: offset_rule(refine_offset)?,
+    };
+    let arrays = [
+        feature_array("ref_coarse", ref_coarse)?,
+        feature_array("ref_refine", ref_refine)?,
+        feature_array("tgt_coarse", tgt_coarse)?,
+        feature_array("tgt_refine", tgt_refine)?,
+    ];
+    let data: Vec<_> = arrays.iter().map(|(array, _)| array.f32_data()).collect();
+    let maps: Vec<FeatureMap<'_>> = data
+        .iter()
+        .zip(&arrays)
+        .map(|(values, (_, [channels, height, width]))| FeatureMap {
+            data: values,
+            channels: *channels,
+            height: *height,
+            width: *width,
+        })
+        .collect();
+    let reference = ScanFeatures {
+        coarse: maps[0],
+        refine: maps[1],
+    };
+    let target = ScanFeatures {
+        coarse: maps[2],
+        refine: maps[3],
+    };
+    let result = run(py, num_threads, || {
+        dense_match::match_features(&reference, &target, &config)
+    })?;
+    let (height, width) = (result.height, result.width);
+    let flow = Array3::from_shape_vec((2, height, width), result.flow).map_err(|e| {
+        pyo3::exceptions::PyRuntimeError::new_err(format!("internal error in dmlo_rs: {e}"))
+    })?;
+    let confidence = image_array(height, width, result.confidence)?;
+    Ok((flow.into_pyarray(py), confidence.into_pyarray(py)))
+}
