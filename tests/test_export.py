@@ -45,6 +45,25 @@ def near_tie(sums: torch.Tensor, tolerance: float = 1e-4) -> torch.Tensor:
     return (top[:, 0] - top[:, 1]) <= tolerance * top[:, 0]
 
 
+def tied_cells(want, config: MatcherConfig) -> torch.Tensor:
+    """(B, H, W): cells of a float64 reference match whose decision float32 may take differently — a near
+    tie between the best two windows (coarse or refine; for the peak centroid, the best two cells) or an
+    upsampled coarse offset that rounds at half a pixel."""
+    from dmlo.model.matcher import upsample_coarse_flow
+
+    coarse_sums = decode_window(want.coarse_logits, config.coarse_window).window_sums
+    refine_sums = decode_window(want.refine_logits, config.refine_window).window_sums
+    origin = upsample_coarse_flow(want.coarse_flow, config.coarse_stride)
+    rounding_tie = ((origin - origin.floor() - 0.5).abs() < 1e-3).any(dim=1)
+    stride = config.coarse_stride
+    coarse_tie = torch.nn.functional.interpolate(near_tie(coarse_sums).unsqueeze(1).double(), scale_factor=stride)
+    ties = (coarse_tie[:, 0] > 0) | near_tie(refine_sums) | rounding_tie
+    if config.refine_offset == "peak_centroid":
+        top = want.refine_logits.topk(2, dim=1).values
+        ties |= (top[:, 0] - top[:, 1]) <= 1e-4 * top[:, 0].abs().clamp(min=1.0)
+    return ties
+
+
 def session(path) -> ort.InferenceSession:
     options = ort.SessionOptions()
     options.intra_op_num_threads = 2
@@ -77,15 +96,7 @@ def test_frame_graph_matches_pytorch(exported) -> None:
             "prev_refine_features": ref_features.refine.numpy(),
         },
     )
-    config = model.config
-    coarse_sums = decode_window(want.coarse_logits, config.coarse_window).window_sums
-    refine_sums = decode_window(want.refine_logits, config.refine_window).window_sums
-    from dmlo.model.matcher import upsample_coarse_flow
-
-    origin = upsample_coarse_flow(want.coarse_flow, config.coarse_stride)
-    rounding_tie = ((origin - origin.floor() - 0.5).abs() < 1e-3).any(dim=1)
-    coarse_tie = torch.nn.functional.interpolate(near_tie(coarse_sums).unsqueeze(1).double(), scale_factor=(4, 8))
-    ties = (coarse_tie[:, 0] > 0) | near_tie(refine_sums) | rounding_tie
+    ties = tied_cells(want, model.config)
     assert float(ties.double().mean()) < 0.05
     keep = (~ties[0]).numpy()
     flow_error = np.abs(got_flow - want.flow.numpy()).max(axis=1)[0]
@@ -152,6 +163,12 @@ def test_graph_interface_and_metadata(exported) -> None:
     assert MatcherConfig.from_dict(metadata["dmlo.model_config"]) == model.config
     assert metadata["dmlo.cylinder_config"]["azimuth_resolution_deg"] == 0.2
     assert json.loads(json.dumps(metadata["dmlo.model_config"]))["refine_channels"] == 8
+    scales = metadata["dmlo.similarity_scales"]
+    assert scales == pytest.approx(
+        {"coarse": float(model.coarse_log_scale.exp()), "refine": float(model.refine_log_scale.exp())}, rel=1e-6
+    )
+    for graph in ("encoder", "match"):
+        assert read_metadata(paths[graph])["dmlo.similarity_scales"] == scales
 
 
 def test_plain_refine_exports_without_deformconv(tmp_path) -> None:

@@ -234,6 +234,37 @@ mod tests {
     }
 
     #[test]
+    fn a_padded_window_decodes_like_its_dense_copy() {
+        // 7 cells per row stored 8 apart, as the correlation lays them out; the padding lanes hold −∞.
+        let window = 7;
+        let dense: Vec<f32> = (0..49)
+            .map(|i| ((i * 29 % 13) as f32 - 6.0) * 0.9)
+            .collect();
+        let layout = WindowLayout {
+            size: window,
+            row_stride: 8,
+        };
+        let mut padded = vec![f32::NEG_INFINITY; layout.len()];
+        for row in 0..window {
+            padded[row * 8..row * 8 + window]
+                .copy_from_slice(&dense[row * window..(row + 1) * window]);
+        }
+        for rule in [OffsetRule::BestWindow, OffsetRule::PeakCentroid] {
+            let want = decode(
+                &dense,
+                &mut vec![0.0; 49],
+                WindowLayout::dense(window),
+                rule,
+            );
+            let got = decode(&padded, &mut vec![0.0; layout.len()], layout, rule);
+            assert_relative_eq!(got.offset[0], want.offset[0], epsilon = 1e-6);
+            assert_relative_eq!(got.offset[1], want.offset[1], epsilon = 1e-6);
+            assert_relative_eq!(got.confidence, want.confidence, epsilon = 1e-6);
+            assert!(want.confidence > 0.05 && want.confidence < 0.95); // a spread, not a one-hot window
+        }
+    }
+
+    #[test]
     fn ties_go_to_the_first_window_in_row_major_order() {
         let window = 3;
         let logits = vec![0.0f32; 9]; // all four 2×2 windows tie

@@ -32,6 +32,7 @@ MATCH_GRAPH = "match.onnx"  # any pair of cached features, e.g. the new scan bac
 ENCODER_GRAPH = "encoder.onnx"  # a scan's features alone (frame.onnx would also match it against zeros)
 INTERFACE_VERSION = "1"
 MATCHING_STAGES = ("auto", "crate", "graph")
+_MATCH_STAGE_KEYS = ("coarse_window", "refine_window", "refine_offset")  # export-time choices, same weights
 _CYLINDER_KEYS = (
     "fov_up_deg",
     "fov_down_deg",
@@ -213,6 +214,16 @@ class OnnxMatcher:
             refine_offset=config["refine_offset"], num_threads=self._threads,
         )
 
+    def _same_weights(self, config: Any, kind: str) -> bool:
+        """Whether a graph's model config is this graph's, up to what the graph's kind does not depend on: the
+        encoder serves every export of the same weights (e.g. `frame_wide.onnx`, whose windows differ)."""
+        if not isinstance(config, dict):
+            return False
+        ignored = _MATCH_STAGE_KEYS if kind == "encoder" else ()
+        return {k: v for k, v in config.items() if k not in ignored} == {
+            k: v for k, v in self.model_config.items() if k not in ignored
+        }
+
     def _check_image(self, image: npt.NDArray[np.float32]) -> None:
         if image.shape != (2, self.height, self.width):
             raise ModelError(
@@ -232,7 +243,7 @@ class OnnxMatcher:
             )
         session = _open_session(graph, self._options, self._providers)
         metadata = session.get_modelmeta().custom_metadata_map
-        if metadata.get("dmlo.graph") != kind or json.loads(metadata.get("dmlo.model_config", "null")) != self.model_config:
+        if metadata.get("dmlo.graph") != kind or not self._same_weights(json.loads(metadata.get("dmlo.model_config", "null")), kind):
             raise ModelError(f"{graph}: not the {kind} graph of {self.path.name}'s model")
         if (int(metadata.get("dmlo.height", -1)), int(metadata.get("dmlo.width", -1))) != (self.height, self.width):
             raise ModelError(f"{graph}: input size differs from {self.path.name}'s {self.height}×{self.width}")
