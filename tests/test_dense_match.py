@@ -104,9 +104,9 @@ def kitti_images(shared_data: Path, matcher: OnnxMatcher) -> list[np.ndarray]:
 
 
 def test_crate_agrees_with_the_bundled_match_graph_on_kitti_scans(shared_data: Path) -> None:
-    graph = OnnxMatcher(default_model_path(), threads=2, matching="graph")
-    crate = OnnxMatcher(default_model_path(), threads=2, matching="crate")
-    assert (graph.matching, crate.matching) == ("graph", "crate")
+    graph = OnnxMatcher(default_model_path(), threads=2, matching_stage="graph")
+    crate = OnnxMatcher(default_model_path(), threads=2, matching_stage="crate")
+    assert (graph.matching_stage, crate.matching_stage) == ("graph", "crate")
     first, second = (graph.encode(image) for image in kitti_images(shared_data, graph))
     for ref, tgt in ((first, second), (second, first)):
         want_flow, want_confidence = graph.match(ref, tgt)
@@ -120,9 +120,9 @@ def test_crate_agrees_with_the_bundled_match_graph_on_kitti_scans(shared_data: P
 
 
 def test_frame_in_the_crate_matches_the_frame_graph(shared_data: Path) -> None:
-    graph = OnnxMatcher(default_model_path(), threads=2, matching="graph")
+    graph = OnnxMatcher(default_model_path(), threads=2, matching_stage="graph")
     crate = OnnxMatcher(default_model_path(), threads=2)
-    assert crate.matching == "crate"  # the CPU default with the bundled model
+    assert crate.matching_stage == "crate"  # the CPU default with the bundled model
     images = kitti_images(shared_data, graph)
     first_graph, first_crate = graph.frame(images[0], None), crate.frame(images[0], None)
     assert first_crate.flow is None and first_crate.confidence is None
@@ -144,23 +144,23 @@ def test_a_model_without_scales_matches_in_its_graph(tmp_path: Path) -> None:
         del proto.metadata_props[:]
         proto.metadata_props.extend(kept)
         onnx.save(proto, str(path))
-    assert OnnxMatcher(folder).matching == "graph"
+    assert OnnxMatcher(folder).matching_stage == "graph"
     with pytest.raises(ModelError, match="similarity_scales"):
-        OnnxMatcher(folder, matching="crate")
+        OnnxMatcher(folder, matching_stage="crate")
     (default_copy := tmp_path / "no_encoder").mkdir()
     shutil.copy(default_model_path() / "frame.onnx", default_copy)
-    assert OnnxMatcher(default_copy).matching == "graph"
+    assert OnnxMatcher(default_copy).matching_stage == "graph"
     with pytest.raises(ModelError, match="encoder.onnx"):
-        OnnxMatcher(default_copy, matching="crate")
-    with pytest.raises(ValueError, match="matching"):
-        OnnxMatcher(default_model_path(), matching="gpu")
+        OnnxMatcher(default_copy, matching_stage="crate")
+    with pytest.raises(ValueError, match="matching_stage"):
+        OnnxMatcher(default_model_path(), matching_stage="gpu")
 
 
 def test_the_wide_graph_matches_in_the_crate_with_its_own_window(shared_data: Path) -> None:
     wide = default_model_path() / "frame_wide.onnx"
     crate = OnnxMatcher(wide, threads=2)
-    graph = OnnxMatcher(wide, threads=2, matching="graph")
-    assert crate.matching == "crate" and crate.model_config["coarse_window"] > 11
+    graph = OnnxMatcher(wide, threads=2, matching_stage="graph")
+    assert crate.matching_stage == "crate" and crate.model_config["coarse_window"] > 11
     first, second = kitti_images(shared_data, crate)
     previous = crate.encode(first)
     got, want = crate.frame(second, previous), graph.frame(second, previous)
@@ -173,8 +173,8 @@ def test_exported_scales_drive_the_crate_like_the_graph(tmp_path: Path) -> None:
     with torch.no_grad():
         model.coarse_log_scale.fill_(2.9)  # far from the initial 10: a wrong scale would show
     export_onnx(model, tmp_path, HEIGHT, WIDTH, cylinder_config=dmlo_rs.CylinderConfig(height=HEIGHT, width=WIDTH))
-    crate, graph = OnnxMatcher(tmp_path), OnnxMatcher(tmp_path, matching="graph")
-    assert crate.matching == "crate"
+    crate, graph = OnnxMatcher(tmp_path), OnnxMatcher(tmp_path, matching_stage="graph")
+    assert crate.matching_stage == "crate"
     ref, tgt, _, _ = synthetic_pair(HEIGHT, WIDTH, (2, -7), seed=14)
     first, second = crate.encode(ref[0].numpy()), crate.encode(tgt[0].numpy())
     flow, confidence = crate.match(first, second)

@@ -165,7 +165,8 @@ def test_graph_interface_and_metadata(exported) -> None:
     assert json.loads(json.dumps(metadata["dmlo.model_config"]))["refine_channels"] == 8
     scales = metadata["dmlo.similarity_scales"]
     assert scales == pytest.approx(
-        {"coarse": float(model.coarse_log_scale.exp()), "refine": float(model.refine_log_scale.exp())}, rel=1e-6
+        {"coarse": float(model.coarse_log_scale.detach().exp()), "refine": float(model.refine_log_scale.detach().exp())},
+        rel=1e-6,
     )
     for graph in ("encoder", "match"):
         assert read_metadata(paths[graph])["dmlo.similarity_scales"] == scales

@@ -14,6 +14,7 @@ def test_defaults_are_the_papers() -> None:
     assert config.matching.nms_radius == 1.0  # r = 1 (§IV-B)
     assert config.ransac.threshold == 0.1  # 0.1 m inlier threshold
     assert config.motion_model.min_inliers == 10  # fewer than 10 inliers → motion model
+    assert config.matching_stage == "auto"  # beyond the paper: where the matching runs, not what it computes
 
 
 def test_round_trip_through_a_file(tmp_path: Path) -> None:

@@ -94,6 +94,26 @@ def test_missing_scan_file_is_skipped(drive: Path, tmp_path: Path) -> None:
     assert summary.skipped == [4]
 
 
+def test_matching_stage_flag_reaches_the_config_and_gives_the_same_poses(drive: Path, tmp_path: Path) -> None:
+    poses = {}
+    for stage in ("crate", "graph"):
+        out = tmp_path / stage
+        result = dmlo("run", str(drive), "--out", str(out), "--max-frames", "3", "--matching-stage", stage)
+        assert result.returncode == 0, result.stderr
+        assert json.loads((out / "config.json").read_text())["matching_stage"] == stage
+        poses[stage] = read_kitti_poses(out / "poses_kitti.txt")
+    np.testing.assert_allclose(poses["crate"], poses["graph"], atol=1e-3)
+
+
+def test_a_config_with_an_unknown_matching_stage_is_one_line(drive: Path, tmp_path: Path) -> None:
+    config = tmp_path / "config.json"
+    config.write_text(json.dumps({"matching_stage": "gpu"}))
+    result = dmlo("run", str(drive), "--out", str(tmp_path / "out"), "--config", str(config))
+    assert result.returncode == 2
+    assert "matching_stage: expected one of auto, crate, graph, got 'gpu'" in result.stderr
+    assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

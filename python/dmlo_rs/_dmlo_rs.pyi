@@ -236,13 +236,14 @@ def match_features(
     coarse_scale: float,
     refine_scale: float,
     refine_offset: Literal["window", "peak_centroid"] = "window",
-    stride: tuple[int, int] = (4, 8),
+    stride: tuple[int, int] | None = None,
     num_threads: int | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
     """The network's matching stage on the CPU (what match.onnx computes from two scans' cached features):
     (flow float32 [2, H, W] (Δrow, Δcol), confidence float32 [H, W] Q*). Features (1, C, h, w) or (C, h, w),
     coarse at `stride`, refine at full resolution; the scales are the model's learned softmax temperatures
-    (the exported graphs' dmlo.similarity_scales); windows odd ≥ 3; non-finite features are refused."""
+    (the exported graphs' dmlo.similarity_scales); windows odd ≥ 3; stride None: the network's (4, 8);
+    non-finite features are refused."""
 
 def sweep_times(
     points: npt.NDArray[np.float32] | npt.NDArray[np.float64],

@@ -13,6 +13,9 @@ use super::pool::run;
 /// Flow `[2, H, W]` and confidence `[H, W]` as numpy arrays.
 type FlowArrays<'py> = (Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<f32>>);
 
+/// The coarse encoder's stride (rows, cols): `MatcherConfig.coarse_stride`.
+const NETWORK_STRIDE: [usize; 2] = [4, 8];
+
 pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(match_features, m)?)?;
     Ok(())
@@ -47,11 +50,12 @@ fn offset_rule(name: &str) -> PyResult<OffsetRule> {
 /// confidence, from both scans' cached features (what `match.onnx` computes, `Matcher.match` in
 /// `dmlo.model`). Features `(1, C, h, w)` or `(C, h, w)`: coarse at `stride`, refine at full resolution.
 /// `coarse_scale` / `refine_scale` are the model's learned softmax temperatures (`exp` of its log
-/// scales); `refine_offset` is "window" (Eq. 11) or "peak_centroid".
+/// scales); `refine_offset` is "window" (Eq. 11) or "peak_centroid"; `stride` (rows, cols) of the coarse
+/// features, None: the network's 4 × 8.
 /// → (flow float32 `[2, H, W]` (Δrow, Δcol), confidence float32 `[H, W]`).
 #[pyfunction]
 #[pyo3(signature = (ref_coarse, ref_refine, tgt_coarse, tgt_refine, *, coarse_window, refine_window,
-                    coarse_scale, refine_scale, refine_offset = "window", stride = (4, 8),
+                    coarse_scale, refine_scale, refine_offset = "window", stride = None,
                     num_threads = None))]
 #[allow(clippy::too_many_arguments)]
 fn match_features<'py>(
@@ -65,13 +69,13 @@ fn match_features<'py>(
     coarse_scale: f32,
     refine_scale: f32,
     refine_offset: &str,
-    stride: (usize, usize),
+    stride: Option<(usize, usize)>,
     num_threads: Option<usize>,
 ) -> PyResult<FlowArrays<'py>> {
     let config = DenseMatchConfig {
         coarse_window,
         refine_window,
-        stride: [stride.0, stride.1],
+        stride: stride.map_or(NETWORK_STRIDE, |(rows, cols)| [rows, cols]),
         coarse_scale,
         refine_scale,
         refine_offset: offset_rule(refine_offset)?,

@@ -62,6 +62,9 @@ def add_odometry_arguments(parser: argparse.ArgumentParser, sequence: bool = Tru
                             help="motion-compensate every sweep by the constant-velocity prediction before "
                             "matching (for skewed sweeps: raw KITTI, live spinning sensors; times from the azimuth, "
                             "a clockwise sensor with poses at the forward-looking moment; config deskew.* for others)")
+    parser.add_argument("--matching-stage", choices=("auto", "crate", "graph"), default=None,
+                        help="where the network's correlation and window decoding run: in the Rust crate "
+                        "(fast on a CPU), in the ONNX graph (e.g. on a GPU), or auto (default; config matching_stage)")
     parser.add_argument("--no-coherence", action="store_true",
                         help="rank the matches by the network's confidence alone, as the paper does, instead of "
                         "also by how well each agrees with its neighbours' flow")
@@ -70,7 +73,7 @@ def add_odometry_arguments(parser: argparse.ArgumentParser, sequence: bool = Tru
 def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # type: ignore[no-untyped-def]
     """The odometry the arguments ask for; `mapping` overrides `--mapping`."""
     from dmlo.odometry import Odometry, OdometryConfig
-    from dmlo.odometry.matcher import ModelError, default_model_path
+    from dmlo.odometry.matcher import default_model_path
 
     try:
         config = OdometryConfig.load(args.config) if args.config else OdometryConfig()
@@ -82,12 +85,14 @@ def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # ty
         config.matching.symmetric = True
     if args.no_coherence:
         config.matching.coherence_px = None
+    if args.matching_stage:
+        config.matching_stage = args.matching_stage
     if getattr(args, "deskew", False):
         config.deskew.enabled = True
     model = args.model or default_model_path()
     try:
         return Odometry(model, config)
-    except ModelError as err:
+    except ValueError as err:  # a ModelError, or a setting of the config file out of its range
         raise UserError(str(err)) from err
 
 

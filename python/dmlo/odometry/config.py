@@ -144,7 +144,11 @@ class OdometryConfig:
     deskew: DeskewConfig = field(default_factory=DeskewConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     large_motion: LargeMotionConfig = field(default_factory=LargeMotionConfig)
-    threads: int = 0  # onnxruntime intra-op threads; 0 lets it choose
+    threads: int = 0  # onnxruntime's (and the crate's matching stage's) threads; 0 lets them choose
+    # Where the network's correlation and window decoding run (`dmlo.odometry.matcher`): "crate" (the
+    # Rust crate on cached features, ~3–5× faster than onnxruntime on a CPU), "graph" (inside the ONNX
+    # graph, e.g. on a GPU), "auto": the crate when onnxruntime runs on the CPU and the model allows it.
+    matching_stage: str = "auto"
     min_points: int = 1000  # scans with fewer finite points are bridged by the motion model
 
     def to_dict(self) -> dict[str, Any]:

@@ -95,13 +95,13 @@ class OnnxMatcher:
     """Runs an exported `frame.onnx` (or a folder holding one) on the CPU, or CUDA when available.
 
     `match_graph` opens what `match` needs at once (a missing graph is an error here rather than on the
-    first `match`); `matching` chooses where the matching stage runs (module docs)."""
+    first `match`); `matching_stage` chooses where the matching stage runs (module docs)."""
 
-    def __init__(self, path: Path, threads: int = 0, match_graph: bool = False, matching: str = "auto") -> None:
+    def __init__(self, path: Path, threads: int = 0, match_graph: bool = False, matching_stage: str = "auto") -> None:
         import onnxruntime as ort
 
-        if matching not in MATCHING_STAGES:
-            raise ValueError(f"matching: expected one of {', '.join(MATCHING_STAGES)}, got {matching!r}")
+        if matching_stage not in MATCHING_STAGES:
+            raise ValueError(f"matching_stage: expected one of {', '.join(MATCHING_STAGES)}, got {matching_stage!r}")
         graph = path / FRAME_GRAPH if path.is_dir() else path
         if not graph.is_file():
             raise ModelError(f"model not found: {graph}")
@@ -134,13 +134,13 @@ class OnnxMatcher:
         self._scales = json.loads(metadata["dmlo.similarity_scales"]) if "dmlo.similarity_scales" in metadata else None
         self._match_session: Any = None  # on the first `match` of the graph stage
         self._encoder_session: Any = None  # on the first `encode`
-        self.matching = self._choose_matching(matching)
-        if self.matching == "crate":
+        self.matching_stage = self._choose_stage(matching_stage)
+        if self.matching_stage == "crate":
             self._encoder_session = self._open_graph(ENCODER_GRAPH, "encoder", "encode a scan on its own")
         elif match_graph:
             self._match_session = self._open_match_graph()
 
-    def _choose_matching(self, requested: str) -> str:
+    def _choose_stage(self, requested: str) -> str:
         on_cpu = self._session.get_providers()[0] == "CPUExecutionProvider"
         crate_possible = self._scales is not None and self.path.with_name(ENCODER_GRAPH).is_file()
         if requested == "auto":
@@ -154,7 +154,7 @@ class OnnxMatcher:
 
     def frame(self, image: npt.NDArray[np.float32], previous: Features | None) -> FrameOutput:
         self._check_image(image)
-        if self.matching == "crate":
+        if self.matching_stage == "crate":
             features = self.encode(image)
             if previous is None:
                 return FrameOutput(features, None, None)
@@ -178,7 +178,7 @@ class OnnxMatcher:
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """Flow `[2, H, W]` and confidence `[H, W]` from `reference` to `target`, both scans' cached
         features (`match.onnx` beside `frame.onnx`, the same weights, or the crate): no scan is encoded again."""
-        if self.matching == "crate":
+        if self.matching_stage == "crate":
             return self._match_in_crate(reference, target)
         if self._match_session is None:
             self._match_session = self._open_match_graph()
@@ -205,7 +205,7 @@ class OnnxMatcher:
     def _match_in_crate(
         self, reference: Features, target: Features
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
-        assert self._scales is not None  # `_choose_matching` chose the crate only with them
+        assert self._scales is not None  # `_choose_stage` chose the crate only with them
         config = self.model_config
         return dmlo_rs.match_features(
             reference.coarse, reference.refine, target.coarse, target.refine,

@@ -159,7 +159,10 @@ class Odometry:
         self.config = config or OdometryConfig()
         _check_limits(self.config)
         self.matcher: Matcher = OnnxMatcher(
-            Path(model_path), threads=self.config.threads, match_graph=self.config.matching.symmetric
+            Path(model_path),
+            threads=self.config.threads,
+            match_graph=self.config.matching.symmetric,
+            matching_stage=self.config.matching_stage,
         )
         self.cylinder = self.matcher.cylinder
         self.poses: list[Matrix4] = []
@@ -363,7 +366,9 @@ class Odometry:
 
     def _wide_matcher(self) -> Matcher:
         if self._wide is None:
-            self._wide = OnnxMatcher(wide_graph_path(self.matcher.path), threads=self.config.threads)
+            self._wide = OnnxMatcher(
+                wide_graph_path(self.matcher.path), threads=self.config.threads, matching_stage=self.config.matching_stage
+            )
         return self._wide
 
     # -- the paper's steps ----------------------------------------------------------------------
