@@ -250,12 +250,7 @@ mod tests {
                 .copy_from_slice(&dense[row * window..(row + 1) * window]);
         }
         for rule in [OffsetRule::BestWindow, OffsetRule::PeakCentroid] {
-            let want = decode(
-                &dense,
-                &mut vec![0.0; 49],
-                WindowLayout::dense(window),
-                rule,
-            );
+            let want = decode(&dense, &mut [0.0; 49], WindowLayout::dense(window), rule);
             let got = decode(&padded, &mut vec![0.0; layout.len()], layout, rule);
             assert_relative_eq!(got.offset[0], want.offset[0], epsilon = 1e-6);
             assert_relative_eq!(got.offset[1], want.offset[1], epsilon = 1e-6);
