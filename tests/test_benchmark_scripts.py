@@ -85,3 +85,19 @@ def test_network_benchmark_compares_model_folders_without_writing_beside_them(
     assert sorted(p.name for p in model.iterdir()) == before  # no profiling trace left in the model folder
     with pytest.raises(SystemExit, match="each folder once"):
         network.main(["--models", str(model), str(model), "--drive", str(drive)])
+
+
+def test_network_benchmark_times_the_matching_stage_both_ways(drive: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    network.main(["--stages", "--drive", str(drive), "--repeats", "1"])
+    lines = capsys.readouterr().out.splitlines()
+    rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in lines if line.startswith("| ") and "---" not in line}
+    assert set(rows) >= {"frame.onnx (encode + match)", "encoder.onnx + crate", "match.onnx (cached features)",
+                         "crate alone (cached features)", "frame_wide.onnx (encode + match)",
+                         "encoder.onnx + crate, wide window"}
+    for crate_row in ("encoder.onnx + crate", "crate alone (cached features)", "encoder.onnx + crate, wide window"):
+        ratio, differing = rows[crate_row][3], rows[crate_row][4]
+        assert float(ratio) > 0
+        count, total = differing.strip(" |").split(" of ")
+        assert int(total) == 64 * 1792 and int(count) < 0.001 * int(total)  # the same matches both ways
+    with pytest.raises(SystemExit, match="--stages needs --drive"):
+        network.main(["--stages"])

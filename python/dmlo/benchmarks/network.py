@@ -1,9 +1,15 @@
-"""Per-frame onnxruntime time of the exported matcher (``frame.onnx``) for several refine variants, or of
-exported model folders on a real scan pair.
+"""Per-frame onnxruntime time of the exported matcher (``frame.onnx``) for several refine variants, of
+exported model folders on a real scan pair, or of where a model's matching stage runs.
 
     python -m dmlo.benchmarks.network [--height 64 --width 1792 --threads 2 --repeats 10 --profile]
     python -m dmlo.benchmarks.network --models python/dmlo/models/default other/ --drive DRIVE [--frame 10]
         [--graph frame_wide]
+    python -m dmlo.benchmarks.network --stages --drive DRIVE [--models FOLDER]
+
+With ``--stages`` one model (default: the bundled one) runs its correlation and window decoding both ways on
+the same scan pair of ``--drive``, each call timed in turns with the others: in onnxruntime (``frame.onnx``
+whole, ``match.onnx`` on cached features, ``frame_wide.onnx``) and in the crate (``encoder.onnx`` followed by
+`dmlo_rs.match_features`, or the latter alone); the table gives the ratios and how many cells' flow differ.
 
 Without ``--models`` each refine variant is exported with random weights (time does not depend on them).
 With ``--models`` the folders' own ``frame.onnx`` (or ``frame_wide.onnx``) run on two consecutive scans of
@@ -16,11 +22,13 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import json
 import tempfile
 import time
-from typing import Any
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -65,17 +73,22 @@ def _profile(path: Path, feeds: dict[str, np.ndarray], threads: int, top: int = 
 
 def _time_in_turns(sessions: dict[str, Any], feeds: dict[str, Any], repeats: int) -> dict[str, tuple[float, float]]:
     """Median (wall ms, CPU ms) per session, the sessions run one after the other ``repeats`` times."""
-    for name, session in sessions.items():
-        session.run(None, feeds[name])  # warm-up
-    times: dict[str, list[float]] = {name: [] for name in sessions}
-    cpu_times: dict[str, list[float]] = {name: [] for name in sessions}
+    return _time_calls({name: functools.partial(session.run, None, feeds[name]) for name, session in sessions.items()}, repeats)
+
+
+def _time_calls(calls: dict[str, Callable[[], object]], repeats: int) -> dict[str, tuple[float, float]]:
+    """Median (wall ms, CPU ms) per call, the calls made one after the other ``repeats`` times."""
+    for call in calls.values():
+        call()  # warm-up
+    times: dict[str, list[float]] = {name: [] for name in calls}
+    cpu_times: dict[str, list[float]] = {name: [] for name in calls}
     for _ in range(repeats):
-        for name, session in sessions.items():
+        for name, call in calls.items():
             start, start_cpu = time.perf_counter(), time.process_time()
-            session.run(None, feeds[name])
+            call()
             times[name].append(time.perf_counter() - start)
             cpu_times[name].append(time.process_time() - start_cpu)
-    return {name: (1000 * float(np.median(times[name])), 1000 * float(np.median(cpu_times[name]))) for name in sessions}
+    return {name: (1000 * float(np.median(times[name])), 1000 * float(np.median(cpu_times[name]))) for name in calls}
 
 
 def _variant_table(args: argparse.Namespace) -> None:
@@ -155,6 +168,55 @@ def _model_table(args: argparse.Namespace) -> None:
             print(f"\n{name}: {ops} (ms)")
 
 
+def _stage_table(args: argparse.Namespace) -> None:
+    import onnxruntime as ort
+
+    from dmlo.datasets import open_sequence
+    from dmlo.odometry import Odometry
+    from dmlo.odometry.matcher import OnnxMatcher, default_model_path
+
+    if args.drive is None:
+        raise SystemExit("--stages needs --drive: the sequence whose scans are matched")
+    if args.models and len(args.models) > 1:
+        raise SystemExit("--stages times one model: name a single folder with --models")
+    folder = args.models[0] if args.models else default_model_path()
+    sequence = open_sequence(args.drive)
+    previous, scan = (Odometry(folder).project(sequence[args.frame + step].points)[0] for step in (0, 1))
+    ways = {
+        (stage, graph): OnnxMatcher(folder / graph, threads=args.threads, matching_stage=stage)
+        for stage in ("graph", "crate")
+        for graph in ("frame.onnx", "frame_wide.onnx")
+    }
+    cached = ways["crate", "frame.onnx"].encode(previous), ways["crate", "frame.onnx"].encode(scan)
+    rows: dict[str, tuple[Callable[[], Any], str]] = {
+        "frame.onnx (encode + match)": (lambda: ways["graph", "frame.onnx"].frame(scan, cached[0]), "graph"),
+        "encoder.onnx + crate": (lambda: ways["crate", "frame.onnx"].frame(scan, cached[0]), "crate"),
+        "match.onnx (cached features)": (lambda: ways["graph", "frame.onnx"].match(*cached), "graph"),
+        "crate alone (cached features)": (lambda: ways["crate", "frame.onnx"].match(*cached), "crate"),
+        "frame_wide.onnx (encode + match)": (lambda: ways["graph", "frame_wide.onnx"].frame(scan, cached[0]), "graph"),
+        "encoder.onnx + crate, wide window": (lambda: ways["crate", "frame_wide.onnx"].frame(scan, cached[0]), "crate"),
+    }
+    medians = _time_calls({name: call for name, (call, _) in rows.items()}, args.repeats)
+    window = ways["graph", "frame_wide.onnx"].model_config["coarse_window"]
+    print(f"{folder} on {args.drive} frames {args.frame}→{args.frame + 1} ({scan.shape[1]}×{scan.shape[2]}), "
+          f"onnxruntime {ort.__version__}, {args.threads} threads, median of {args.repeats}; wide: D = {window}\n")
+    print("| matching stage | wall ms | CPU ms | graph / crate (wall) | cells \\|Δflow\\| > 1e-3 |\n|---|---|---|---|---|")
+    names = list(rows)
+    for graph_row, crate_row in zip(names[::2], names[1::2]):
+        graph_flow = _flow(rows[graph_row][0]())
+        crate_flow = _flow(rows[crate_row][0]())
+        differing = int((np.abs(graph_flow - crate_flow).max(axis=0) > 1e-3).sum())
+        ratio = medians[graph_row][0] / medians[crate_row][0]
+        print(f"| {graph_row} | {medians[graph_row][0]:.1f} | {medians[graph_row][1]:.1f} | | |")
+        print(f"| {crate_row} | {medians[crate_row][0]:.1f} | {medians[crate_row][1]:.1f} | {ratio:.2f} | "
+              f"{differing} of {crate_flow[0].size} |")
+
+
+def _flow(output: Any) -> np.ndarray:
+    """The flow of a `frame` (FrameOutput) or `match` ((flow, confidence)) call."""
+    return np.asarray(output[0] if isinstance(output, tuple) else output.flow)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--height", type=int, default=64)
@@ -167,8 +229,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--frame", type=int, default=0, help="with --models: the first scan of the pair")
     parser.add_argument("--graph", default="frame", choices=("frame", "frame_wide"),
                         help="with --models: the per-frame graph to time (same inputs and outputs)")
+    parser.add_argument("--stages", action="store_true",
+                        help="time one model's matching stage in onnxruntime against the crate (needs --drive)")
     args = parser.parse_args(argv)
-    if args.models:
+    if args.stages:
+        _stage_table(args)
+    elif args.models:
         _model_table(args)
     else:
         _variant_table(args)
