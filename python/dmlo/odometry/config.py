@@ -18,8 +18,8 @@ class MatchingConfig:
     # Beyond the paper: also match the new scan back against the previous one (`match.onnx` on both
     # scans' cached features) and take the midpoint of the two motions. The network errs differently in
     # the two directions, so part of its error cancels; it costs one more matching pass and a second
-    # coherence pass: about 0.6× the frame rate on the 300-frame drives of the README (7.4–8.6 instead of
-    # 12.3–14.4 Hz there).
+    # coherence pass: 0.55–0.8× the frame rate on the 300-frame drives of the README (12.4–14.2 instead of
+    # 17.5–23.2 Hz there).
     symmetric: bool = False
     # With `symmetric`: a cell whose match, followed back by the other direction's flow, lands more than
     # this many pixels from where it started is left out (optical flow's forward–backward check); None: keep all.
