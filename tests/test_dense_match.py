@@ -216,6 +216,7 @@ def test_good_arguments_run_in_both_layouts_and_dtypes() -> None:
         (lambda a, s: a[0].__setitem__((0, 0, 0, 0), np.inf), "ref_coarse"),
         (lambda a, s: s.update(coarse_window=4), "coarse_window"),
         (lambda a, s: s.update(refine_window=1), "refine_window"),
+        (lambda a, s: s.update(coarse_window=10**6 + 1), "coarse_window: 1000001 is wider than the 4×8 features"),
         (lambda a, s: s.update(coarse_scale=float("nan")), "coarse_scale"),
         (lambda a, s: s.update(refine_scale=0.0), "refine_scale"),
         (lambda a, s: s.update(refine_offset="centroid"), "refine_offset"),

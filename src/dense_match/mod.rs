@@ -132,8 +132,15 @@ fn check_features(
         ("tgt_refine", &target.refine),
     ];
     for (name, map) in maps {
-        let expected = map.channels * map.height * map.width;
-        if map.channels == 0 || map.height == 0 || map.width == 0 || map.data.len() != expected {
+        let expected = map
+            .channels
+            .checked_mul(map.height)
+            .and_then(|n| n.checked_mul(map.width));
+        if map.channels == 0
+            || map.height == 0
+            || map.width == 0
+            || expected != Some(map.data.len())
+        {
             return Err(Error::invalid(
                 name,
                 format!(
@@ -174,8 +181,8 @@ fn check_features(
         ));
     }
     let (coarse, refine) = (&reference.coarse, &reference.refine);
-    if coarse.height * config.stride[0] != refine.height
-        || coarse.width * config.stride[1] != refine.width
+    if coarse.height.checked_mul(config.stride[0]) != Some(refine.height)
+        || coarse.width.checked_mul(config.stride[1]) != Some(refine.width)
     {
         return Err(Error::invalid(
             "ref_refine",
@@ -184,6 +191,23 @@ fn check_features(
                 refine.height, refine.width, coarse.height, coarse.width, config.stride
             ),
         ));
+    }
+    // Beyond twice the image a window adds only zero padding; the bound keeps a mistyped size from
+    // asking for a padded copy of the target that cannot be allocated.
+    for (name, window, map) in [
+        ("coarse_window", config.coarse_window, coarse),
+        ("refine_window", config.refine_window, refine),
+    ] {
+        let widest = 2 * map.height.max(map.width) + 1;
+        if window > widest {
+            return Err(Error::invalid(
+                name,
+                format!(
+                    "{window} is wider than the {}×{} features can use (at most {widest})",
+                    map.height, map.width
+                ),
+            ));
+        }
     }
     Ok(())
 }
@@ -422,5 +446,17 @@ mod tests {
         let mut wrong_stride = config();
         wrong_stride.stride = [2, 8];
         assert!(message(match_features(&good, &good, &wrong_stride)).starts_with("ref_refine"));
+        let mut huge_stride = config();
+        huge_stride.stride = [usize::MAX, 8];
+        assert!(message(match_features(&good, &good, &huge_stride)).starts_with("ref_refine"));
+
+        let mut widest = config();
+        widest.coarse_window = 17; // 2 · 8 columns + 1: all the coarse image can use
+        assert!(match_features(&good, &good, &widest).is_ok());
+        widest.coarse_window = 19;
+        assert!(message(match_features(&good, &good, &widest)).starts_with("coarse_window"));
+        let mut too_wide = config();
+        too_wide.refine_window = 1_000_001;
+        assert!(message(match_features(&good, &good, &too_wide)).starts_with("refine_window"));
     }
 }
