@@ -189,6 +189,9 @@ def test_bench_rows_say_which_matching_they_ran(drive: Path, tmp_path: Path) -> 
     assert result.returncode == 0, result.stderr
     rows = [line.split("|")[1].strip() for line in result.stdout.strip().splitlines()[2:]]
     assert rows == ["DMLO (symmetric, no coherence)", "DMLO (symmetric, no coherence) + mapping"]
+    result = dmlo("bench", str(drive), "--peers", "--max-frames", "3", "--matching-stage", "graph", "--out", str(tmp_path / "graph"))
+    assert result.returncode == 0, result.stderr
+    assert "| DMLO (matching in onnxruntime) |" in result.stdout
 
 
 def test_deskew_flag_reaches_the_config_and_the_diagnostics(drive: Path, tmp_path: Path) -> None:

@@ -50,6 +50,8 @@ def run(args: argparse.Namespace) -> int:
         for label, on in (("symmetric", args.symmetric), ("no coherence", args.no_coherence), ("deskewed", args.deskew))
         if on
     ]
+    if args.matching_stage in ("crate", "graph"):  # only speed differs: say where the matching ran
+        settings.append("matching in " + ("the crate" if args.matching_stage == "crate" else "onnxruntime"))
     peers = args.peers
     if peers is None and args.deskew:  # compare with the peer that compensates its sweeps too
         from dmlo.bench.peers import PEERS
