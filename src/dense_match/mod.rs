@@ -160,25 +160,30 @@ fn check_features(
         }
     }
     let shape = |m: &FeatureMap<'_>| (m.channels, m.height, m.width);
-    if shape(&reference.coarse) != shape(&target.coarse) {
-        return Err(Error::invalid(
+    for (target_name, reference_name, reference_map, target_map) in [
+        (
             "tgt_coarse",
-            format!(
-                "shape {:?} differs from ref_coarse {:?}",
-                shape(&target.coarse),
-                shape(&reference.coarse)
-            ),
-        ));
-    }
-    if shape(&reference.refine) != shape(&target.refine) {
-        return Err(Error::invalid(
+            "ref_coarse",
+            &reference.coarse,
+            &target.coarse,
+        ),
+        (
             "tgt_refine",
-            format!(
-                "shape {:?} differs from ref_refine {:?}",
-                shape(&target.refine),
-                shape(&reference.refine)
-            ),
-        ));
+            "ref_refine",
+            &reference.refine,
+            &target.refine,
+        ),
+    ] {
+        if shape(reference_map) != shape(target_map) {
+            return Err(Error::invalid(
+                target_name,
+                format!(
+                    "shape {:?} differs from {reference_name} {:?}",
+                    shape(target_map),
+                    shape(reference_map)
+                ),
+            ));
+        }
     }
     let (coarse, refine) = (&reference.coarse, &reference.refine);
     if coarse.height.checked_mul(config.stride[0]) != Some(refine.height)
