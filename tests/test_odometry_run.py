@@ -101,6 +101,8 @@ def test_matching_stage_flag_reaches_the_config_and_gives_the_same_poses(drive: 
         result = dmlo("run", str(drive), "--out", str(out), "--max-frames", "3", "--matching-stage", stage)
         assert result.returncode == 0, result.stderr
         assert json.loads((out / "config.json").read_text())["matching_stage"] == stage
+        timings = json.loads((out / "diagnostics.jsonl").read_text().splitlines()[1])["timings_ms"]
+        assert ("matching" in timings) is (stage == "crate") and timings["network"] > 0
         poses[stage] = read_kitti_poses(out / "poses_kitti.txt")
     np.testing.assert_allclose(poses["crate"], poses["graph"], atol=1e-3)
 

@@ -17,6 +17,7 @@ from it, so a model and its input geometry cannot drift apart.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -60,6 +61,7 @@ class FrameOutput:
     features: Features
     flow: npt.NDArray[np.float32] | None  # [2, H, W] (Δrow, Δcol) from the previous scan, None first
     confidence: npt.NDArray[np.float32] | None  # [H, W] Q*
+    matching_ms: float | None = None  # of the call, the crate's matching stage (None: all of it in onnxruntime)
 
 
 class Matcher(Protocol):
@@ -158,7 +160,9 @@ class OnnxMatcher:
             features = self.encode(image)
             if previous is None:
                 return FrameOutput(features, None, None)
-            return FrameOutput(features, *self._match_in_crate(previous, features))
+            start = time.perf_counter()
+            flow, confidence = self._match_in_crate(previous, features)
+            return FrameOutput(features, flow, confidence, (time.perf_counter() - start) * 1e3)
         prev = previous or self._zeros
         flow, confidence, coarse, refine = self._session.run(
             None,

@@ -77,6 +77,8 @@ class FrameDiagnostics:
     ndt_start: str | None = None  # the NDT start that won: "dmlo", or "motion_model" when DMLO's pose was off
     image_fill: float | None = None  # fraction of the cylinder image's cells holding a point
     deskewed: bool = False  # with deskew.enabled: the sweep was motion-compensated (from the 3rd scan on)
+    # ms per stage, each once: "network" (projection and onnxruntime), "matching" (the crate's matching
+    # stage, when it ran there), "coherence", "decode_nms", "ransac", and the optional ones' own stages
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -246,6 +248,9 @@ class Odometry:
         previous = self._reference
         output = self.matcher.frame(image, previous.features if previous else None)  # §III-C
         watch.lap("network")
+        if output.matching_ms is not None:  # the crate matched: its share timed apart from the encoding
+            diagnostics.timings_ms["network"] -= output.matching_ms
+            diagnostics.timings_ms["matching"] = output.matching_ms
 
         if previous is None:
             pose = self._predict()
