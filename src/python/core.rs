@@ -28,6 +28,14 @@ use super::pool::run;
 
 // ---- plumbing --------------------------------------------------------------------------------------
 
+/// A count or size from Python as a `usize`. Bindings take such arguments as `i64` so that a negative
+/// value is refused here by name: pyo3's own conversion to `usize` raises an `OverflowError` that does
+/// not say which argument it was.
+pub(super) fn count(name: &str, value: i64) -> PyResult<usize> {
+    usize::try_from(value)
+        .map_err(|_| PyValueError::new_err(format!("{name}: must be >= 0, got {value}")))
+}
+
 /// A numpy array of floats, whichever width it came in.
 pub(super) enum Floats<'py> {
     F32(PyReadonlyArrayDyn<'py, f32>),
@@ -248,9 +256,11 @@ impl PyCylinderConfig {
         fov_down_deg: f64,
         vertical_resolution_deg: f64,
         horizontal_resolution_deg: f64,
-        height: usize,
-        width: usize,
+        height: i64,
+        width: i64,
     ) -> PyResult<Self> {
+        let height = count("height", height)?;
+        let width = count("width", width)?;
         let inner = CylinderConfig {
             fov_up_deg,
             fov_down_deg,
@@ -405,7 +415,7 @@ fn project(
     py: Python<'_>,
     points: &Bound<'_, PyAny>,
     config: &PyCylinderConfig,
-    num_threads: Option<usize>,
+    num_threads: Option<i64>,
 ) -> PyResult<PyProjection> {
     let (array, columns) = scan_points(points)?;
     let data = array.f32_data();
@@ -459,7 +469,7 @@ fn ground_truth_flow<'py>(
     T_tgt_ref: &Bound<'py, PyAny>,
     config: &PyCylinderConfig,
     max_range_error: f64,
-    num_threads: Option<usize>,
+    num_threads: Option<i64>,
 ) -> PyResult<(Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<bool>>)> {
     let config = config.inner;
     let (reference, target) = (
@@ -536,11 +546,16 @@ fn ransac_rigid(
     dst: &Bound<'_, PyAny>,
     threshold: f64,
     confidence: f64,
-    max_iterations: usize,
-    seed: u64,
-    refine_iterations: usize,
-    num_threads: Option<usize>,
+    max_iterations: i64,
+    seed: i128,
+    refine_iterations: i64,
+    num_threads: Option<i64>,
 ) -> PyResult<PyRansacResult> {
+    let max_iterations = count("max_iterations", max_iterations)?;
+    let seed = u64::try_from(seed).map_err(|_| {
+        PyValueError::new_err(format!("seed: must be in 0 ..= 2^64 - 1, got {seed}"))
+    })?;
+    let refine_iterations = count("refine_iterations", refine_iterations)?;
     let (src, dst) = (points3("src", src)?, points3("dst", dst)?);
     let config = RansacConfig {
         threshold,
@@ -575,10 +590,12 @@ fn non_maximum_suppression<'py>(
     rows: &Bound<'py, PyAny>,
     cols: &Bound<'py, PyAny>,
     scores: &Bound<'py, PyAny>,
-    radius: usize,
-    top_n: Option<usize>,
+    radius: i64,
+    top_n: Option<i64>,
     config: Option<&PyCylinderConfig>,
 ) -> PyResult<Bound<'py, PyArray1<i64>>> {
+    let radius = count("radius", radius)?;
+    let top_n = top_n.map(|n| count("top_n", n)).transpose()?;
     let (rows, cols) = (vector_i64("rows", rows)?, vector_i64("cols", cols)?);
     let array = floats("scores", scores)?;
     if array.shape().len() != 1 {
@@ -656,10 +673,12 @@ fn decode_matches(
     min_confidence: f32,
     mask: Option<&Bound<'_, PyAny>>,
     max_relative_range_spread: f32,
-    top_n: Option<usize>,
-    nms_radius: usize,
-    num_threads: Option<usize>,
+    top_n: Option<i64>,
+    nms_radius: i64,
+    num_threads: Option<i64>,
 ) -> PyResult<PyMatches> {
+    let top_n = top_n.map(|n| count("top_n", n)).transpose()?;
+    let nms_radius = count("nms_radius", nms_radius)?;
     let cylinder = config.inner;
     let (h, w) = (cylinder.height, cylinder.width);
     let reference = image("ref_range", ref_range, &cylinder)?;
@@ -732,10 +751,11 @@ fn coherent_confidence<'py>(
     confidence: &Bound<'py, PyAny>,
     ref_range: &Bound<'py, PyAny>,
     config: &PyCylinderConfig,
-    radius: usize,
+    radius: i64,
     scale_px: f32,
-    num_threads: Option<usize>,
+    num_threads: Option<i64>,
 ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+    let radius = count("radius", radius)?;
     let cylinder = config.inner;
     let (h, w) = (cylinder.height, cylinder.width);
     let reference = image("ref_range", ref_range, &cylinder)?;
@@ -763,7 +783,7 @@ fn sweep_times<'py>(
     points: &Bound<'py, PyAny>,
     clockwise: bool,
     reference_azimuth_deg: f64,
-    num_threads: Option<usize>,
+    num_threads: Option<i64>,
 ) -> PyResult<Bound<'py, PyArray1<f64>>> {
     let (array, columns) = scan_points(points)?;
     let data = array.f32_data();
@@ -796,7 +816,7 @@ fn deskew<'py>(
     times: Option<&Bound<'py, PyAny>>,
     clockwise: bool,
     reference_azimuth_deg: f64,
-    num_threads: Option<usize>,
+    num_threads: Option<i64>,
 ) -> PyResult<Bound<'py, PyArray2<f32>>> {
     let (array, columns) = scan_points(points)?;
     let motion = transform("motion", motion)?;

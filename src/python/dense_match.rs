@@ -7,7 +7,7 @@ use pyo3::prelude::*;
 
 use crate::dense_match::{self, DenseMatchConfig, FeatureMap, OffsetRule, ScanFeatures};
 
-use super::core::{floats, image_array, Floats};
+use super::core::{count, floats, image_array, Floats};
 use super::pool::run;
 
 /// Flow `[2, H, W]` and confidence `[H, W]` as numpy arrays.
@@ -64,18 +64,24 @@ fn match_features<'py>(
     ref_refine: &Bound<'py, PyAny>,
     tgt_coarse: &Bound<'py, PyAny>,
     tgt_refine: &Bound<'py, PyAny>,
-    coarse_window: usize,
-    refine_window: usize,
+    coarse_window: i64,
+    refine_window: i64,
     coarse_scale: f32,
     refine_scale: f32,
     refine_offset: &str,
-    stride: Option<(usize, usize)>,
-    num_threads: Option<usize>,
+    stride: Option<(i64, i64)>,
+    num_threads: Option<i64>,
 ) -> PyResult<FlowArrays<'py>> {
+    let coarse_window = count("coarse_window", coarse_window)?;
+    let refine_window = count("refine_window", refine_window)?;
+    let stride = match stride {
+        Some((rows, cols)) => [count("stride", rows)?, count("stride", cols)?],
+        None => NETWORK_STRIDE,
+    };
     let config = DenseMatchConfig {
         coarse_window,
         refine_window,
-        stride: stride.map_or(NETWORK_STRIDE, |(rows, cols)| [rows, cols]),
+        stride,
         coarse_scale,
         refine_scale,
         refine_offset: offset_rule(refine_offset)?,

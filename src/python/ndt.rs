@@ -12,6 +12,8 @@ use numpy::{
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
+use super::core::count;
+
 use crate::ndt::{
     isometry_from_matrix4, NdtAlignConfig, NdtMap, NdtMapConfig, NdtResult, NeighbourSearch,
 };
@@ -182,10 +184,12 @@ impl PyNdtMap {
     #[pyo3(signature = (voxel_size = 1.0, max_scans = 10, min_points_per_voxel = 5, min_eigenvalue_ratio = 0.01))]
     fn new(
         voxel_size: f64,
-        max_scans: usize,
-        min_points_per_voxel: usize,
+        max_scans: i64,
+        min_points_per_voxel: i64,
         min_eigenvalue_ratio: f64,
     ) -> PyResult<Self> {
+        let max_scans = count("max_scans", max_scans)?;
+        let min_points_per_voxel = count("min_points_per_voxel", min_points_per_voxel)?;
         let config = NdtMapConfig {
             voxel_size,
             min_points_per_voxel,
@@ -203,7 +207,7 @@ impl PyNdtMap {
         &mut self,
         py: Python<'_>,
         points_world: &Bound<'_, PyAny>,
-        num_threads: Option<usize>,
+        num_threads: Option<i64>,
     ) -> PyResult<()> {
         let points = read_points(points_world, "points_world")?;
         let inner = &mut self.inner;
@@ -218,7 +222,7 @@ impl PyNdtMap {
         py: Python<'_>,
         points: &Bound<'_, PyAny>,
         transform: &Bound<'_, PyAny>,
-        num_threads: Option<usize>,
+        num_threads: Option<i64>,
     ) -> PyResult<()> {
         let points = read_points(points, "points")?;
         let transform =
@@ -259,7 +263,7 @@ impl PyNdtMap {
         py: Python<'_>,
         points: &Bound<'_, PyAny>,
         initial_transform: &Bound<'_, PyAny>,
-        max_iterations: usize,
+        max_iterations: i64,
         translation_epsilon: f64,
         rotation_epsilon_deg: f64,
         outlier_ratio: f64,
@@ -267,11 +271,13 @@ impl PyNdtMap {
         neighbours: &str,
         max_step_translation: f64,
         max_step_rotation_deg: f64,
-        min_correspondences: usize,
+        min_correspondences: i64,
         degeneracy_threshold: f64,
         rotation_degeneracy_threshold: f64,
-        num_threads: Option<usize>,
+        num_threads: Option<i64>,
     ) -> PyResult<PyNdtResult> {
+        let max_iterations = count("max_iterations", max_iterations)?;
+        let min_correspondences = count("min_correspondences", min_correspondences)?;
         let neighbours = match neighbours {
             "containing" => NeighbourSearch::Containing,
             "direct7" => NeighbourSearch::Direct7,

@@ -12,16 +12,27 @@ use pyo3::prelude::*;
 /// pools are leaked in the child, never joined.
 static POOLS: Mutex<Option<ProcessPools>> = Mutex::new(None);
 
+/// The most threads a binding call may ask for.
+const MAX_THREADS: i64 = 1024;
+
 type ProcessPools = (u32, Vec<(usize, Arc<rayon::ThreadPool>)>);
 
-fn thread_pool(num_threads: Option<usize>) -> PyResult<Arc<rayon::ThreadPool>> {
+/// `num_threads` comes as a Python int (`i64`, so that a negative one is refused here by name rather than
+/// by pyo3's unnamed `OverflowError` for a `usize`).
+fn thread_pool(num_threads: Option<i64>) -> PyResult<Arc<rayon::ThreadPool>> {
     let threads = match num_threads {
-        Some(0) => {
-            return Err(PyValueError::new_err(
-                "num_threads: must be >= 1 (or None for all cores)",
-            ))
+        Some(n) if n < 1 => {
+            return Err(PyValueError::new_err(format!(
+                "num_threads: must be >= 1 (or None for all cores), got {n}"
+            )))
         }
-        Some(n) => n,
+        // Far beyond any machine's cores: a mistyped count must not try to start a million threads.
+        Some(n) if n > MAX_THREADS => {
+            return Err(PyValueError::new_err(format!(
+                "num_threads: at most {MAX_THREADS}, got {n}"
+            )))
+        }
+        Some(n) => n as usize,
         None => std::thread::available_parallelism().map_or(1, |n| n.get()),
     };
     let mut guard = POOLS
@@ -51,7 +62,7 @@ fn thread_pool(num_threads: Option<usize>) -> PyResult<Arc<rayon::ThreadPool>> {
 /// to Python exceptions and panics to `RuntimeError`.
 pub(crate) fn run<T: Send>(
     py: Python<'_>,
-    num_threads: Option<usize>,
+    num_threads: Option<i64>,
     work: impl FnOnce() -> crate::Result<T> + Send,
 ) -> PyResult<T> {
     let pool = thread_pool(num_threads)?;

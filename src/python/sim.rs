@@ -9,6 +9,8 @@ use numpy::{
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
+use super::core::count;
+
 use crate::raycast::{Ellipsoid, Hit, OrientedBox, Primitive, Scene, Triangle, VerticalCylinder};
 
 use super::pool::run;
@@ -171,9 +173,10 @@ impl RayScene {
         py: Python<'py>,
         pose: PyReadonlyArrayDyn<'py, f64>,
         elevations_deg: PyReadonlyArray1<'py, f64>,
-        azimuth_count: usize,
+        azimuth_count: i64,
         max_range: f64,
     ) -> PyResult<CastResult<'py, numpy::Ix2>> {
+        let azimuth_count = count("azimuth_count", azimuth_count)?;
         let p = pose.as_array();
         let poses: Vec<Matrix4<f64>> = match p.shape() {
             [4, 4] => vec![Matrix4::from_fn(|r, c| p[[r, c]])],
@@ -237,8 +240,9 @@ fn unzip_hits(hits: &[Option<Hit>]) -> (Vec<f64>, Vec<i64>, Vec<f32>) {
 fn lidar_scan_directions<'py>(
     py: Python<'py>,
     elevations_deg: PyReadonlyArray1<'py, f64>,
-    azimuth_count: usize,
+    azimuth_count: i64,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let azimuth_count = count("azimuth_count", azimuth_count)?;
     let elevations: Vec<f64> = elevations_deg.as_array().iter().copied().collect();
     let directions = crate::raycast::scan_directions(&elevations, azimuth_count)?;
     let flat: Vec<f64> = directions.iter().flat_map(|d| [d.x, d.y, d.z]).collect();
