@@ -230,6 +230,8 @@ class Odometry:
         keep = np.isfinite(cloud).all(axis=1)
         if moving is not None:
             keep &= ~_as_mask(moving, len(cloud))
+        # Also a copy, even when every point stays: the scan is kept as the next reference, and a caller
+        # streaming from a sensor may refill the same buffer for the next scan.
         cloud = cloud[keep]
         if len(cloud) < self.config.min_points:
             return self._skip(diagnostics, "too_few_points")
