@@ -146,8 +146,9 @@ class OdometryConfig:
     large_motion: LargeMotionConfig = field(default_factory=LargeMotionConfig)
     threads: int = 0  # onnxruntime's (and the crate's matching stage's) threads; 0 lets them choose
     # Where the network's correlation and window decoding run (`dmlo.odometry.matcher`): "crate" (the
-    # Rust crate on cached features, ~3–5× faster than onnxruntime on a CPU), "graph" (inside the ONNX
-    # graph, e.g. on a GPU), "auto": the crate when onnxruntime runs on the CPU and the model allows it.
+    # Rust crate on cached features, 2.6–4.4× faster than onnxruntime on the CPUs measured), "graph"
+    # (inside the ONNX graph, e.g. on a GPU), "auto": the crate when onnxruntime runs on the CPU and the
+    # model allows it.
     matching_stage: str = "auto"
     min_points: int = 1000  # scans with fewer finite points are bridged by the motion model
 

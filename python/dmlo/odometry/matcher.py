@@ -7,7 +7,7 @@ window decoding, three quarters of the exported `frame` graph's time on a CPU) r
 - ``graph``: the `frame` graph does both in one onnxruntime session (ONNX-NOTES item 10) — on a GPU, all
   of it runs there;
 - ``crate``: `encoder.onnx` encodes the scan and `dmlo_rs.match_features` matches the cached features on
-  the CPU (the same computation, ~3× faster there; it needs the graphs' ``dmlo.similarity_scales``);
+  the CPU (the same computation, 2.6–4.4× faster there; it needs the graphs' ``dmlo.similarity_scales``);
 - ``auto`` (the default): ``crate`` when onnxruntime runs on the CPU and the model allows it, else ``graph``.
 
 The graph's metadata carries the cylinder configuration it was trained for; the projection is built
