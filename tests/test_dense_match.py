@@ -229,3 +229,15 @@ def test_bad_input_is_named(change, message) -> None:
     change(arrays, settings)
     with pytest.raises((ValueError, TypeError), match=message):
         dmlo_rs.match_features(*arrays, **settings)
+
+
+def test_on_a_gpu_auto_leaves_the_matching_in_the_graphs(monkeypatch: pytest.MonkeyPatch) -> None:
+    matcher = OnnxMatcher(default_model_path())
+
+    class OnCuda:
+        def get_providers(self) -> list[str]:
+            return ["CUDAExecutionProvider", "CPUExecutionProvider"]
+
+    monkeypatch.setattr(matcher, "_session", OnCuda())
+    assert matcher._choose_stage("auto") == "graph"
+    assert matcher._choose_stage("crate") == "crate"  # asked for explicitly: the CPU-side stage after a GPU encoder
