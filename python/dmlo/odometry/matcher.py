@@ -1,4 +1,5 @@
-"""The matching network at run time: the exported ONNX graphs in onnxruntime, and on a CPU its matching stage in the crate.
+"""The matching network at run time: the exported ONNX graphs in onnxruntime and, on a CPU, its matching
+stage in the crate.
 
 The odometry calls the matcher once per scan: it encodes the new scan and matches the previous scan's
 cached features against it, so each scan is encoded once. Where the matching stage (correlation and
