@@ -217,6 +217,48 @@ fn check_features(
     Ok(())
 }
 
+/// One thread's scratch for matching reference cells against a padded target, a window at a time.
+struct WindowMatcher<'a> {
+    target: &'a PaddedTarget,
+    layout: WindowLayout,
+    scale: f32,
+    features: CellFeatures,
+    logits: Vec<f32>,
+    weights: Vec<f32>,
+}
+
+impl<'a> WindowMatcher<'a> {
+    fn new(target: &'a PaddedTarget, layout: WindowLayout, scale: f32) -> Self {
+        WindowMatcher {
+            target,
+            layout,
+            scale,
+            features: CellFeatures::for_target(target),
+            logits: vec![0.0; layout.len()],
+            weights: vec![0.0; layout.len()],
+        }
+    }
+
+    /// Cell `cell` of `reference` decoded in the target window centred on `centre` (inside the image).
+    fn match_cell(
+        &mut self,
+        reference: &FeatureMap<'_>,
+        cell: (usize, usize),
+        centre: (usize, usize),
+        rule: OffsetRule,
+    ) -> WindowMatch {
+        self.features.load(reference, cell.0, cell.1);
+        self.target.window_logits(
+            &self.features,
+            centre,
+            self.layout,
+            self.scale,
+            &mut self.logits,
+        );
+        decode(&self.logits, &mut self.weights, self.layout, rule)
+    }
+}
+
 /// Unclamped integer window origin of every coarse cell, in full-resolution pixels (Δrow, Δcol): the
 /// coarse match times the stride, rounded half to even like `torch.round`.
 fn coarse_stage(
@@ -232,20 +274,11 @@ fn coarse_stage(
         .par_chunks_mut(width)
         .enumerate()
         .for_each(|(row, row_origins)| {
-            let mut logits = vec![0.0f32; layout.len()];
-            let mut weights = vec![0.0f32; layout.len()];
-            let mut features = CellFeatures::for_target(&padded);
+            let mut matcher = WindowMatcher::new(&padded, layout, config.coarse_scale);
             for (col, origin) in row_origins.iter_mut().enumerate() {
-                features.load(reference, row, col);
                 // Origin 0: each window is centred on its own cell.
-                padded.window_logits(
-                    &features,
-                    (row, col),
-                    layout,
-                    config.coarse_scale,
-                    &mut logits,
-                );
-                let found = decode(&logits, &mut weights, layout, OffsetRule::BestWindow);
+                let found =
+                    matcher.match_cell(reference, (row, col), (row, col), OffsetRule::BestWindow);
                 *origin = [
                     (found.offset[0] * config.stride[0] as f32).round_ties_even() as i64,
                     (found.offset[1] * config.stride[1] as f32).round_ties_even() as i64,
@@ -274,9 +307,7 @@ fn refine_stage(
         .zip(confidence.par_chunks_mut(width))
         .enumerate()
         .for_each(|(row, ((row_flow_rows, row_flow_cols), row_confidence))| {
-            let mut logits = vec![0.0f32; layout.len()];
-            let mut weights = vec![0.0f32; layout.len()];
-            let mut features = CellFeatures::for_target(&padded);
+            let mut matcher = WindowMatcher::new(&padded, layout, config.refine_scale);
             let block_origins =
                 &coarse_origins[(row / config.stride[0]) * coarse_width..][..coarse_width];
             for col in 0..width {
@@ -284,15 +315,12 @@ fn refine_stage(
                 // The window centre clamped into the image, as `clamp_origin` does.
                 let centre_row = (row as i64 + origin_row).clamp(0, height as i64 - 1) as usize;
                 let centre_col = (col as i64 + origin_col).clamp(0, width as i64 - 1) as usize;
-                features.load(reference, row, col);
-                padded.window_logits(
-                    &features,
+                let found = matcher.match_cell(
+                    reference,
+                    (row, col),
                     (centre_row, centre_col),
-                    layout,
-                    config.refine_scale,
-                    &mut logits,
+                    config.refine_offset,
                 );
-                let found = decode(&logits, &mut weights, layout, config.refine_offset);
                 row_flow_rows[col] = (centre_row as f32 - row as f32) + found.offset[0];
                 row_flow_cols[col] = (centre_col as f32 - col as f32) + found.offset[1];
                 row_confidence[col] = found.confidence;
