@@ -112,7 +112,7 @@ impl Floats<'_> {
     }
 }
 
-fn shape_error(name: &str, expected: &str, shape: &[usize]) -> PyErr {
+pub(super) fn shape_error(name: &str, expected: &str, shape: &[usize]) -> PyErr {
     PyValueError::new_err(format!("{name}: expected shape {expected}, got {shape:?}"))
 }
 
@@ -228,6 +228,12 @@ fn matrix_to_numpy<'py>(py: Python<'py>, isometry: &Isometry3<f64>) -> Bound<'py
 
 fn points_to_numpy<'py>(py: Python<'py>, points: &[Point3<f64>]) -> Bound<'py, PyArray2<f64>> {
     Array2::from_shape_fn((points.len(), 3), |(i, j)| points[i][j]).into_pyarray(py)
+}
+
+/// A `(2, height, width)` flow (Δrow plane, then Δcol) the crate returned as a flat vector.
+pub(super) fn flow_array(height: usize, width: usize, values: Vec<f32>) -> PyResult<Array3<f32>> {
+    Array3::from_shape_vec((2, height, width), values)
+        .map_err(|e| PyRuntimeError::new_err(format!("internal error in dmlo_rs: {e}")))
 }
 
 /// A row-major `height × width` image (or any 2-D array, e.g. N points × columns) the crate returned as a
@@ -483,8 +489,7 @@ fn ground_truth_flow<'py>(
         ground_truth::ground_truth_flow(reference, target, &motion, &config, max_range_error)
     })?;
     let (h, w) = (gt.height, gt.width);
-    let flow = Array3::from_shape_vec((2, h, w), gt.flow)
-        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+    let flow = flow_array(h, w, gt.flow)?;
     let valid = image_array(h, w, gt.valid)?;
     Ok((flow.into_pyarray(py), valid.into_pyarray(py)))
 }

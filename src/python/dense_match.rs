@@ -1,13 +1,12 @@
 //! Binding of the network's matching stage on cached features (`dmlo_rs.match_features`).
 
-use numpy::ndarray::Array3;
 use numpy::{IntoPyArray, PyArray2, PyArray3};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use crate::dense_match::{self, DenseMatchConfig, FeatureMap, OffsetRule, ScanFeatures};
 
-use super::core::{count, floats, image_array, Floats};
+use super::core::{count, floats, flow_array, image_array, shape_error, Floats};
 use super::pool::run;
 
 /// Flow `[2, H, W]` and confidence `[H, W]` as numpy arrays.
@@ -27,11 +26,7 @@ fn feature_array<'py>(name: &str, obj: &Bound<'py, PyAny>) -> PyResult<(Floats<'
     let array = floats(name, obj)?;
     let shape = match *array.shape() {
         [1, c, h, w] | [c, h, w] => [c, h, w],
-        ref other => {
-            return Err(PyValueError::new_err(format!(
-                "{name}: expected shape (1, C, h, w) or (C, h, w), got {other:?}"
-            )))
-        }
+        ref other => return Err(shape_error(name, "(1, C, h, w) or (C, h, w)", other)),
     };
     Ok((array, shape))
 }
@@ -115,9 +110,7 @@ fn match_features<'py>(
         dense_match::match_features(&reference, &target, &config)
     })?;
     let (height, width) = (result.height, result.width);
-    let flow = Array3::from_shape_vec((2, height, width), result.flow).map_err(|e| {
-        pyo3::exceptions::PyRuntimeError::new_err(format!("internal error in dmlo_rs: {e}"))
-    })?;
+    let flow = flow_array(height, width, result.flow)?;
     let confidence = image_array(height, width, result.confidence)?;
     Ok((flow.into_pyarray(py), confidence.into_pyarray(py)))
 }
