@@ -188,23 +188,24 @@ def _stage_table(args: argparse.Namespace) -> None:
         for graph in ("frame.onnx", "frame_wide.onnx")
     }
     cached = ways["crate", "frame.onnx"].encode(previous), ways["crate", "frame.onnx"].encode(scan)
-    rows: dict[str, tuple[Callable[[], Any], str]] = {
-        "frame.onnx (encode + match)": (lambda: ways["graph", "frame.onnx"].frame(scan, cached[0]), "graph"),
-        "encoder.onnx + crate": (lambda: ways["crate", "frame.onnx"].frame(scan, cached[0]), "crate"),
-        "match.onnx (cached features)": (lambda: ways["graph", "frame.onnx"].match(*cached), "graph"),
-        "crate alone (cached features)": (lambda: ways["crate", "frame.onnx"].match(*cached), "crate"),
-        "frame_wide.onnx (encode + match)": (lambda: ways["graph", "frame_wide.onnx"].frame(scan, cached[0]), "graph"),
-        "encoder.onnx + crate, wide window": (lambda: ways["crate", "frame_wide.onnx"].frame(scan, cached[0]), "crate"),
+    # In pairs: onnxruntime's way, then the crate's.
+    rows: dict[str, Callable[[], Any]] = {
+        "frame.onnx (encode + match)": lambda: ways["graph", "frame.onnx"].frame(scan, cached[0]),
+        "encoder.onnx + crate": lambda: ways["crate", "frame.onnx"].frame(scan, cached[0]),
+        "match.onnx (cached features)": lambda: ways["graph", "frame.onnx"].match(*cached),
+        "crate alone (cached features)": lambda: ways["crate", "frame.onnx"].match(*cached),
+        "frame_wide.onnx (encode + match)": lambda: ways["graph", "frame_wide.onnx"].frame(scan, cached[0]),
+        "encoder.onnx + crate, wide window": lambda: ways["crate", "frame_wide.onnx"].frame(scan, cached[0]),
     }
-    medians = _time_calls({name: call for name, (call, _) in rows.items()}, args.repeats)
+    medians = _time_calls(rows, args.repeats)
     window = ways["graph", "frame_wide.onnx"].model_config["coarse_window"]
     print(f"{folder} on {args.drive} frames {args.frame}→{args.frame + 1} ({scan.shape[1]}×{scan.shape[2]}), "
           f"onnxruntime {ort.__version__}, {args.threads} threads, median of {args.repeats}; wide: D = {window}\n")
     print("| matching stage | wall ms | CPU ms | graph / crate (wall) | cells \\|Δflow\\| > 1e-3 |\n|---|---|---|---|---|")
     names = list(rows)
     for graph_row, crate_row in zip(names[::2], names[1::2]):
-        graph_flow = _flow(rows[graph_row][0]())
-        crate_flow = _flow(rows[crate_row][0]())
+        graph_flow = _flow(rows[graph_row]())
+        crate_flow = _flow(rows[crate_row]())
         differing = int((np.abs(graph_flow - crate_flow).max(axis=0) > 1e-3).sum())
         ratio = medians[graph_row][0] / medians[crate_row][0]
         print(f"| {graph_row} | {medians[graph_row][0]:.1f} | {medians[graph_row][1]:.1f} | | |")
