@@ -65,13 +65,10 @@ def cylinder_config_dict(config: Any) -> dict[str, Any]:
 
 def similarity_scales(model: Any) -> dict[str, float]:
     """The matcher's learned softmax temperatures as the graph uses them (float32 ``exp`` of the log scales)."""
-    import torch
-
-    with torch.no_grad():
-        return {
-            "coarse": float(model.coarse_log_scale.detach().float().exp()),
-            "refine": float(model.refine_log_scale.detach().float().exp()),
-        }
+    return {
+        "coarse": float(model.coarse_log_scale.detach().float().exp()),
+        "refine": float(model.refine_log_scale.detach().float().exp()),
+    }
 
 
 def _wrappers():  # type: ignore[no-untyped-def]
