@@ -42,12 +42,15 @@ fn median_of_3(a: f32, b: f32, c: f32) -> f32 {
 }
 
 /// Median of a non-empty slice (the mean of the two middle values for an even length), reordering it.
-/// The full windows of the default radii (3 and 5 values) take branch-free min/max networks, which
-/// are most of the cost of the whole weighting; partial windows at empty cells sort.
+/// Up to 5 values (the default radius's windows, full or partial at empty cells) take branch-free
+/// min/max networks, which are most of the cost of the whole weighting; longer ones sort.
 fn median(values: &mut [f32]) -> f32 {
     match *values {
         [a] => a,
+        [a, b] => 0.5 * (a.min(b) + a.max(b)),
         [a, b, c] => median_of_3(a, b, c),
+        // The two middle values of four: the larger of the pairs' minima and the smaller of their maxima.
+        [a, b, c, d] => 0.5 * (a.min(b).max(c.min(d)) + a.max(b).min(c.max(d))),
         [a, b, c, d, e] => median_of_3(a.min(b).max(c.min(d)), a.max(b).min(c.max(d)), e),
         _ => {
             values.sort_unstable_by(f32::total_cmp);
@@ -135,29 +138,39 @@ pub fn coherent_confidence(
         .enumerate()
         .for_each(|(row, out_row)| {
             let mut buffer = [[0.0f32; 2 * MAX_RADIUS + 1]; 2];
+            let row_medians = &column_medians[row * width..][..width];
             for (col, out_cell) in out_row.iter_mut().enumerate() {
                 let cell = row * width + col;
                 if !usable(cell) {
                     continue;
                 }
                 let mut count = 0;
-                for c in col as i64 - radius as i64..=col as i64 + radius as i64 {
-                    let c = match period {
-                        Some(period) => c.rem_euclid(period as i64) as usize,
-                        None if c < 0 || c >= width as i64 => continue,
-                        None => c as usize,
-                    };
-                    let [median_row, median_col] = column_medians[row * width + c];
+                let mut gather = |c: usize| {
+                    let [median_row, median_col] = row_medians[c];
                     if !median_row.is_nan() {
                         buffer[0][count] = median_row;
                         buffer[1][count] = median_col;
                         count += 1;
                     }
+                };
+                if col >= radius && col + radius < width {
+                    // Away from the image's sides no column wraps or falls off: no modulo per neighbour.
+                    (col - radius..=col + radius).for_each(&mut gather);
+                } else {
+                    for c in col as i64 - radius as i64..=col as i64 + radius as i64 {
+                        match period {
+                            Some(period) => gather(c.rem_euclid(period as i64) as usize),
+                            None if c < 0 || c >= width as i64 => {}
+                            None => gather(c as usize),
+                        }
+                    }
                 }
                 // The cell's own column always holds a usable cell (itself), so count ≥ 1.
                 let [rows, cols] = &mut buffer;
                 let centre = (median(&mut rows[..count]), median(&mut cols[..count]));
-                let distance = (flow_rows[cell] - centre.0).hypot(flow_cols[cell] - centre.1);
+                // Pixel distances: `hypot`'s overflow guard buys nothing here and costs a libm call.
+                let (d_row, d_col) = (flow_rows[cell] - centre.0, flow_cols[cell] - centre.1);
+                let distance = (d_row * d_row + d_col * d_col).sqrt();
                 *out_cell = confidence[cell] * (-distance / coherence.scale_px).exp();
             }
         });
@@ -178,6 +191,30 @@ mod tests {
             config.horizontal_resolution_deg = 360.0 / width as f64;
         }
         config
+    }
+
+    #[test]
+    fn the_median_networks_agree_with_sorting() {
+        // Every ordering of a few values with ties, for each length a network handles, and a longer one.
+        let mut state = 7u64;
+        let mut next = || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1);
+            ((state >> 33) % 7) as f32 - 3.0
+        };
+        for length in 1..=7 {
+            for _ in 0..500 {
+                let mut values: Vec<f32> = (0..length).map(|_| next()).collect();
+                let mut sorted = values.clone();
+                sorted.sort_by(f32::total_cmp);
+                let middle = length / 2;
+                let expected = if length % 2 == 1 {
+                    sorted[middle]
+                } else {
+                    0.5 * (sorted[middle - 1] + sorted[middle])
+                };
+                assert_eq!(median(&mut values), expected, "{sorted:?}");
+            }
+        }
     }
 
     #[test]

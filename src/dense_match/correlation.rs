@@ -46,12 +46,22 @@ pub(super) struct PaddedTarget {
 }
 
 impl PaddedTarget {
+    /// The layout the channel count reads fastest one window at a time (module docs).
     pub(super) fn new(map: &FeatureMap<'_>, layout: WindowLayout) -> Self {
+        let cell_major = map.channels >= 2 * LANES && map.channels % LANES == 0;
+        Self::with_layout(map, layout, cell_major)
+    }
+
+    /// Planes whatever the channel count: the layout [`Self::group_logits`] reads.
+    pub(super) fn planes(map: &FeatureMap<'_>, layout: WindowLayout) -> Self {
+        Self::with_layout(map, layout, false)
+    }
+
+    fn with_layout(map: &FeatureMap<'_>, layout: WindowLayout, cell_major: bool) -> Self {
         let radius = layout.size / 2;
         let rows = map.height + 2 * radius;
         let columns = map.width + layout.row_stride;
         let plane = rows * columns;
-        let cell_major = map.channels >= 2 * LANES && map.channels % LANES == 0;
         let mut values = vec![0.0f32; map.channels * plane];
         let planes = map.data.chunks_exact(map.height * map.width);
         for (channel, source_plane) in planes.enumerate() {
@@ -95,6 +105,64 @@ impl PaddedTarget {
                 self.row_by_planes(&reference.lanes, first_cell, scale, row_logits);
             }
             row_logits[layout.size..].fill(f32::NEG_INFINITY);
+        }
+    }
+
+    /// Scaled similarities of a group of [`LANES`] reference cells of one row (`reference`: each
+    /// channel's values of the group in lanes, [`group_features`]), lane `k` with the `size × size`
+    /// window centred on `(centre.0, centre.1 + k)`, all inside the image: `logits[r · size + c]` holds
+    /// window cell `(r, c)` of every lane. Planes layout only. Neighbouring cells' windows are neighbouring
+    /// runs of a plane row, so one load serves a window cell of all eight; the channel sum runs in the same
+    /// order as [`Self::window_logits`]'s, so each lane's logits are those of its window exactly.
+    pub(super) fn group_logits(
+        &self,
+        reference: &[f32x8],
+        centre: (usize, usize),
+        size: usize,
+        scale: f32,
+        logits: &mut [f32x8],
+    ) {
+        debug_assert!(!self.cell_major && reference.len() == self.channels);
+        let scale = f32x8::splat(scale);
+        for (step, row_logits) in logits.chunks_exact_mut(size).enumerate() {
+            let first_cell = (centre.0 + step) * self.columns + centre.1;
+            // The channel sum in a register: accumulating whole rows in memory instead, a load and a
+            // store per multiply-add, took longer than decoding cells one by one.
+            match reference.len() {
+                8 => self.group_row::<8>(reference, first_cell, scale, row_logits),
+
+                _ => {
+                    for (col, logit) in row_logits.iter_mut().enumerate() {
+                        let mut sum = f32x8::ZERO;
+                        for (channel, &value) in reference.iter().enumerate() {
+                            sum += lanes(&self.values, channel * self.plane + first_cell + col)
+                                * value;
+                        }
+                        *logit = sum * scale;
+                    }
+                }
+            }
+        }
+    }
+
+    /// One window row of [`Self::group_logits`] for a channel count known at compile time (the bundled
+    /// model's 8 and 32): the channel loop unrolled, the bounds checked once.
+    fn group_row<const CHANNELS: usize>(
+        &self,
+        reference: &[f32x8],
+        first_cell: usize,
+        scale: f32x8,
+        row_logits: &mut [f32x8],
+    ) {
+        let reference: &[f32x8; CHANNELS] = reference.try_into().expect("one lane set per channel");
+        let span = (CHANNELS - 1) * self.plane + row_logits.len() + LANES - 1;
+        let values = &self.values[first_cell..first_cell + span];
+        for (col, logit) in row_logits.iter_mut().enumerate() {
+            let mut sum = f32x8::ZERO;
+            for (channel, &value) in reference.iter().enumerate() {
+                sum += lanes(values, channel * self.plane + col) * value;
+            }
+            *logit = sum * scale;
         }
     }
 
@@ -166,5 +234,19 @@ impl CellFeatures {
                 *lanes = f32x8::splat(map.data[channel * plane + cell]);
             }
         }
+    }
+}
+
+/// The features of reference cells `(row, first_col … first_col + LANES − 1)`, channel by channel in
+/// lanes, for [`PaddedTarget::group_logits`].
+pub(super) fn group_features(
+    map: &FeatureMap<'_>,
+    row: usize,
+    first_col: usize,
+    out: &mut [f32x8],
+) {
+    let (plane, first_cell) = (map.height * map.width, row * map.width + first_col);
+    for (channel, lanes_out) in out.iter_mut().enumerate() {
+        *lanes_out = lanes(map.data, channel * plane + first_cell);
     }
 }

@@ -7,7 +7,7 @@
 //! `row_stride` holds its cells at `r · row_stride + 0 … window − 1`, and the padding must be −∞ (it then
 //! weighs 0 in the softmax and never wins a maximum).
 
-use wide::f32x8;
+use wide::{f32x8, CmpGt};
 
 /// Where a cell's match lies in its window and how sure the network is of it.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -83,6 +83,66 @@ pub fn decode(
     WindowMatch {
         offset,
         confidence: best_sum / total,
+    }
+}
+
+/// Eight cells' [`WindowMatch`]es at once, lane by lane.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct GroupMatch {
+    /// Δrow, then Δcol, of each lane's match from its window centre, in window cells.
+    pub offset: [f32x8; 2],
+    /// Q* of each lane.
+    pub confidence: f32x8,
+}
+
+/// [`decode`] with [`OffsetRule::BestWindow`] of eight `size × size` windows at once, lane `k` of
+/// `logits[r · size + c]` being window `k`'s cell `(r, c)`; `weights` is scratch of the same length.
+/// The same operations in the same order per lane, so the offsets are [`decode`]'s exactly (the
+/// softmax total, summed in another order, may differ in the last bits). Branch-free: the best
+/// window's choice is a lane mask.
+pub(super) fn decode_group(logits: &[f32x8], weights: &mut [f32x8], size: usize) -> GroupMatch {
+    debug_assert!(size >= 3 && logits.len() == size * size && weights.len() == logits.len());
+    let max = logits
+        .iter()
+        .fold(f32x8::splat(f32::NEG_INFINITY), |max, &logit| {
+            max.max(logit)
+        });
+    let mut total = f32x8::ZERO;
+    for (weight, &logit) in weights.iter_mut().zip(logits) {
+        *weight = (logit - max).exp();
+        total += *weight;
+    }
+    let mut best_sum = f32x8::splat(f32::NEG_INFINITY);
+    let (mut best_row, mut best_col) = (f32x8::ZERO, f32x8::ZERO);
+    // The best window's mass in its lower row and in its right column: Eq. 11's numerators.
+    let (mut lower_mass, mut right_mass) = (f32x8::ZERO, f32x8::ZERO);
+    for row in 0..size - 1 {
+        let (top, bottom) = (
+            &weights[row * size..][..size],
+            &weights[(row + 1) * size..][..size],
+        );
+        let mut left_pair = top[0] + bottom[0];
+        for col in 0..size - 1 {
+            let right_pair = top[col + 1] + bottom[col + 1];
+            let sum = left_pair + right_pair;
+            // Strictly greater: the first maximum in row-major order wins, as in `best_window`.
+            let better = sum.cmp_gt(best_sum);
+            best_sum = better.blend(sum, best_sum);
+            best_row = better.blend(f32x8::splat(row as f32), best_row);
+            best_col = better.blend(f32x8::splat(col as f32), best_col);
+            lower_mass = better.blend(bottom[col] + bottom[col + 1], lower_mass);
+            right_mass = better.blend(right_pair, right_mass);
+            left_pair = right_pair;
+        }
+    }
+    let radius = f32x8::splat((size / 2) as f32);
+    GroupMatch {
+        offset: [
+            best_row + lower_mass / best_sum - radius,
+            best_col + right_mass / best_sum - radius,
+        ],
+        // A mass, ≤ 1: summed in another order than the window's four, the total can fall an ulp short.
+        confidence: (best_sum / total).min(f32x8::ONE),
     }
 }
 

@@ -227,15 +227,16 @@ class Odometry:
         self._clock.advance(timestamp)
         diagnostics = FrameDiagnostics(index=len(self.poses), num_points=len(cloud))
         watch = _Stopwatch(diagnostics.timings_ms)
-        keep = np.isfinite(cloud).all(axis=1)
+        keep = _finite_rows(cloud)
         if moving is not None:
-            keep &= ~_as_mask(moving, len(cloud))
+            still = ~_as_mask(moving, len(cloud))
+            keep = still if keep is None else keep & still
         # Also a copy, even when every point stays: the scan is kept as the next reference, and a caller
         # streaming from a sensor may refill the same buffer for the next scan.
-        cloud = cloud[keep]
+        cloud = _rows(cloud, keep)
         if len(cloud) < self.config.min_points:
             return self._skip(diagnostics, "too_few_points")
-        times = None if times is None else times[keep]
+        times = None if times is None else _rows(times, keep)
         deskewed = self.config.deskew.enabled and self._velocity_measured
         if deskewed:
             with watch.aside("deskew"):  # on the first deskewed scan with its reference encoded again
@@ -350,7 +351,7 @@ class Odometry:
 
     def _finite_scan(self, points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
         cloud = _as_scan(points, name)
-        cloud = cloud[np.isfinite(cloud).all(axis=1)]
+        cloud = _rows(cloud, _finite_rows(cloud))
         if len(cloud) < self.config.min_points:
             raise ValueError(
                 f"{name}: {len(cloud)} finite points, fewer than the {self.config.min_points} needed to register "
@@ -831,6 +832,25 @@ def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
     if cloud.shape[1] == 3:
         cloud = np.concatenate([cloud, np.zeros((len(cloud), 1), cloud.dtype)], axis=1)
     return np.ascontiguousarray(cloud, dtype=np.float32)
+
+
+def _finite_rows(cloud: npt.NDArray[np.float32]) -> npt.NDArray[np.bool_] | None:
+    """Which points have only finite values, or None when all of them do. Column by column: numpy's
+    `all(axis=1)` over 4 values a row takes ~25× as long as one `isfinite(...).all()` (3.7 against 0.13 ms
+    for a 120k-point scan), and most scans need no mask at all."""
+    finite = np.isfinite(cloud)
+    if finite.all():
+        return None
+    keep = finite[:, 0].copy()
+    for column in finite.T[1:]:
+        keep &= column
+    return keep
+
+
+def _rows(values: npt.NDArray[Any], keep: npt.NDArray[np.bool_] | None) -> npt.NDArray[Any]:
+    """A copy of the rows `keep` marks (all with None): `np.compress` gathers them ~10× faster than boolean
+    indexing does for an N×4 scan."""
+    return values.copy() if keep is None else np.compress(keep, values, axis=0)
 
 
 def _as_point_times(times: npt.ArrayLike, count: int) -> npt.NDArray[np.float64]:
