@@ -13,6 +13,11 @@
 //!   contiguous run. With 32 planes a window touches 32 × D rows of the planes, which the prefetcher
 //!   cannot follow (measured at D = 15: 41 ms a frame in planes, 4× the cells' time); a dot product per
 //!   cell of 4 lanes and one horizontal sum streams instead.
+//!
+//! Both read one cell's window at a time. Where eight neighbouring reference cells' windows are
+//! neighbours too (almost everywhere, `GroupMatcher`), [`PaddedTarget::group_logits`] reads planes of any
+//! channel count for all eight at once: a window cell of the eight is one run of a plane row, so the
+//! planes' cost above is shared eight ways.
 
 use wide::f32x8;
 
