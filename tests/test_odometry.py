@@ -181,6 +181,23 @@ def test_moving_points_are_removed_before_matching(scans: list[np.ndarray]) -> N
     assert odometry.diagnostics[-1].fallback == "too_few_points"
 
 
+def test_points_with_any_non_finite_value_or_marked_moving_are_left_out(scans: list[np.ndarray]) -> None:
+    # Single bad values in any column, reflectance included, and moving points elsewhere: the poses are
+    # those of the scans without those rows, with the scan-to-map refinement too (the map keeps the scans).
+    rng = np.random.default_rng(5)
+    config = OdometryConfig()
+    config.mapping.enabled = True
+    dirty_run, clean_run = Odometry.from_default(config), Odometry.from_default(config)
+    for scan in scans[:3]:
+        dirty = scan.copy()
+        rows = rng.choice(len(scan), 600, replace=False)
+        dirty[rows[:300], rng.integers(0, 4, 300)] = rng.choice([np.nan, np.inf, -np.inf], 300)
+        moving = np.zeros(len(scan), bool)
+        moving[rows[250:]] = True  # overlapping the bad rows by 50
+        kept = np.isfinite(dirty).all(axis=1) & ~moving
+        np.testing.assert_array_equal(dirty_run.register(dirty, moving=moving), clean_run.register(scan[kept]))
+
+
 def test_bad_arguments_name_what_is_wrong(scans: list[np.ndarray]) -> None:
     odometry = Odometry.from_default()
     with pytest.raises(ValueError, match="points: expected an N×4"):
