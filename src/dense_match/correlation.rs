@@ -51,18 +51,10 @@ pub(super) struct PaddedTarget {
 }
 
 impl PaddedTarget {
-    /// The layout the channel count reads fastest one window at a time (module docs).
-    pub(super) fn new(map: &FeatureMap<'_>, layout: WindowLayout) -> Self {
-        let cell_major = map.channels >= 2 * LANES && map.channels % LANES == 0;
-        Self::with_layout(map, layout, cell_major)
-    }
-
-    /// Planes whatever the channel count: the layout [`Self::group_logits`] reads.
-    pub(super) fn planes(map: &FeatureMap<'_>, layout: WindowLayout) -> Self {
-        Self::with_layout(map, layout, false)
-    }
-
-    fn with_layout(map: &FeatureMap<'_>, layout: WindowLayout, cell_major: bool) -> Self {
+    /// With `groups`, planes whatever the channel count (the layout [`Self::group_logits`] reads);
+    /// otherwise the layout the channel count reads fastest one window at a time (module docs).
+    pub(super) fn new(map: &FeatureMap<'_>, layout: WindowLayout, groups: bool) -> Self {
+        let cell_major = !groups && map.channels >= 2 * LANES && map.channels % LANES == 0;
         let radius = layout.size / 2;
         let rows = map.height + 2 * radius;
         let columns = map.width + layout.row_stride;
@@ -135,7 +127,6 @@ impl PaddedTarget {
             // store per multiply-add, took longer than decoding cells one by one.
             match reference.len() {
                 8 => self.group_row::<8>(reference, first_cell, scale, row_logits),
-
                 _ => {
                     for (col, logit) in row_logits.iter_mut().enumerate() {
                         let mut sum = f32x8::ZERO;
@@ -151,7 +142,8 @@ impl PaddedTarget {
     }
 
     /// One window row of [`Self::group_logits`] for a channel count known at compile time (the bundled
-    /// model's 8 and 32): the channel loop unrolled, the bounds checked once.
+    /// model's refine 8): the channel loop unrolled, the bounds checked once. Not for its coarse 32,
+    /// whose reference lanes no longer fit the registers (measured slower than the loop above).
     fn group_row<const CHANNELS: usize>(
         &self,
         reference: &[f32x8],
