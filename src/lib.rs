@@ -13,6 +13,7 @@
 //! | [`nms`] | §III-D-a | greedy non-maximum suppression on the cylinder grid |
 //! | [`rigid`] | Eq. 12–14 | closed-form weighted rigid solve (faer SVD, reflection fixed) |
 //! | [`ransac`] | §III-D-b | seeded RANSAC with rayon-parallel hypothesis scoring |
+//! | [`ray_noise`] | — | Gauss–Newton refit weighing each match by its ray's bearing and range noise |
 //! | [`ndt`] | §III-D-c | scan-to-map NDT refinement |
 //! | [`raycast`] | — | the LiDAR simulator's ray casting |
 //!
@@ -33,6 +34,7 @@ pub mod ndt;
 pub mod nms;
 pub mod projection;
 pub mod ransac;
+pub mod ray_noise;
 pub mod raycast;
 pub mod rigid;
 

@@ -19,12 +19,14 @@ __all__ += [
     "CylinderConfig",
     "Projection",
     "RansacResult",
+    "RayRefit",
     "Matches",
     "project",
     "unproject",
     "ground_truth_flow",
     "rigid_transform",
     "ransac_rigid",
+    "ray_noise_refit",
     "nms",
     "decode_matches",
     "coherent_confidence",
@@ -118,6 +120,17 @@ class RansacResult:
     def rmse(self) -> float: ...
 
 @final
+class RayRefit:
+    @property
+    def transform(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def iterations(self) -> int: ...
+    @property
+    def converged(self) -> bool: ...
+    @property
+    def cost(self) -> float: ...
+
+@final
 class Matches:
     @property
     def source(self) -> npt.NDArray[np.float64]: ...
@@ -173,12 +186,27 @@ def ransac_rigid(
     seed: int = 0,
     *,
     refine_iterations: int = 10,
+    refit: Literal["point_to_point", "ray_noise"] = "point_to_point",
+    range_ratio: float = 3.0,
     num_threads: int | None = None,
 ) -> RansacResult:
     """RANSAC (samples of 3) around the rigid solve; deterministic for a seed whatever num_threads.
 
     The answer is a least-squares refit on the inliers, repeated on the refit's inliers until they stop
-    changing (at most `refine_iterations` times; 0: the best minimal-sample hypothesis itself)."""
+    changing (at most `refine_iterations` times; 0: the best minimal-sample hypothesis itself). Each
+    refit is the closed-form solve ("point_to_point"), or that solve refined by `ray_noise_refit` with
+    `range_ratio` ("ray_noise"; `dst` then in its sensor's frame)."""
+
+def ray_noise_refit(
+    src: npt.NDArray[np.floating],
+    dst: npt.NDArray[np.floating],
+    initial: npt.NDArray[np.floating],
+    range_ratio: float = 3.0,
+    max_iterations: int = 20,
+) -> RayRefit:
+    """Gauss-Newton refit of `initial` (4×4, dst ≈ T·src) minimising Σ eᵀΩe, e = T·src − dst, with
+    Ω = (I − nnᵀ)/r² + nnᵀ/range_ratio² for each target point at range r along the unit ray n from its
+    sensor's origin: bearing noise across the ray, range noise (range_ratio metres per radian) along it."""
 
 def nms(
     rows: npt.NDArray[np.integer],

@@ -21,7 +21,8 @@ use crate::ground_truth;
 use crate::matches::{self, DecodeConfig};
 use crate::nms;
 use crate::projection::{self, CylinderConfig};
-use crate::ransac::{self, RansacConfig};
+use crate::ransac::{self, RansacConfig, Refit};
+use crate::ray_noise::{self, RayNoise};
 use crate::rigid;
 
 use super::pool::run;
@@ -539,11 +540,26 @@ impl PyRansacResult {
     }
 }
 
+/// The refit `refit` names: "point_to_point" or "ray_noise" (with `range_ratio`).
+fn refit_kind(refit: &str, range_ratio: f64) -> PyResult<Refit> {
+    match refit {
+        "point_to_point" => Ok(Refit::PointToPoint),
+        "ray_noise" => Ok(Refit::RayNoise(RayNoise {
+            range_ratio,
+            ..Default::default()
+        })),
+        other => Err(PyValueError::new_err(format!(
+            "refit: expected 'point_to_point' or 'ray_noise', got {other:?}"
+        ))),
+    }
+}
+
 /// RANSAC around the rigid solve: minimal samples of 3, inliers within `threshold` metres,
 /// adaptive iterations for `confidence`, deterministic for a `seed` whatever `num_threads`.
 #[pyfunction]
 #[pyo3(signature = (src, dst, threshold = 0.1, confidence = 0.999, max_iterations = 1000, seed = 0, *,
-                    refine_iterations = 10, num_threads = None))]
+                    refine_iterations = 10, refit = "point_to_point", range_ratio = 3.0,
+                    num_threads = None))]
 #[allow(clippy::too_many_arguments)]
 fn ransac_rigid(
     py: Python<'_>,
@@ -554,6 +570,8 @@ fn ransac_rigid(
     max_iterations: i64,
     seed: i128,
     refine_iterations: i64,
+    refit: &str,
+    range_ratio: f64,
     num_threads: Option<i64>,
 ) -> PyResult<PyRansacResult> {
     let max_iterations = count("max_iterations", max_iterations)?;
@@ -568,6 +586,7 @@ fn ransac_rigid(
         max_iterations,
         seed,
         refine_iterations,
+        refit: refit_kind(refit, range_ratio)?,
         ..Default::default()
     };
     let result = run(py, num_threads, || {
@@ -579,6 +598,61 @@ fn ransac_rigid(
         num_inliers: result.num_inliers,
         iterations: result.iterations,
         rmse: result.rmse,
+    })
+}
+
+/// Result of `ray_noise_refit`: `transform` (4×4 float64), Gauss–Newton `iterations`, whether it
+/// `converged`, and the weighted `cost` at `transform`.
+#[pyclass(name = "RayRefit", module = "dmlo_rs._dmlo_rs", frozen)]
+pub struct PyRayRefit {
+    #[pyo3(get)]
+    transform: Py<PyArray2<f64>>,
+    #[pyo3(get)]
+    iterations: usize,
+    #[pyo3(get)]
+    converged: bool,
+    #[pyo3(get)]
+    cost: f64,
+}
+
+#[pymethods]
+impl PyRayRefit {
+    fn __repr__(&self) -> String {
+        format!(
+            "RayRefit(iterations={}, converged={}, cost={:.6e})",
+            self.iterations,
+            if self.converged { "True" } else { "False" },
+            self.cost
+        )
+    }
+}
+
+/// Gauss–Newton refit of `initial` (`dst ≈ T·src`) under ray noise: each target point (in its sensor's
+/// frame) errs across its ray in bearing and along it by `range_ratio` metres per radian of bearing.
+#[pyfunction]
+#[pyo3(signature = (src, dst, initial, range_ratio = 3.0, max_iterations = 20))]
+fn ray_noise_refit(
+    py: Python<'_>,
+    src: &Bound<'_, PyAny>,
+    dst: &Bound<'_, PyAny>,
+    initial: &Bound<'_, PyAny>,
+    range_ratio: f64,
+    max_iterations: i64,
+) -> PyResult<PyRayRefit> {
+    let noise = RayNoise {
+        range_ratio,
+        max_iterations: count("max_iterations", max_iterations)?,
+    };
+    let (src, dst) = (points3("src", src)?, points3("dst", dst)?);
+    let initial = transform("initial", initial)?;
+    let refit = run(py, Some(1), || {
+        ray_noise::ray_noise_refit(&src, &dst, &initial, &noise)
+    })?;
+    Ok(PyRayRefit {
+        transform: matrix_to_numpy(py, &refit.transform).unbind(),
+        iterations: refit.iterations,
+        converged: refit.converged,
+        cost: refit.cost,
     })
 }
 
@@ -850,12 +924,14 @@ pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyCylinderConfig>()?;
     m.add_class::<PyProjection>()?;
     m.add_class::<PyRansacResult>()?;
+    m.add_class::<PyRayRefit>()?;
     m.add_class::<PyMatches>()?;
     m.add_function(wrap_pyfunction!(project, m)?)?;
     m.add_function(wrap_pyfunction!(unproject, m)?)?;
     m.add_function(wrap_pyfunction!(ground_truth_flow, m)?)?;
     m.add_function(wrap_pyfunction!(rigid_transform, m)?)?;
     m.add_function(wrap_pyfunction!(ransac_rigid, m)?)?;
+    m.add_function(wrap_pyfunction!(ray_noise_refit, m)?)?;
     m.add_function(wrap_pyfunction!(non_maximum_suppression, m)?)?;
     m.add_function(wrap_pyfunction!(decode_matches, m)?)?;
     m.add_function(wrap_pyfunction!(coherent_confidence, m)?)?;

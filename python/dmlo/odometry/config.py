@@ -40,6 +40,13 @@ class RansacConfig:
     confidence: float = 0.999
     max_iterations: int = 1000
     seed: int = 0
+    # How the refits on the inliers solve for the motion: "point_to_point", the closed-form SVD solve
+    # (Eq. 12–14, the paper's, isotropic noise), or beyond the paper "ray_noise": that solve refined by
+    # Gauss–Newton with each match weighted by its ray (`dmlo_rs.ray_noise_refit`): the network errs in
+    # bearing, so a match's error grows with range across its ray and stays small along it.
+    refit: str = "point_to_point"
+    # With "ray_noise": range noise over bearing noise, σ_r / σ_b in metres (per radian).
+    ray_range_ratio: float = 3.0
 
 
 @dataclass

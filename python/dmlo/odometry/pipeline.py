@@ -438,7 +438,7 @@ class Odometry:
                 # RANSAC around the closed-form SVD solve, Eq. 12–14 (§III-D-b).
                 ransac = dmlo_rs.ransac_rigid(
                     src, dst, threshold=r.threshold, confidence=r.confidence,
-                    max_iterations=r.max_iterations, seed=r.seed,
+                    max_iterations=r.max_iterations, seed=r.seed, refit=r.refit, range_ratio=r.ray_range_ratio,
                 )
                 transform, inliers, num_inliers = ransac.transform, ransac.inliers, ransac.num_inliers
             except dmlo_rs.RegistrationError:  # degenerate or all-outlier matches: no motion from this pair
@@ -602,9 +602,9 @@ class Odometry:
         return bool(moved > limits.max_deviation * gap or turned > limits.max_deviation_deg * gap)
 
     def _consensus_near(self, pair: PairResult, predicted: Matrix4) -> Matrix4 | None:
-        """The SVD solve (Eq. 12–14) of the matches that agree with a predicted motion, refined once on its
-        own inliers at the RANSAC threshold; None when they are no consensus of their own (fewer than
-        `min_inliers` or `guided_fraction` of RANSAC's inliers)."""
+        """The solve (Eq. 12–14, refined as `ransac.refit` says) of the matches that agree with a predicted
+        motion, solved once more on its own inliers at the RANSAC threshold; None when they are no consensus
+        of their own (fewer than `min_inliers` or `guided_fraction` of RANSAC's inliers)."""
         source = np.asarray(pair.source_points, dtype=np.float64)
         target = np.asarray(pair.target_points, dtype=np.float64)
         limits = self.config.motion_model
@@ -620,13 +620,21 @@ class Odometry:
         if near.sum() < needed:
             return None
         try:
-            transform = np.asarray(dmlo_rs.rigid_transform(source[near], target[near]), dtype=np.float64)
+            transform = self._refit(source[near], target[near])
             inliers = agreeing(transform, threshold)
             if inliers.sum() < needed:
                 return None
-            return np.asarray(dmlo_rs.rigid_transform(source[inliers], target[inliers]), dtype=np.float64)
+            return self._refit(source[inliers], target[inliers])
         except dmlo_rs.RegistrationError:  # the agreeing matches are degenerate (collinear, coincident)
             return None
+
+    def _refit(self, source: npt.NDArray[np.float64], target: npt.NDArray[np.float64]) -> Matrix4:
+        """The motion of matches taken as inliers, solved as RANSAC's refits are (`ransac.refit`)."""
+        transform = np.asarray(dmlo_rs.rigid_transform(source, target), dtype=np.float64)
+        if self.config.ransac.refit == "ray_noise":
+            refit = dmlo_rs.ray_noise_refit(source, target, transform, range_ratio=self.config.ransac.ray_range_ratio)
+            transform = np.asarray(refit.transform, dtype=np.float64)
+        return transform
 
     # -- motion model ---------------------------------------------------------------------------
 
@@ -724,7 +732,8 @@ class Odometry:
 
 # Limits that None turns off, and limits that must be > 0 rather than >= 0 (a scale divides by them).
 _OPTIONAL_LIMITS = {("matching", "consistency_px"), ("matching", "coherence_px")}
-_POSITIVE_LIMITS = {("matching", "coherence_px")}
+_POSITIVE_LIMITS = {("matching", "coherence_px"), ("ransac", "ray_range_ratio")}
+REFITS = ("point_to_point", "ray_noise")
 
 
 def _check_limits(config: OdometryConfig) -> None:
@@ -733,6 +742,7 @@ def _check_limits(config: OdometryConfig) -> None:
         "matching": ("consistency_px", "coherence_px"),
         "motion_model": ("max_deviation", "max_deviation_deg", "guided_fraction"),
         "large_motion": ("min_step", "min_step_deg"),
+        "ransac": ("ray_range_ratio",),
         "mapping": (
             "keyframe_distance",
             "keyframe_angle_deg",
@@ -748,6 +758,8 @@ def _check_limits(config: OdometryConfig) -> None:
             positive = (section, name) in _POSITIVE_LIMITS
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value > 0 if positive else value >= 0):
                 raise ValueError(f"{section}.{name}: must be a number {'>' if positive else '>='} 0, got {value!r}")
+    if config.ransac.refit not in REFITS:
+        raise ValueError(f"ransac.refit: must be one of {', '.join(REFITS)}, got {config.ransac.refit!r}")
     for name in ("search_ahead_m", "search_yaw_deg"):
         starts = getattr(config.large_motion, name)
         if isinstance(starts, (str, bytes)) or not hasattr(starts, "__len__") or len(starts) == 0 or not all(
