@@ -49,9 +49,36 @@ pub enum Refit {
     /// The closed-form SVD solve (Eq. 12–14): isotropic noise, the paper's.
     #[default]
     PointToPoint,
-    /// The SVD solve, then Gauss–Newton under ray noise ([`crate::ray_noise`]); every target point
-    /// must lie in its sensor's frame, at least [`crate::ray_noise::MIN_RANGE`] from the origin.
-    RayNoise(RayNoise),
+    /// The SVD solve, then Gauss–Newton under ray noise ([`crate::ray_noise`]), with the refits' inliers
+    /// chosen under the same model: within the threshold along the target's ray, and across it within
+    /// the threshold or the width of `bearing_threshold_deg` at the match's range, whichever is larger
+    /// (an ellipsoid around the target point). Every target point must lie in its sensor's frame, at
+    /// least [`crate::ray_noise::MIN_RANGE`] from the origin.
+    RayNoise {
+        /// The noise model of the Gauss–Newton solve.
+        noise: RayNoise,
+        /// Bearing tolerance of a refit's inliers, degrees (≥ 0, < 90; 0: the threshold alone).
+        bearing_threshold_deg: f64,
+    },
+}
+
+impl Refit {
+    fn validate(&self) -> Result<()> {
+        if let Refit::RayNoise {
+            noise,
+            bearing_threshold_deg,
+        } = self
+        {
+            noise.validate()?;
+            if !(bearing_threshold_deg.is_finite() && (0.0..90.0).contains(bearing_threshold_deg)) {
+                return Err(Error::invalid(
+                    "bearing_threshold_deg",
+                    format!("must be in [0, 90) degrees, got {bearing_threshold_deg}"),
+                ));
+            }
+        }
+        Ok(())
+    }
 }
 
 impl Default for RansacConfig {
@@ -194,6 +221,29 @@ impl Matches {
             .collect()
     }
 
+    /// The inlier mask of [`Refit::RayNoise`]: `(a/τ)² + (c/τ_c)² < 1` for the error's components `a`
+    /// along the target's ray and `c` across it, `τ = threshold`, `τ_c = max(τ, r·bearing_tan)`.
+    fn ray_inlier_mask(
+        &self,
+        transform: &Isometry3<f64>,
+        threshold: f64,
+        bearing_tan: f64,
+    ) -> Vec<bool> {
+        self.src64
+            .iter()
+            .zip(&self.dst64)
+            .map(|(p, q)| {
+                let error = (transform * Point3::from(*p)).coords - q;
+                let range = q.norm();
+                let along = error.dot(q) / range;
+                let across_sq = (error.norm_squared() - along * along).max(0.0);
+                let across_threshold = threshold.max(range * bearing_tan);
+                (along / threshold).powi(2) + across_sq / (across_threshold * across_threshold)
+                    < 1.0
+            })
+            .collect()
+    }
+
     fn point(&self, i: usize) -> (Vector3<f64>, Vector3<f64>) {
         (self.src64[i], self.dst64[i])
     }
@@ -220,7 +270,9 @@ fn refit_on(src: &[Point3<f64>], dst: &[Point3<f64>], refit: &Refit) -> Result<I
     let closed_form = rigid_transform(src, dst, None)?;
     match refit {
         Refit::PointToPoint => Ok(closed_form),
-        Refit::RayNoise(noise) => Ok(ray_noise_refit(src, dst, &closed_form, noise)?.transform),
+        Refit::RayNoise { noise, .. } => {
+            Ok(ray_noise_refit(src, dst, &closed_form, noise)?.transform)
+        }
     }
 }
 
@@ -298,8 +350,8 @@ pub fn ransac_rigid(
             return Err(Error::invalid(name, format!("point {i} is not finite")));
         }
     }
-    if let Refit::RayNoise(noise) = &config.refit {
-        noise.validate()?;
+    config.refit.validate()?;
+    if let Refit::RayNoise { .. } = &config.refit {
         if let Some(i) = dst
             .iter()
             .position(|q| ray_information(&q.coords, 1.0).is_none())
@@ -370,7 +422,7 @@ pub fn ransac_rigid(
             }
         }
     }
-    let Some((mut count, mut error, _, mut transform)) = best else {
+    let Some((mut count, _, _, mut transform)) = best else {
         return Err(Error::Degenerate(format!(
             "all {iterations} samples were collinear"
         )));
@@ -389,10 +441,20 @@ pub fn ransac_rigid(
         let Ok(refit) = refit_on(&inlier_src, &inlier_dst, &config.refit) else {
             break;
         };
-        let (refit_count, refit_error) = matches.score(&refit, threshold_sq);
-        let refit_inliers = matches.inlier_mask(&refit, threshold_sq);
+        let refit_inliers = match &config.refit {
+            Refit::PointToPoint => matches.inlier_mask(&refit, threshold_sq),
+            Refit::RayNoise {
+                bearing_threshold_deg,
+                ..
+            } => matches.ray_inlier_mask(
+                &refit,
+                config.threshold,
+                bearing_threshold_deg.to_radians().tan(),
+            ),
+        };
         let stable = refit_inliers == inliers;
-        (count, error, transform, inliers) = (refit_count, refit_error, refit, refit_inliers);
+        count = refit_inliers.iter().filter(|&&inlier| inlier).count();
+        (transform, inliers) = (refit, refit_inliers);
         if stable {
             break;
         }
@@ -406,7 +468,6 @@ pub fn ransac_rigid(
                 .norm_squared()
         })
         .sum();
-    let _ = error;
     let rmse = if count > 0 {
         (squared / count as f64).sqrt()
     } else {
@@ -549,7 +610,10 @@ mod tests {
             ..Default::default()
         };
         let config = RansacConfig {
-            refit: Refit::RayNoise(noise.clone()),
+            refit: Refit::RayNoise {
+                noise: noise.clone(),
+                bearing_threshold_deg: 0.0,
+            },
             ..Default::default()
         };
         let result = ransac_rigid(&src, &dst, &config).unwrap();
@@ -576,9 +640,41 @@ mod tests {
         at_origin[7] = Point3::origin();
         assert!(matches!(
             ransac_rigid(&src, &at_origin, &config),
-            Err(Error::InvalidArgument { argument: "dst", .. })
+            Err(Error::InvalidArgument {
+                argument: "dst",
+                ..
+            })
         ));
         assert!(ransac_rigid(&src, &at_origin, &RansacConfig::default()).is_ok());
+    }
+
+    #[test]
+    fn ray_noise_inliers_lie_in_an_ellipsoid_stretched_across_the_ray_at_range() {
+        let matches = Matches::new(
+            &[Point3::new(60.0, 0.0, 0.0); 4],
+            &[
+                Point3::new(60.0, 0.15, 0.0), // 0.15 m across the ray at 60 m: within 0.2°
+                Point3::new(60.0, 0.0, -0.25), // 0.25 m across: beyond 0.2° (0.209 m)
+                Point3::new(60.15, 0.0, 0.0), // 0.15 m along the ray: beyond the 0.1 m threshold
+                Point3::new(60.07, 0.1, 0.0), // (0.07/0.1)² + (0.1/0.209)² = 0.72
+            ],
+        );
+        let tan = 0.2f64.to_radians().tan();
+        let identity = Isometry3::identity();
+        assert_eq!(
+            matches.ray_inlier_mask(&identity, 0.1, tan),
+            [true, false, false, true]
+        );
+        // Within the threshold's own radius the test is the Euclidean one.
+        assert_eq!(
+            matches.ray_inlier_mask(&identity, 0.1, 0.0),
+            matches.inlier_mask(&identity, 0.01)
+        );
+        let near = Matches::new(
+            &[Point3::new(5.0, 0.0, 0.0)],
+            &[Point3::new(5.0, 0.09, 0.0)],
+        );
+        assert_eq!(near.ray_inlier_mask(&identity, 0.1, tan), [true]);
     }
 
     #[test]

@@ -130,3 +130,48 @@ def test_bad_input_is_named() -> None:
     line = np.outer(np.arange(1.0, 20.0), [1.0, 2.0, 0.1])
     with pytest.raises(dmlo_rs.RegistrationError, match="degenerate"):
         dmlo_rs.ray_noise_refit(line, line, np.eye(4))
+
+
+# ---- in the odometry (config.ransac.refit) --------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def pair_scans(tmp_path_factory: pytest.TempPathFactory) -> list[np.ndarray]:
+    from dmlo.datasets import open_sequence
+    from dmlo.simulator import simulate_sequence
+
+    out = tmp_path_factory.mktemp("drive")
+    simulate_sequence(out, frames=2, seed=5, progress=False)
+    sequence = open_sequence(out)
+    return [sequence[i].points for i in range(len(sequence))]
+
+
+def test_the_odometry_solves_its_pairs_as_configured(pair_scans: list[np.ndarray]) -> None:
+    from dmlo.odometry import Odometry, OdometryConfig
+
+    config = OdometryConfig()
+    config.ransac.refit, config.ransac.ray_range_ratio = "ray_noise", 4.0
+    pair = Odometry.from_default(config).register_pair(*pair_scans)
+    src, dst = pair.source_points[pair.inliers], pair.target_points[pair.inliers]
+    start = dmlo_rs.rigid_transform(src, dst)
+    np.testing.assert_allclose(
+        pair.T_tgt_ref, dmlo_rs.ray_noise_refit(src, dst, start, range_ratio=4.0).transform, atol=1e-12
+    )
+    plain = Odometry.from_default(OdometryConfig()).register_pair(*pair_scans)
+    src, dst = plain.source_points[plain.inliers], plain.target_points[plain.inliers]
+    np.testing.assert_allclose(plain.T_tgt_ref, dmlo_rs.rigid_transform(src, dst), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("refit", "ratio", "message"),
+    [("ray", 3.0, r"ransac.refit: must be one of point_to_point, ray_noise, got 'ray'"),
+     ("ray_noise", 0.0, r"ransac.ray_range_ratio: must be a number > 0"),
+     ("ray_noise", "3", r"ransac.ray_range_ratio: must be a number > 0")],
+)
+def test_a_bad_refit_setting_is_refused_up_front(refit: str, ratio: object, message: str) -> None:
+    from dmlo.odometry import Odometry, OdometryConfig
+
+    config = OdometryConfig()
+    config.ransac.refit, config.ransac.ray_range_ratio = refit, ratio  # type: ignore[assignment]
+    with pytest.raises(ValueError, match=message):
+        Odometry.from_default(config)

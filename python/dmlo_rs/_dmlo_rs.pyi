@@ -188,6 +188,7 @@ def ransac_rigid(
     refine_iterations: int = 10,
     refit: Literal["point_to_point", "ray_noise"] = "point_to_point",
     range_ratio: float = 3.0,
+    bearing_threshold_deg: float = 0.2,
     num_threads: int | None = None,
 ) -> RansacResult:
     """RANSAC (samples of 3) around the rigid solve; deterministic for a seed whatever num_threads.
@@ -195,7 +196,8 @@ def ransac_rigid(
     The answer is a least-squares refit on the inliers, repeated on the refit's inliers until they stop
     changing (at most `refine_iterations` times; 0: the best minimal-sample hypothesis itself). Each
     refit is the closed-form solve ("point_to_point"), or that solve refined by `ray_noise_refit` with
-    `range_ratio` ("ray_noise"; `dst` then in its sensor's frame)."""
+    `range_ratio` ("ray_noise"; `dst` then in its sensor's frame), whose inliers lie within `threshold`
+    along the target's ray and within max(threshold, r·tan(bearing_threshold_deg)) across it."""
 
 def ray_noise_refit(
     src: npt.NDArray[np.floating],

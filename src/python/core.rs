@@ -540,14 +540,18 @@ impl PyRansacResult {
     }
 }
 
-/// The refit `refit` names: "point_to_point" or "ray_noise" (with `range_ratio`).
-fn refit_kind(refit: &str, range_ratio: f64) -> PyResult<Refit> {
+/// The refit `refit` names: "point_to_point" or "ray_noise" (with `range_ratio` and
+/// `bearing_threshold_deg`).
+fn refit_kind(refit: &str, range_ratio: f64, bearing_threshold_deg: f64) -> PyResult<Refit> {
     match refit {
         "point_to_point" => Ok(Refit::PointToPoint),
-        "ray_noise" => Ok(Refit::RayNoise(RayNoise {
-            range_ratio,
-            ..Default::default()
-        })),
+        "ray_noise" => Ok(Refit::RayNoise {
+            noise: RayNoise {
+                range_ratio,
+                ..Default::default()
+            },
+            bearing_threshold_deg,
+        }),
         other => Err(PyValueError::new_err(format!(
             "refit: expected 'point_to_point' or 'ray_noise', got {other:?}"
         ))),
@@ -559,7 +563,7 @@ fn refit_kind(refit: &str, range_ratio: f64) -> PyResult<Refit> {
 #[pyfunction]
 #[pyo3(signature = (src, dst, threshold = 0.1, confidence = 0.999, max_iterations = 1000, seed = 0, *,
                     refine_iterations = 10, refit = "point_to_point", range_ratio = 3.0,
-                    num_threads = None))]
+                    bearing_threshold_deg = 0.2, num_threads = None))]
 #[allow(clippy::too_many_arguments)]
 fn ransac_rigid(
     py: Python<'_>,
@@ -572,6 +576,7 @@ fn ransac_rigid(
     refine_iterations: i64,
     refit: &str,
     range_ratio: f64,
+    bearing_threshold_deg: f64,
     num_threads: Option<i64>,
 ) -> PyResult<PyRansacResult> {
     let max_iterations = count("max_iterations", max_iterations)?;
@@ -586,7 +591,7 @@ fn ransac_rigid(
         max_iterations,
         seed,
         refine_iterations,
-        refit: refit_kind(refit, range_ratio)?,
+        refit: refit_kind(refit, range_ratio, bearing_threshold_deg)?,
         ..Default::default()
     };
     let result = run(py, num_threads, || {

@@ -45,8 +45,11 @@ class RansacConfig:
     # Gauss–Newton with each match weighted by its ray (`dmlo_rs.ray_noise_refit`): the network errs in
     # bearing, so a match's error grows with range across its ray and stays small along it.
     refit: str = "point_to_point"
-    # With "ray_noise": range noise over bearing noise, σ_r / σ_b in metres (per radian).
+    # With "ray_noise": range noise over bearing noise, σ_r / σ_b in metres (per radian) …
     ray_range_ratio: float = 3.0
+    # … and the refits' inliers within `threshold` along the target's ray and, across it, within the
+    # threshold or this angle's width at the match's range (0.2°: a column of the KITTI image), whichever is larger.
+    ray_bearing_threshold_deg: float = 0.2
 
 
 @dataclass

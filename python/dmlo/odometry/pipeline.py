@@ -439,6 +439,7 @@ class Odometry:
                 ransac = dmlo_rs.ransac_rigid(
                     src, dst, threshold=r.threshold, confidence=r.confidence,
                     max_iterations=r.max_iterations, seed=r.seed, refit=r.refit, range_ratio=r.ray_range_ratio,
+                    bearing_threshold_deg=r.ray_bearing_threshold_deg,
                 )
                 transform, inliers, num_inliers = ransac.transform, ransac.inliers, ransac.num_inliers
             except dmlo_rs.RegistrationError:  # degenerate or all-outlier matches: no motion from this pair
@@ -742,7 +743,7 @@ def _check_limits(config: OdometryConfig) -> None:
         "matching": ("consistency_px", "coherence_px"),
         "motion_model": ("max_deviation", "max_deviation_deg", "guided_fraction"),
         "large_motion": ("min_step", "min_step_deg"),
-        "ransac": ("ray_range_ratio",),
+        "ransac": ("ray_range_ratio", "ray_bearing_threshold_deg"),
         "mapping": (
             "keyframe_distance",
             "keyframe_angle_deg",
@@ -760,6 +761,8 @@ def _check_limits(config: OdometryConfig) -> None:
                 raise ValueError(f"{section}.{name}: must be a number {'>' if positive else '>='} 0, got {value!r}")
     if config.ransac.refit not in REFITS:
         raise ValueError(f"ransac.refit: must be one of {', '.join(REFITS)}, got {config.ransac.refit!r}")
+    if config.ransac.ray_bearing_threshold_deg >= 90:
+        raise ValueError(f"ransac.ray_bearing_threshold_deg: must be below 90, got {config.ransac.ray_bearing_threshold_deg!r}")
     for name in ("search_ahead_m", "search_yaw_deg"):
         starts = getattr(config.large_motion, name)
         if isinstance(starts, (str, bytes)) or not hasattr(starts, "__len__") or len(starts) == 0 or not all(
