@@ -33,7 +33,7 @@ pub struct RayNoise {
     /// `r* = σ_r / σ_b` in metres: range noise over bearing noise (radians). Larger trusts the range
     /// less; `r*` at a match's own range weighs it isotropically.
     pub range_ratio: f64,
-    /// Upper bound on Gauss–Newton steps (≥ 1); the solve settles in 3–5 at the default ratio,
+    /// Upper bound on Gauss–Newton steps (≥ 1); the solve settles in 3–5 steps at ratios of 3–30 m,
     /// slower for small ratios (10–20 at 0.5 m).
     pub max_iterations: usize,
 }
@@ -41,7 +41,7 @@ pub struct RayNoise {
 impl Default for RayNoise {
     fn default() -> Self {
         RayNoise {
-            range_ratio: 3.0,
+            range_ratio: 4.0,
             max_iterations: 20,
         }
     }

@@ -294,11 +294,18 @@ def test_large_motion_rounds_rematch_the_moved_reference_and_keep_the_scans_fram
     by_hand = odometry.pose_from_flow(ref_range, tgt_range, output.flow, output.confidence)
     np.testing.assert_array_equal(once.T_tgt_ref, by_hand.T_tgt_ref)
     # Every round's matches are reported in the given scans' frames: the final motion carries the inliers'
-    # reference points onto their target points within the RANSAC threshold.
+    # reference points onto their target points within the refits' inlier bounds (the RANSAC threshold along
+    # the target's ray, across it the threshold or the bearing threshold's width at the match's range).
+    settings = OdometryConfig().ransac
     for result in (once, rounds):
         moved = result.source_points @ result.T_tgt_ref[:3, :3].T + result.T_tgt_ref[:3, 3]
-        residuals = np.linalg.norm(moved - result.target_points, axis=1)[result.inliers]
-        assert result.num_inliers > 100 and residuals.max() <= OdometryConfig().ransac.threshold + 1e-6
+        error = (moved - result.target_points)[result.inliers]
+        ranges = np.linalg.norm(result.target_points[result.inliers], axis=1)
+        along = np.sum(error * result.target_points[result.inliers], axis=1) / ranges
+        across = np.linalg.norm(error, axis=1) ** 2 - along**2
+        across_bound = np.maximum(settings.threshold, ranges * np.tan(np.radians(settings.ray_bearing_threshold_deg)))
+        assert result.num_inliers > 100
+        assert np.all((along / settings.threshold) ** 2 + across / across_bound**2 < 1 + 1e-9)
     # 3.75 m apart: the rounds halve the translation error of the single pass on this pair (4.5 → 2.5 cm).
     assert rounds_errors.translation_mean < 0.7 * once_errors.translation_mean
     # A round whose correction is below both steps ends the search (the first round's is the 3.75 m itself,

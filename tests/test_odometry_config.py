@@ -15,6 +15,8 @@ def test_defaults_are_the_papers() -> None:
     assert config.ransac.threshold == 0.1  # 0.1 m inlier threshold
     assert config.motion_model.min_inliers == 10  # fewer than 10 inliers → motion model
     assert config.matching_stage == "auto"  # beyond the paper: where the matching runs, not what it computes
+    # Beyond the paper: RANSAC's refits weigh each match by its ray (ransac.refit = "point_to_point" is Eq. 12–14).
+    assert config.ransac.refit == "ray_noise"
 
 
 def test_round_trip_through_a_file(tmp_path: Path) -> None:

@@ -157,7 +157,8 @@ def test_the_odometry_solves_its_pairs_as_configured(pair_scans: list[np.ndarray
     np.testing.assert_allclose(
         pair.T_tgt_ref, dmlo_rs.ray_noise_refit(src, dst, start, range_ratio=4.0).transform, atol=1e-12
     )
-    plain = Odometry.from_default(OdometryConfig()).register_pair(*pair_scans)
+    config.ransac.refit = "point_to_point"
+    plain = Odometry.from_default(config).register_pair(*pair_scans)
     src, dst = plain.source_points[plain.inliers], plain.target_points[plain.inliers]
     np.testing.assert_allclose(plain.T_tgt_ref, dmlo_rs.rigid_transform(src, dst), atol=1e-12)
 

@@ -187,7 +187,7 @@ def ransac_rigid(
     *,
     refine_iterations: int = 10,
     refit: Literal["point_to_point", "ray_noise"] = "point_to_point",
-    range_ratio: float = 3.0,
+    range_ratio: float = 4.0,
     bearing_threshold_deg: float = 0.2,
     num_threads: int | None = None,
 ) -> RansacResult:
@@ -203,7 +203,7 @@ def ray_noise_refit(
     src: npt.NDArray[np.floating],
     dst: npt.NDArray[np.floating],
     initial: npt.NDArray[np.floating],
-    range_ratio: float = 3.0,
+    range_ratio: float = 4.0,
     max_iterations: int = 20,
 ) -> RayRefit:
     """Gauss-Newton refit of `initial` (4×4, dst ≈ T·src) minimising Σ eᵀΩe, e = T·src − dst, with

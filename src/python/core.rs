@@ -562,7 +562,7 @@ fn refit_kind(refit: &str, range_ratio: f64, bearing_threshold_deg: f64) -> PyRe
 /// adaptive iterations for `confidence`, deterministic for a `seed` whatever `num_threads`.
 #[pyfunction]
 #[pyo3(signature = (src, dst, threshold = 0.1, confidence = 0.999, max_iterations = 1000, seed = 0, *,
-                    refine_iterations = 10, refit = "point_to_point", range_ratio = 3.0,
+                    refine_iterations = 10, refit = "point_to_point", range_ratio = 4.0,
                     bearing_threshold_deg = 0.2, num_threads = None))]
 #[allow(clippy::too_many_arguments)]
 fn ransac_rigid(
@@ -635,7 +635,7 @@ impl PyRayRefit {
 /// Gauss–Newton refit of `initial` (`dst ≈ T·src`) under ray noise: each target point (in its sensor's
 /// frame) errs across its ray in bearing and along it by `range_ratio` metres per radian of bearing.
 #[pyfunction]
-#[pyo3(signature = (src, dst, initial, range_ratio = 3.0, max_iterations = 20))]
+#[pyo3(signature = (src, dst, initial, range_ratio = 4.0, max_iterations = 20))]
 fn ray_noise_refit(
     py: Python<'_>,
     src: &Bound<'_, PyAny>,
