@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 
 @dataclass
@@ -46,7 +46,7 @@ class RansacConfig:
     # bearing, so a match's error grows with range across its ray, while its range, read from the target
     # scan, stays precise along it. Over five simulated 300-frame drives (docs/measurements.md): t_rel
     # 7–45 % lower on every one, r_rel 20–38 % lower on four and 32 % higher on the sparsest.
-    refit: str = "ray_noise"
+    refit: Literal["point_to_point", "ray_noise"] = "ray_noise"
     # With "ray_noise": range noise over bearing noise, σ_r / σ_b in metres (per radian) …
     ray_range_ratio: float = 4.0
     # … and the refits' inliers within `threshold` along the target's ray and, across it, within the
