@@ -18,7 +18,7 @@ use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::ray_noise::{ray_information, ray_noise_refit, RayNoise, MIN_RANGE};
-use crate::rigid::{isometry_from_parts, rigid_transform, Svd3};
+use crate::rigid::{check_pairs, isometry_from_parts, rigid_transform, Svd3};
 
 /// RANSAC settings; `Default` is the paper's (0.1 m threshold) with 0.999 confidence.
 #[derive(Debug, Clone, PartialEq)]
@@ -336,20 +336,7 @@ pub fn ransac_rigid(
     if config.batch_size == 0 {
         return Err(Error::invalid("batch_size", "must be >= 1"));
     }
-    if dst.len() != src.len() {
-        return Err(Error::invalid(
-            "dst",
-            format!("has {} points, src has {}", dst.len(), src.len()),
-        ));
-    }
-    for (name, points) in [("src", src), ("dst", dst)] {
-        if let Some(i) = points
-            .iter()
-            .position(|p| !p.coords.iter().all(|v| v.is_finite()))
-        {
-            return Err(Error::invalid(name, format!("point {i} is not finite")));
-        }
-    }
+    check_pairs(src, dst)?;
     config.refit.validate()?;
     if let Refit::RayNoise { .. } = &config.refit {
         if let Some(i) = dst

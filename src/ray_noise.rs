@@ -19,6 +19,7 @@
 use nalgebra::{Isometry3, Matrix3, Matrix6, Point3, SymmetricEigen, Vector3, Vector6};
 
 use crate::error::{Error, Result};
+use crate::rigid::check_pairs;
 
 /// Smallest over largest eigenvalue of the normal matrix below which the motion is undetermined
 /// (collinear or coincident points).
@@ -102,20 +103,7 @@ pub fn ray_noise_refit(
     noise: &RayNoise,
 ) -> Result<RayRefit> {
     noise.validate()?;
-    if dst.len() != src.len() {
-        return Err(Error::invalid(
-            "dst",
-            format!("has {} points, src has {}", dst.len(), src.len()),
-        ));
-    }
-    for (name, points) in [("src", src), ("dst", dst)] {
-        if let Some(i) = points
-            .iter()
-            .position(|p| !p.coords.iter().all(|v| v.is_finite()))
-        {
-            return Err(Error::invalid(name, format!("point {i} is not finite")));
-        }
-    }
+    check_pairs(src, dst)?;
     if src.len() < 3 {
         return Err(Error::TooFewPoints {
             needed: 3,

@@ -98,6 +98,25 @@ pub(crate) fn isometry_from_parts(
     Isometry3::from_parts(Translation3::from(*translation), rotation)
 }
 
+/// Checks that `src` and `dst` pair up (same length) and hold only finite points, naming the one at fault.
+pub(crate) fn check_pairs(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Result<()> {
+    if dst.len() != src.len() {
+        return Err(Error::invalid(
+            "dst",
+            format!("has {} points, src has {}", dst.len(), src.len()),
+        ));
+    }
+    for (name, points) in [("src", src), ("dst", dst)] {
+        if let Some(i) = points
+            .iter()
+            .position(|p| !p.coords.iter().all(|v| v.is_finite()))
+        {
+            return Err(Error::invalid(name, format!("point {i} is not finite")));
+        }
+    }
+    Ok(())
+}
+
 /// Solves Eq. 12–14: the rigid `T` (an [`Isometry3`], `dst ≈ T · src`) minimising the weighted squared
 /// distances. `weights` (optional) must be finite and ≥ 0 with at least 3 positive.
 ///
@@ -109,12 +128,7 @@ pub fn rigid_transform(
     dst: &[Point3<f64>],
     weights: Option<&[f64]>,
 ) -> Result<Isometry3<f64>> {
-    if dst.len() != src.len() {
-        return Err(Error::invalid(
-            "dst",
-            format!("has {} points, src has {}", dst.len(), src.len()),
-        ));
-    }
+    check_pairs(src, dst)?;
     if let Some(w) = weights {
         if w.len() != src.len() {
             return Err(Error::invalid(
@@ -127,14 +141,6 @@ pub fn rigid_transform(
                 "weights",
                 format!("element {i} is {} (need finite and >= 0)", w[i]),
             ));
-        }
-    }
-    for (name, points) in [("src", src), ("dst", dst)] {
-        if let Some(i) = points
-            .iter()
-            .position(|p| !p.coords.iter().all(|v| v.is_finite()))
-        {
-            return Err(Error::invalid(name, format!("point {i} is not finite")));
         }
     }
     let weight = |i: usize| weights.map_or(1.0, |w| w[i]);
