@@ -45,7 +45,9 @@ class RansacConfig:
     # Gauss–Newton with each match weighted by its ray (`dmlo_rs.ray_noise_refit`): the network errs in
     # bearing, so a match's error grows with range across its ray, while its range, read from the target
     # scan, stays precise along it. Over five simulated 300-frame drives (docs/measurements.md): t_rel
-    # 7–45 % lower on every one, r_rel 20–38 % lower on four and 32 % higher on the sparsest.
+    # 7–45 % lower on every one, r_rel 20–38 % lower on four and 32 % higher on the sparsest. It assumes
+    # every point lies on a ray from one sensor origin: skewed sweeps need `deskew` (not deskewed, it
+    # drifts 1.4–2.5× more than "point_to_point" on the README's skewed drives; deskewed, less).
     refit: Literal["point_to_point", "ray_noise"] = "ray_noise"
     # With "ray_noise": range noise over bearing noise, σ_r / σ_b in metres (per radian) …
     ray_range_ratio: float = 4.0
@@ -95,7 +97,9 @@ class DeskewConfig:
     from the azimuth: a sensor turning `clockwise` seen from above (Velodyne, KITTI), the pose at the
     moment it looks at `reference_azimuth_deg` (0: forward, as KITTI and `dmlo simulate
     --motion-distortion`). Off by default: a sweep that is already one snapshot (the simulator's
-    default ones, a driver's or a dataset's motion-compensated scans) would be skewed by it.
+    default ones, a driver's or a dataset's motion-compensated scans) would be skewed by it. Skewed sweeps
+    left as they are suit the default `ransac.refit` ("ray_noise") worst: 2.5 % drift on the README's skewed
+    drives against 1.0–1.8 % with "point_to_point" and 0.6–0.7 % deskewed.
     """
 
     enabled: bool = False
