@@ -61,7 +61,8 @@ def add_odometry_arguments(parser: argparse.ArgumentParser, sequence: bool = Tru
         parser.add_argument("--deskew", action="store_true",
                             help="motion-compensate every sweep by the constant-velocity prediction before "
                             "matching (for skewed sweeps: raw KITTI, live spinning sensors; times from the azimuth, "
-                            "a clockwise sensor with poses at the forward-looking moment; config deskew.* for others)")
+                            "a clockwise sensor with poses at the forward-looking moment; config deskew.* for others); skewed "
+                            "sweeps not deskewed drift most with the default ray-noise refit")
     parser.add_argument("--matching-stage", choices=("auto", "crate", "graph"), default=None,
                         help="where the network's correlation and window decoding run: in the Rust crate "
                         "(fast on a CPU), in the ONNX graph (e.g. on a GPU), or auto (default; config matching_stage)")
