@@ -71,9 +71,10 @@ pub struct RayRefit {
     pub transform: Isometry3<f64>,
     /// Gauss–Newton steps taken.
     pub iterations: usize,
-    /// Whether the last step was below 1e-9 (radians and metres) before `max_iterations` ran out.
+    /// Whether the solve settled before `max_iterations` ran out: its last step was below 1e-9 (radians
+    /// and metres), or no step along the Gauss–Newton direction lowered the cost any more.
     pub converged: bool,
-    /// `Σ eᵢᵀ Ωᵢ eᵢ` at `transform` (squared bearing errors, radians²).
+    /// `Σ eᵢᵀ Ωᵢ eᵢ` at `transform`, in units of the bearing variance (radians²).
     pub cost: f64,
 }
 
