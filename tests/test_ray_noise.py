@@ -109,6 +109,9 @@ def test_bad_input_is_named() -> None:
         dmlo_rs.ransac_rigid(src, dst, refit="ray_noise", range_ratio=0.0)
     with pytest.raises(ValueError, match="range_ratio"):
         dmlo_rs.ray_noise_refit(src, dst, np.eye(4), range_ratio=-1.0)
+    for angle in (-0.1, 90.0, float("nan")):
+        with pytest.raises(ValueError, match="bearing_threshold_deg"):
+            dmlo_rs.ransac_rigid(src, dst, refit="ray_noise", bearing_threshold_deg=angle)
     at_origin = dst.copy()
     at_origin[3] = 0.0
     with pytest.raises(ValueError, match="dst: point 3 lies within"):
@@ -174,5 +177,19 @@ def test_a_bad_refit_setting_is_refused_up_front(refit: str, ratio: object, mess
 
     config = OdometryConfig()
     config.ransac.refit, config.ransac.ray_range_ratio = refit, ratio  # type: ignore[assignment]
+    with pytest.raises(ValueError, match=message):
+        Odometry.from_default(config)
+
+
+@pytest.mark.parametrize(
+    ("angle", "message"),
+    [(-1.0, r"ransac.ray_bearing_threshold_deg: must be a number >= 0"),
+     (90.0, r"ransac.ray_bearing_threshold_deg: must be below 90")],
+)
+def test_a_bad_bearing_threshold_is_refused_up_front(angle: float, message: str) -> None:
+    from dmlo.odometry import Odometry, OdometryConfig
+
+    config = OdometryConfig()
+    config.ransac.ray_bearing_threshold_deg = angle
     with pytest.raises(ValueError, match=message):
         Odometry.from_default(config)
