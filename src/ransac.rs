@@ -17,7 +17,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::ray_noise::{ray_information, ray_noise_refit, RayNoise, MIN_RANGE};
+use crate::ray_noise::{check_rays, ray_noise_refit, RayNoise};
 use crate::rigid::{check_pairs, isometry_from_parts, rigid_transform, Svd3};
 
 /// RANSAC settings; `Default` is the paper's (0.1 m threshold) with 0.999 confidence.
@@ -339,15 +339,7 @@ pub fn ransac_rigid(
     check_pairs(src, dst)?;
     config.refit.validate()?;
     if let Refit::RayNoise { .. } = &config.refit {
-        if let Some(i) = dst
-            .iter()
-            .position(|q| ray_information(&q.coords, 1.0).is_none())
-        {
-            return Err(Error::invalid(
-                "dst",
-                format!("point {i} lies within {MIN_RANGE} m of the sensor (no ray for the ray-noise refit)"),
-            ));
-        }
+        check_rays(dst)?;
     }
     let n = src.len();
     if n < 3 {
@@ -521,6 +513,15 @@ mod tests {
         (src, dst, truth, is_inlier)
     }
 
+    /// `work` run in a rayon pool of `threads` threads.
+    fn in_pool<T: Send>(threads: usize, work: impl FnOnce() -> T + Send) -> T {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(work)
+    }
+
     #[test]
     fn recovers_a_known_motion_with_80_percent_outliers() {
         let (src, dst, truth, is_inlier) = scene(21, 1000, 0.8, 0.02);
@@ -614,13 +615,7 @@ mod tests {
         assert_ne!(result.transform, closed_form);
         let rotation_error = (result.transform.rotation.inverse() * truth.rotation).angle();
         assert!(rotation_error.to_degrees() < 0.05);
-        let threads = |n: usize| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(n)
-                .build()
-                .unwrap()
-                .install(|| ransac_rigid(&src, &dst, &config).unwrap())
-        };
+        let threads = |n: usize| in_pool(n, || ransac_rigid(&src, &dst, &config).unwrap());
         assert_eq!(threads(1), threads(3));
         // A target point at the sensor's origin has no ray: refused by name, not skipped silently.
         let mut at_origin = dst.clone();
@@ -672,32 +667,22 @@ mod tests {
             batch_size: 16,
             ..Default::default()
         };
-        let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            pool.install(|| ransac_rigid(&src, &dst, &config).unwrap())
-        };
+        let run = |threads: usize| in_pool(threads, || ransac_rigid(&src, &dst, &config).unwrap());
         let one = run(1);
         let four = run(4);
         assert_eq!(one, four);
         // The batch size changes only speed.
-        let other_batches = rayon::ThreadPoolBuilder::new()
-            .num_threads(2)
-            .build()
+        let other_batches = in_pool(2, || {
+            ransac_rigid(
+                &src,
+                &dst,
+                &RansacConfig {
+                    batch_size: 100,
+                    ..config.clone()
+                },
+            )
             .unwrap()
-            .install(|| {
-                ransac_rigid(
-                    &src,
-                    &dst,
-                    &RansacConfig {
-                        batch_size: 100,
-                        ..config.clone()
-                    },
-                )
-                .unwrap()
-            });
+        });
         assert_eq!(one, other_batches);
         let different_seed =
             ransac_rigid(&src, &dst, &RansacConfig { seed: 10, ..config }).unwrap();

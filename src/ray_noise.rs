@@ -91,6 +91,18 @@ pub fn ray_information(q: &Vector3<f64>, range_ratio: f64) -> Option<Matrix3<f64
     Some(Matrix3::identity() * across + q * q.transpose() * ((along - across) / range_sq))
 }
 
+/// Checks that every target point has a ray (lies at least [`MIN_RANGE`] from its sensor's origin),
+/// naming the first that does not.
+pub(crate) fn check_rays(dst: &[Point3<f64>]) -> Result<()> {
+    match dst.iter().position(|q| ray_information(&q.coords, 1.0).is_none()) {
+        Some(i) => Err(Error::invalid(
+            "dst",
+            format!("point {i} lies within {MIN_RANGE} m of the sensor (no ray for the ray-noise refit)"),
+        )),
+        None => Ok(()),
+    }
+}
+
 /// Refines `initial` (`dst ≈ T·src`) to the motion of least `Σ eᵢᵀ Ωᵢ eᵢ`, `dst` being the target points
 /// in their sensor's frame (the ray of each runs from the origin).
 ///
@@ -111,18 +123,12 @@ pub fn ray_noise_refit(
             got: src.len(),
         });
     }
-    let information = dst
+    check_rays(dst)?;
+    // Every point has a ray now, so nothing is filtered out.
+    let information: Vec<Matrix3<f64>> = dst
         .iter()
-        .enumerate()
-        .map(|(i, q)| {
-            ray_information(&q.coords, noise.range_ratio).ok_or_else(|| {
-                Error::invalid(
-                    "dst",
-                    format!("point {i} lies within {MIN_RANGE} m of the sensor (no ray)"),
-                )
-            })
-        })
-        .collect::<Result<Vec<_>>>()?;
+        .filter_map(|q| ray_information(&q.coords, noise.range_ratio))
+        .collect();
 
     let cost_at = |transform: &Isometry3<f64>| -> f64 {
         src.iter()
