@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, TypeVar, get_args
 
 
 @dataclass
@@ -32,6 +32,10 @@ class MatchingConfig:
     coherence_radius: int = 2
 
 
+Refit = Literal["point_to_point", "ray_noise"]
+REFITS: tuple[str, ...] = get_args(Refit)
+
+
 @dataclass
 class RansacConfig:
     """RANSAC around the closed-form SVD solve (§III-D-b)."""
@@ -48,7 +52,7 @@ class RansacConfig:
     # 7–45 % lower on every one, r_rel 20–38 % lower on four and 32 % higher on the sparsest. It assumes
     # every point lies on a ray from one sensor origin: skewed sweeps need `deskew` (not deskewed, it
     # drifts 1.4–2.5× more than "point_to_point" on the README's skewed drives; deskewed, less).
-    refit: Literal["point_to_point", "ray_noise"] = "ray_noise"
+    refit: Refit = "ray_noise"
     # With "ray_noise": range noise over bearing noise, σ_r / σ_b in metres (per radian) …
     ray_range_ratio: float = 4.0
     # … and the refits' inliers within `threshold` along the target's ray and, across it, within the

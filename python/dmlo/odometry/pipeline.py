@@ -21,7 +21,7 @@ import dmlo_rs
 from dmlo.metrics.trajectory import pose_difference
 from dmlo.poses import midpoint_motion
 from dmlo.odometry.clock import FrameClock
-from dmlo.odometry.config import OdometryConfig
+from dmlo.odometry.config import REFITS, OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
 from dmlo.odometry.matcher import (
     ENCODER_GRAPH,
@@ -435,7 +435,7 @@ class Odometry:
         transform, inliers, num_inliers = np.eye(4), np.zeros(len(src), dtype=bool), 0
         if len(src) >= 3:
             try:
-                # RANSAC around the closed-form SVD solve, Eq. 12–14 (§III-D-b).
+                # RANSAC around the closed-form SVD solve, Eq. 12–14 (§III-D-b); refits as `ransac.refit` says.
                 ransac = dmlo_rs.ransac_rigid(
                     src, dst, threshold=r.threshold, confidence=r.confidence,
                     max_iterations=r.max_iterations, seed=r.seed, refit=r.refit, range_ratio=r.ray_range_ratio,
@@ -734,7 +734,6 @@ class Odometry:
 # Limits that None turns off, and limits that must be > 0 rather than >= 0 (a scale divides by them).
 _OPTIONAL_LIMITS = {("matching", "consistency_px"), ("matching", "coherence_px")}
 _POSITIVE_LIMITS = {("matching", "coherence_px"), ("ransac", "ray_range_ratio")}
-REFITS = ("point_to_point", "ray_noise")
 
 
 def _check_limits(config: OdometryConfig) -> None:
