@@ -513,6 +513,18 @@ mod tests {
         (src, dst, truth, is_inlier)
     }
 
+    /// The (src, dst) pairs `result` marks as inliers.
+    fn inlier_pairs(
+        src: &[Point3<f64>],
+        dst: &[Point3<f64>],
+        result: &RansacResult,
+    ) -> (Vec<Point3<f64>>, Vec<Point3<f64>>) {
+        (0..src.len())
+            .filter(|&i| result.inliers[i])
+            .map(|i| (src[i], dst[i]))
+            .unzip()
+    }
+
     /// `work` run in a rayon pool of `threads` threads.
     fn in_pool<T: Send>(threads: usize, work: impl FnOnce() -> T + Send) -> T {
         rayon::ThreadPoolBuilder::new()
@@ -548,10 +560,7 @@ mod tests {
             result.inliers.iter().filter(|&&v| v).count()
         );
         // The answer is the least-squares fit on its inliers, not a noisy 3-match sample.
-        let (inlier_src, inlier_dst): (Vec<_>, Vec<_>) = (0..src.len())
-            .filter(|&i| result.inliers[i])
-            .map(|i| (src[i], dst[i]))
-            .unzip();
+        let (inlier_src, inlier_dst) = inlier_pairs(&src, &dst, &result);
         let refit = rigid_transform(&inlier_src, &inlier_dst, None).unwrap();
         assert!(
             (refit.to_homogeneous() - result.transform.to_homogeneous())
@@ -575,10 +584,7 @@ mod tests {
                 ..Default::default()
             };
             let result = ransac_rigid(&src, &dst, &config).unwrap();
-            let (inlier_src, inlier_dst): (Vec<_>, Vec<_>) = (0..src.len())
-                .filter(|&i| result.inliers[i])
-                .map(|i| (src[i], dst[i]))
-                .unzip();
+            let (inlier_src, inlier_dst) = inlier_pairs(&src, &dst, &result);
             let refit = rigid_transform(&inlier_src, &inlier_dst, None).unwrap();
             let gap = (refit.to_homogeneous() - result.transform.to_homogeneous())
                 .abs()
@@ -605,10 +611,7 @@ mod tests {
             ..Default::default()
         };
         let result = ransac_rigid(&src, &dst, &config).unwrap();
-        let (inlier_src, inlier_dst): (Vec<_>, Vec<_>) = (0..src.len())
-            .filter(|&i| result.inliers[i])
-            .map(|i| (src[i], dst[i]))
-            .unzip();
+        let (inlier_src, inlier_dst) = inlier_pairs(&src, &dst, &result);
         let closed_form = rigid_transform(&inlier_src, &inlier_dst, None).unwrap();
         let refit = ray_noise_refit(&inlier_src, &inlier_dst, &closed_form, &noise).unwrap();
         assert_eq!(result.transform, refit.transform);
