@@ -63,6 +63,19 @@ pub enum Refit {
 }
 
 impl Refit {
+    /// The motion (`dst ≈ T·src`) of pairs taken as inliers, solved as one of RANSAC's refits is: the
+    /// closed-form SVD solve, then for [`Refit::RayNoise`] the Gauss–Newton refit started there.
+    pub fn solve(&self, src: &[Point3<f64>], dst: &[Point3<f64>]) -> Result<Isometry3<f64>> {
+        self.validate()?;
+        let closed_form = rigid_transform(src, dst, None)?;
+        match self {
+            Refit::PointToPoint => Ok(closed_form),
+            Refit::RayNoise { noise, .. } => {
+                Ok(ray_noise_refit(src, dst, &closed_form, noise)?.transform)
+            }
+        }
+    }
+
     fn validate(&self) -> Result<()> {
         if let Refit::RayNoise {
             noise,
@@ -265,17 +278,6 @@ impl Matches {
     }
 }
 
-/// One refit of the motion on the inlier pairs, as `refit` says.
-fn refit_on(src: &[Point3<f64>], dst: &[Point3<f64>], refit: &Refit) -> Result<Isometry3<f64>> {
-    let closed_form = rigid_transform(src, dst, None)?;
-    match refit {
-        Refit::PointToPoint => Ok(closed_form),
-        Refit::RayNoise { noise, .. } => {
-            Ok(ray_noise_refit(src, dst, &closed_form, noise)?.transform)
-        }
-    }
-}
-
 /// Hypotheses needed to draw an all-inlier sample of 3 with probability `confidence` when a fraction
 /// `inlier_ratio` of the matches are inliers.
 fn required_iterations(inlier_ratio: f64, confidence: f64, max_iterations: usize) -> usize {
@@ -417,7 +419,7 @@ pub fn ransac_rigid(
             .filter(|(_, &inlier)| inlier)
             .map(|(i, _)| (src[i], dst[i]))
             .unzip();
-        let Ok(refit) = refit_on(&inlier_src, &inlier_dst, &config.refit) else {
+        let Ok(refit) = config.refit.solve(&inlier_src, &inlier_dst) else {
             break;
         };
         let refit_inliers = match &config.refit {
@@ -631,6 +633,40 @@ mod tests {
             })
         ));
         assert!(ransac_rigid(&src, &at_origin, &RansacConfig::default()).is_ok());
+    }
+
+    #[test]
+    fn a_refit_solves_as_the_svd_solve_then_its_gauss_newton_refit() {
+        let (src, dst, _, is_inlier) = scene(31, 300, 0.0, 0.03);
+        assert!(is_inlier.iter().all(|&inlier| inlier));
+        let closed_form = rigid_transform(&src, &dst, None).unwrap();
+        assert_eq!(Refit::PointToPoint.solve(&src, &dst).unwrap(), closed_form);
+        let noise = RayNoise {
+            range_ratio: 2.0,
+            ..Default::default()
+        };
+        let ray = Refit::RayNoise {
+            noise: noise.clone(),
+            bearing_threshold_deg: 0.2,
+        };
+        let refined = ray_noise_refit(&src, &dst, &closed_form, &noise).unwrap();
+        assert_eq!(ray.solve(&src, &dst).unwrap(), refined.transform);
+        assert_ne!(refined.transform, closed_form);
+        // Its own settings are checked before anything is solved.
+        let bad = Refit::RayNoise {
+            noise: RayNoise {
+                range_ratio: 0.0,
+                ..Default::default()
+            },
+            bearing_threshold_deg: 0.2,
+        };
+        assert!(matches!(
+            bad.solve(&src, &dst),
+            Err(Error::InvalidArgument {
+                argument: "range_ratio",
+                ..
+            })
+        ));
     }
 
     #[test]

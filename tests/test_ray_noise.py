@@ -100,6 +100,21 @@ def test_ransac_with_the_ray_noise_refit_answers_the_refit_of_its_inliers() -> N
     np.testing.assert_array_equal(threads[0].inliers, threads[1].inliers)
 
 
+def test_refit_rigid_solves_given_inliers_as_ransac_refits_do() -> None:
+    rng = np.random.default_rng(5)
+    truth = rigid([0.7, 0.1, -0.02], [0.1, 0.2, -1.0])
+    src, dst = scan_pairs(rng, 300, truth, bearing_noise_deg=0.1, range_noise=0.03)
+    closed_form = dmlo_rs.rigid_transform(src, dst)
+    np.testing.assert_array_equal(dmlo_rs.refit_rigid(src, dst), closed_form)
+    ray = dmlo_rs.refit_rigid(src, dst, refit="ray_noise", range_ratio=3.0)
+    np.testing.assert_allclose(ray, scipy_ray_noise_fit(src, dst, closed_form, 3.0), atol=1e-8)
+    assert ray.dtype == np.float64 and ray.shape == (4, 4)
+    # RANSAC's answer is this solve of its own inliers.
+    ransac = dmlo_rs.ransac_rigid(src, dst, seed=2, refit="ray_noise", range_ratio=3.0)
+    refit = dmlo_rs.refit_rigid(src[ransac.inliers], dst[ransac.inliers], refit="ray_noise", range_ratio=3.0)
+    np.testing.assert_allclose(ransac.transform, refit, atol=1e-12)
+
+
 def test_bad_input_is_named() -> None:
     rng = np.random.default_rng(4)
     src, dst = scan_pairs(rng, 20, np.eye(4), 0.05, 0.02)
@@ -109,6 +124,12 @@ def test_bad_input_is_named() -> None:
         dmlo_rs.ransac_rigid(src, dst, refit="ray_noise", range_ratio=0.0)
     with pytest.raises(ValueError, match="range_ratio"):
         dmlo_rs.ray_noise_refit(src, dst, np.eye(4), range_ratio=-1.0)
+    with pytest.raises(ValueError, match="refit"):
+        dmlo_rs.refit_rigid(src, dst, refit="plane")
+    with pytest.raises(ValueError, match="range_ratio"):
+        dmlo_rs.refit_rigid(src, dst, refit="ray_noise", range_ratio=float("nan"))
+    with pytest.raises(dmlo_rs.RegistrationError):
+        dmlo_rs.refit_rigid(src[:2], dst[:2], refit="ray_noise")
     for angle in (-0.1, 90.0, float("nan")):
         with pytest.raises(ValueError, match="bearing_threshold_deg"):
             dmlo_rs.ransac_rigid(src, dst, refit="ray_noise", bearing_threshold_deg=angle)
@@ -118,6 +139,8 @@ def test_bad_input_is_named() -> None:
         dmlo_rs.ray_noise_refit(src, at_origin, np.eye(4))
     with pytest.raises(ValueError, match="dst: point 3 lies within"):
         dmlo_rs.ransac_rigid(src, at_origin, refit="ray_noise")
+    with pytest.raises(ValueError, match="dst: point 3 lies within"):
+        dmlo_rs.refit_rigid(src, at_origin, refit="ray_noise")
     # The closed-form refit needs no rays: a point at the origin is an ordinary point there.
     dmlo_rs.ransac_rigid(src, at_origin)
     with pytest.raises(ValueError, match="initial"):

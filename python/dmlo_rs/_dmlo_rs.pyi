@@ -27,6 +27,7 @@ __all__ += [
     "rigid_transform",
     "ransac_rigid",
     "ray_noise_refit",
+    "refit_rigid",
     "nms",
     "decode_matches",
     "coherent_confidence",
@@ -209,6 +210,16 @@ def ray_noise_refit(
     """Gauss-Newton refit of `initial` (4×4, dst ≈ T·src) minimising Σ eᵀΩe, e = T·src − dst, with
     Ω = (I − nnᵀ)/r² + nnᵀ/range_ratio² for each target point at range r along the unit ray n from its
     sensor's origin: bearing noise across the ray, range noise (range_ratio metres per radian) along it."""
+
+def refit_rigid(
+    src: npt.NDArray[np.floating],
+    dst: npt.NDArray[np.floating],
+    *,
+    refit: Literal["point_to_point", "ray_noise"] = "point_to_point",
+    range_ratio: float = 4.0,
+) -> npt.NDArray[np.float64]:
+    """The motion (4×4 float64, dst ≈ T·src) of pairs taken as inliers, solved as one of `ransac_rigid`'s
+    refits: the closed-form solve (Eq. 12-14), then for "ray_noise" `ray_noise_refit` from it."""
 
 def nms(
     rows: npt.NDArray[np.integer],

@@ -606,6 +606,24 @@ fn ransac_rigid(
     })
 }
 
+/// The motion of pairs taken as inliers, solved as one of `ransac_rigid`'s refits with the same `refit`
+/// and `range_ratio`: the closed-form solve, then for "ray_noise" its Gauss–Newton refit → 4×4 float64.
+#[pyfunction]
+#[pyo3(signature = (src, dst, *, refit = "point_to_point", range_ratio = 4.0))]
+fn refit_rigid<'py>(
+    py: Python<'py>,
+    src: &Bound<'py, PyAny>,
+    dst: &Bound<'py, PyAny>,
+    refit: &str,
+    range_ratio: f64,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    // The bearing tolerance only chooses RANSAC's inliers; a solve on given pairs has no use for it.
+    let refit = refit_kind(refit, range_ratio, 0.0)?;
+    let (src, dst) = (points3("src", src)?, points3("dst", dst)?);
+    let solved = run(py, Some(1), || refit.solve(&src, &dst))?;
+    Ok(matrix_to_numpy(py, &solved))
+}
+
 /// Result of `ray_noise_refit`: `transform` (4×4 float64), Gauss–Newton `iterations`, whether it
 /// `converged`, and the weighted `cost` at `transform`.
 #[pyclass(name = "RayRefit", module = "dmlo_rs._dmlo_rs", frozen)]
@@ -937,6 +955,7 @@ pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(rigid_transform, m)?)?;
     m.add_function(wrap_pyfunction!(ransac_rigid, m)?)?;
     m.add_function(wrap_pyfunction!(ray_noise_refit, m)?)?;
+    m.add_function(wrap_pyfunction!(refit_rigid, m)?)?;
     m.add_function(wrap_pyfunction!(non_maximum_suppression, m)?)?;
     m.add_function(wrap_pyfunction!(decode_matches, m)?)?;
     m.add_function(wrap_pyfunction!(coherent_confidence, m)?)?;

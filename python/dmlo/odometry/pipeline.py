@@ -631,11 +631,10 @@ class Odometry:
 
     def _refit(self, source: npt.NDArray[np.float64], target: npt.NDArray[np.float64]) -> Matrix4:
         """The motion of matches taken as inliers, solved as RANSAC's refits are (`ransac.refit`)."""
-        transform = np.asarray(dmlo_rs.rigid_transform(source, target), dtype=np.float64)
-        if self.config.ransac.refit == "ray_noise":
-            refit = dmlo_rs.ray_noise_refit(source, target, transform, range_ratio=self.config.ransac.ray_range_ratio)
-            transform = np.asarray(refit.transform, dtype=np.float64)
-        return transform
+        ransac = self.config.ransac
+        return np.asarray(
+            dmlo_rs.refit_rigid(source, target, refit=ransac.refit, range_ratio=ransac.ray_range_ratio), dtype=np.float64
+        )
 
     # -- motion model ---------------------------------------------------------------------------
 
