@@ -12,6 +12,7 @@ from dmlo.metrics.kitti import (
 from dmlo.metrics.registration import (
     RegistrationErrors,
     registration_errors,
+    rotation_error_axes_deg,
     rotation_error_deg,
     translation_error,
 )
@@ -41,6 +42,7 @@ __all__ = [
     "registration_errors",
     "relative_pose_error",
     "rotation_angle_deg",
+    "rotation_error_axes_deg",
     "rotation_error_deg",
     "trajectory_distances",
     "translation_error",

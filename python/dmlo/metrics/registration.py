@@ -11,7 +11,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["RegistrationErrors", "registration_errors", "rotation_error_deg", "translation_error"]
+__all__ = [
+    "RegistrationErrors",
+    "registration_errors",
+    "rotation_error_axes_deg",
+    "rotation_error_deg",
+    "translation_error",
+]
 
 
 def _as_transforms(transforms: ArrayLike, name: str) -> NDArray[np.float64]:
@@ -33,6 +39,29 @@ def rotation_error_deg(rotation_est: ArrayLike, rotation_gt: ArrayLike) -> NDArr
         raise ValueError(f"rotations must both be (…, 3, 3), got {r.shape} and {r_gt.shape}")
     frobenius = np.linalg.norm(r - r_gt, axis=(-2, -1))
     return np.degrees(2.0 * np.arcsin(np.clip(frobenius / (2.0 * np.sqrt(2.0)), 0.0, 1.0)))
+
+
+def rotation_error_axes_deg(rotation_est: ArrayLike, rotation_gt: ArrayLike) -> NDArray[np.float64]:
+    """The signed error of ``(…, 3, 3)`` rotations about each axis, ``(…, 3)`` degrees: the rotation vector
+    of ``R̄ᵀ R`` (x, y, z components; for small errors roll, pitch and yaw in the frame of ``R̄``).
+
+    Its norm is :func:`rotation_error_deg`; its components, averaged over many pairs, show a bias that the
+    unsigned angle hides (an estimate that tilts the same way every frame)."""
+    r = np.asarray(rotation_est, dtype=np.float64)
+    r_gt = np.asarray(rotation_gt, dtype=np.float64)
+    if r.shape[-2:] != (3, 3) or r.shape != r_gt.shape:
+        raise ValueError(f"rotations must both be (…, 3, 3), got {r.shape} and {r_gt.shape}")
+    error = np.swapaxes(r_gt, -1, -2) @ r
+    skew = np.stack(
+        [error[..., 2, 1] - error[..., 1, 2], error[..., 0, 2] - error[..., 2, 0], error[..., 1, 0] - error[..., 0, 1]],
+        axis=-1,
+    )
+    sine = 0.5 * np.linalg.norm(skew, axis=-1, keepdims=True)
+    cosine = 0.5 * (np.trace(error, axis1=-2, axis2=-1)[..., None] - 1.0)
+    angle = np.arctan2(sine, cosine)
+    # angle / sin(angle), → 1 for small angles; rotations near 180° have no well-defined sign anyway.
+    scale = np.where(sine > 1e-12, angle / np.maximum(sine, 1e-300), 1.0)
+    return np.degrees(0.5 * skew * scale)
 
 
 def translation_error(translation_est: ArrayLike, translation_gt: ArrayLike) -> NDArray[np.float64]:

@@ -1,0 +1,169 @@
+"""Real scans: DMLO, DMLO + mapping and the peers, pair by pair against a GICP consensus, in one run.
+
+    python -m dmlo.benchmarks.real [FOLDER ...] [--data DIR] [--out runs/bench_real]
+
+Without folders it runs every set under ``DIR/kitti_real`` (``../shared/data`` by default). A folder is
+anything ``dmlo run`` reads, a plain folder of ``.bin`` scans included, so it runs on anyone's own drive;
+ground-truth poses, when the folder has them, only seed the reference. The reference of every
+consecutive pair is the consensus of two independent scan-to-scan GICPs (small_gicp and Open3D,
+`dmlo.bench.consensus`); each method's pose deltas are compared with it: mean and largest translation
+and rotation error a pair, the mean signed pitch error (about the sensor's y axis, which points left: positive tips the nose
+down), the
+frames DMLO left to its motion model, speed, and ratios to KISS-ICP measured in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+from tqdm import tqdm
+
+from dmlo.bench.consensus import ConsensusReference, gicp_consensus
+from dmlo.bench.peers import PEERS, FrameOdometry
+from dmlo.bench.runner import REFERENCE_PEER
+from dmlo.datasets import open_sequence
+from dmlo.metrics import rotation_error_axes_deg
+from dmlo.odometry import Odometry, OdometryConfig
+
+DEFAULT_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
+DEFAULT_PEERS = ("KISS-ICP", "small_gicp GICP")
+
+
+@dataclass
+class PairErrors:
+    """One method's errors on one set, against the consensus; lengths in cm, angles in degrees."""
+
+    method: str
+    hz: float
+    translation_mean_cm: float
+    translation_max_cm: float
+    rotation_mean_deg: float
+    rotation_max_deg: float
+    pitch_bias_deg: float  # mean signed error about the sensor's y axis (left): positive tips the nose down
+    uncertain_frames: int | None = None  # DMLO: frames whose motion the odometry did not trust (diagnostics)
+
+
+def pair_errors(
+    method: str, poses: npt.NDArray[np.float64], reference: ConsensusReference, hz: float
+) -> PairErrors:
+    """The errors of the pose deltas `inv(P_i) P_{i+1}` of `poses` against the reference motions."""
+    deltas = np.linalg.inv(poses[:-1]) @ poses[1:]
+    error = np.linalg.inv(reference.motions) @ deltas
+    translation = np.linalg.norm(error[:, :3, 3], axis=1) * 100
+    axes = rotation_error_axes_deg(deltas[:, :3, :3], reference.motions[:, :3, :3])
+    rotation = np.linalg.norm(axes, axis=1)
+    return PairErrors(
+        method=method,
+        hz=hz,
+        translation_mean_cm=float(translation.mean()),
+        translation_max_cm=float(translation.max()),
+        rotation_mean_deg=float(rotation.mean()),
+        rotation_max_deg=float(rotation.max()),
+        pitch_bias_deg=float(axes[:, 1].mean()),
+    )
+
+
+def _dmlo(model: Path | None, mapping: bool) -> Callable[[], Odometry]:
+    def make() -> Odometry:
+        config = OdometryConfig()
+        config.mapping.enabled = mapping
+        return Odometry(model, config) if model else Odometry.from_default(config)
+
+    return make
+
+
+def run_set(
+    folder: Path, model: Path | None, peers: list[str], max_frames: int | None
+) -> tuple[ConsensusReference, list[PairErrors]]:
+    sequence = open_sequence(folder)
+    total = len(sequence) if max_frames is None else min(max_frames, len(sequence))
+    frames = [sequence[i] for i in range(total)]
+    scans = [frame.points for frame in frames]
+    ground_truth = sequence.poses[:total] if sequence.poses is not None else None
+    reference = gicp_consensus(scans, ground_truth)
+
+    methods: list[tuple[str, Callable[[], FrameOdometry]]] = [
+        ("DMLO", _dmlo(model, mapping=False)),
+        ("DMLO + mapping", _dmlo(model, mapping=True)),
+    ]
+    methods += [(peer.name, peer.make) for peer in PEERS if peer.name in peers and peer.available]
+    rows = []
+    for name, make in methods:
+        odometry = make()
+        start = time.perf_counter()
+        poses = np.stack([odometry.register(points) for points in tqdm(scans, desc=f"{folder.name}: {name}", leave=False)])
+        row = pair_errors(name, poses, reference, total / (time.perf_counter() - start))
+        if isinstance(odometry, Odometry):
+            row.uncertain_frames = sum(d.fallback is not None for d in odometry.diagnostics)
+        rows.append(row)
+    return reference, rows
+
+
+def format_table(rows: list[PairErrors]) -> str:
+    kiss = next((row for row in rows if row.method == REFERENCE_PEER), None)
+    lines = [
+        "| method | t mean cm | t max cm | r mean ° | r max ° | pitch bias ° | fallback frames | Hz | t ×KISS | speed ×KISS |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        ratio = speed = "—"
+        if kiss is not None:
+            ratio = f"{row.translation_mean_cm / kiss.translation_mean_cm:.2f}"
+            speed = f"{row.hz / kiss.hz:.2f}"
+        fallback = "—" if row.uncertain_frames is None else str(row.uncertain_frames)
+        lines.append(
+            f"| {row.method} | {row.translation_mean_cm:.2f} | {row.translation_max_cm:.2f} | {row.rotation_mean_deg:.3f} "
+            f"| {row.rotation_max_deg:.3f} | {row.pitch_bias_deg:+.3f} | {fallback} | {row.hz:.1f} | {ratio} | {speed} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folders", nargs="*", type=Path, help="scan folders (default: every set in DATA/kitti_real)")
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder (default: ../shared/data)")
+    parser.add_argument("--model", type=Path, default=None, help="a model's frame.onnx (default: the bundled model)")
+    parser.add_argument("--peers", nargs="*", default=list(DEFAULT_PEERS))
+    parser.add_argument("--max-frames", type=int, default=None)
+    parser.add_argument("--out", type=Path, default=Path("runs/bench_real"))
+    args = parser.parse_args()
+    if args.max_frames is not None and args.max_frames < 2:
+        parser.error("--max-frames: a pair needs at least 2 frames")
+    unknown = set(args.peers) - {peer.name for peer in PEERS}
+    if unknown:
+        parser.error(f"unknown peer(s): {', '.join(sorted(unknown))}; known: {', '.join(p.name for p in PEERS)}")
+    folders = args.folders or sorted(p for p in (args.data / "kitti_real").iterdir() if p.is_dir())
+    if not folders:
+        parser.error(f"no scan folders given and none in {args.data / 'kitti_real'}")
+
+    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d")
+    print(f"{stamp}, {platform.processor() or platform.machine()}, {len(folders)} set(s)")
+    results = {}
+    args.out.mkdir(parents=True, exist_ok=True)
+    for folder in folders:
+        reference, rows = run_set(folder, args.model, args.peers, args.max_frames)
+        print(
+            f"\n### {folder.name} ({len(reference.motions) + 1} scans; reference: {' + '.join(reference.sources)}, "
+            f"disagreeing by {100 * reference.disagreement_m.mean():.2f} cm / {reference.disagreement_deg.mean():.3f}° "
+            f"a pair on average, {100 * reference.disagreement_m.max():.2f} cm at most)\n"
+        )
+        print(format_table(rows))
+        results[str(folder)] = {
+            "reference": {"sources": reference.sources, "disagreement_m": reference.disagreement_m.tolist(),
+                          "motions": reference.motions.tolist()},
+            "rows": [asdict(row) for row in rows],
+        }
+    (args.out / "real.json").write_text(json.dumps({"date": stamp, "sets": results}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
