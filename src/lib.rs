@@ -12,6 +12,7 @@
 //! | [`deskew`] | — | motion compensation of a spinning sensor's sweep (constant velocity) |
 //! | [`nms`] | §III-D-a | greedy non-maximum suppression on the cylinder grid |
 //! | [`rigid`] | Eq. 12–14 | closed-form weighted rigid solve (faer SVD, reflection fixed) |
+//! | [`surface`] | — | the tilt of the surface under a match: its vote for a horizontal motion |
 //! | [`ransac`] | §III-D-b | seeded RANSAC with rayon-parallel hypothesis scoring |
 //! | [`ray_noise`] | — | Gauss–Newton refit weighing each match by its ray's bearing and range noise |
 //! | [`ndt`] | §III-D-c | scan-to-map NDT refinement |
@@ -37,6 +38,7 @@ pub mod ransac;
 pub mod ray_noise;
 pub mod raycast;
 pub mod rigid;
+pub mod surface;
 
 pub use error::{Error, Result};
 

@@ -164,7 +164,7 @@ fn vector_f64(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Vec<f64>> {
 }
 
 /// A 1-D integer array (int32 or int64) → i64 values.
-fn vector_i64(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Vec<i64>> {
+pub(super) fn vector_i64(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Vec<i64>> {
     let array = as_array(name, obj)?;
     if array.ndim() != 1 {
         return Err(shape_error(name, "(N,)", array.shape()));
@@ -184,7 +184,7 @@ fn vector_i64(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Vec<i64>> {
 }
 
 /// A `height × width` float image (float32, or float64 to be converted by `f32_data`).
-fn image<'py>(
+pub(super) fn image<'py>(
     name: &str,
     obj: &Bound<'py, PyAny>,
     config: &CylinderConfig,

@@ -6,6 +6,7 @@ mod dense_match;
 mod ndt;
 mod pool;
 mod sim;
+mod surface;
 
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -40,5 +41,6 @@ fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     dense_match::register(m)?;
     sim::register(m)?;
     ndt::register(m)?;
+    surface::register(m)?;
     Ok(())
 }

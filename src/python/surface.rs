@@ -1,0 +1,57 @@
+//! Bindings of the surface module: the vote of each match for a horizontal motion.
+
+use numpy::ndarray::Array1;
+use numpy::{IntoPyArray, PyArray1};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+use crate::surface;
+
+use super::core::{image, vector_i64, PyCylinderConfig};
+use super::pool::run;
+
+/// Per reference cell (`rows[i]`, `cols[i]`, e.g. a decoded match's cell): the weight of its vote for a
+/// horizontal motion, the horizontal part of the normal of the surface there in `range` (`[H, W]`):
+/// ≈ 0 on level ground, 1 on a wall; at least `floor`, and 1 where the normal cannot be told. → float64.
+#[pyfunction]
+#[pyo3(signature = (range, rows, cols, config, *, floor = 0.0))]
+fn horizontal_votes<'py>(
+    py: Python<'py>,
+    range: &Bound<'py, PyAny>,
+    rows: &Bound<'py, PyAny>,
+    cols: &Bound<'py, PyAny>,
+    config: &PyCylinderConfig,
+    floor: f64,
+) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    let cylinder = config.inner;
+    let range = image("range", range, &cylinder)?;
+    let (rows, cols) = (vector_i64("rows", rows)?, vector_i64("cols", cols)?);
+    if rows.len() != cols.len() {
+        return Err(PyValueError::new_err(format!(
+            "rows and cols: {} rows but {} cols",
+            rows.len(),
+            cols.len()
+        )));
+    }
+    let cells = rows
+        .iter()
+        .zip(&cols)
+        .map(|(&r, &c)| match (usize::try_from(r), usize::try_from(c)) {
+            (Ok(r), Ok(c)) => Ok([r, c]),
+            _ => Err(PyValueError::new_err(format!(
+                "rows and cols: cell ({r}, {c}) is negative"
+            ))),
+        })
+        .collect::<PyResult<Vec<[usize; 2]>>>()?;
+    let range = range.f32_data();
+    let range: &[f32] = &range;
+    let votes = run(py, Some(1), || {
+        surface::horizontal_votes(range, &cylinder, &cells, floor)
+    })?;
+    Ok(Array1::from_vec(votes).into_pyarray(py))
+}
+
+pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(horizontal_votes, m)?)?;
+    Ok(())
+}
