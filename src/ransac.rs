@@ -115,7 +115,7 @@ pub struct RansacResult {
     pub transform: Isometry3<f64>,
     /// Per match: true when it is an inlier of `transform`.
     pub inliers: Vec<bool>,
-    /// Number of `true` in `inliers`.
+    /// Number of `true` in `inliers` (≥ 1: an answer without inliers is an error).
     pub num_inliers: usize,
     /// Hypotheses drawn (including degenerate samples).
     pub iterations: usize,
@@ -123,14 +123,30 @@ pub struct RansacResult {
     pub rmse: f64,
 }
 
-/// Matches in structure-of-arrays form. Hypotheses are scored in `f32` (residuals of 0.1 m on points
-/// within a few hundred metres are far above its rounding) in independent lanes, so the loop
-/// vectorises; the final refit and RMSE use the `f64` points.
+/// Matches in structure-of-arrays form. Hypotheses are scored in `f32` in independent lanes, so the
+/// loop vectorises; the minimal solves, the final refit and the RMSE use the `f64` points.
+///
+/// The `f32` columns hold each point relative to a reference point of its own set (`src_origin`,
+/// `dst_origin`), and hypotheses are moved into that frame before scoring: `f32` rounds coordinates
+/// in the millions of metres (georeferenced clouds, UTM) to whole metres, far above the threshold,
+/// while the spread of the matches around their reference point stays small.
 struct Matches {
     src: [Vec<f32>; 3],
     dst: [Vec<f32>; 3],
+    src_origin: Vector3<f64>,
+    dst_origin: Vector3<f64>,
     src64: Vec<Vector3<f64>>,
     dst64: Vec<Vector3<f64>>,
+}
+
+/// The per-axis median of `points`: a reference point inside the bulk of the cloud that a few far
+/// outliers do not drag away, as a mean would. `points` is not empty.
+fn median_point(points: &[Point3<f64>]) -> Vector3<f64> {
+    let middle = points.len() / 2;
+    Vector3::from_fn(|k, _| {
+        let mut values: Vec<f64> = points.iter().map(|p| p[k]).collect();
+        *values.select_nth_unstable_by(middle, f64::total_cmp).1
+    })
 }
 
 /// Lanes of the scoring loop.
@@ -143,9 +159,16 @@ struct Hypothesis32 {
 }
 
 impl Hypothesis32 {
-    fn new(transform: &Isometry3<f64>) -> Self {
+    /// `transform` (`dst ≈ T·src`) in the frame where source points are taken relative to
+    /// `src_origin` and target points relative to `dst_origin`: the same rotation, the translation
+    /// `R·src_origin + t − dst_origin` (formed in `f64`, so it is small and exact enough for `f32`).
+    fn new(
+        transform: &Isometry3<f64>,
+        src_origin: &Vector3<f64>,
+        dst_origin: &Vector3<f64>,
+    ) -> Self {
         let r = transform.rotation.to_rotation_matrix().into_inner();
-        let t = transform.translation.vector;
+        let t = r * src_origin + transform.translation.vector - dst_origin;
         Hypothesis32 {
             r: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| r[(k / 3, k % 3)] as f32),
             t: [t.x as f32, t.y as f32, t.z as f32],
@@ -163,16 +186,27 @@ impl Hypothesis32 {
 }
 
 impl Matches {
+    /// `src` and `dst` are not empty.
     fn new(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Self {
-        let column = |points: &[Point3<f64>], k: usize| {
-            points.iter().map(|p| p[k] as f32).collect::<Vec<f32>>()
+        let (src_origin, dst_origin) = (median_point(src), median_point(dst));
+        let column = |points: &[Point3<f64>], origin: &Vector3<f64>, k: usize| {
+            points
+                .iter()
+                .map(|p| (p[k] - origin[k]) as f32)
+                .collect::<Vec<f32>>()
         };
         Matches {
-            src: [column(src, 0), column(src, 1), column(src, 2)],
-            dst: [column(dst, 0), column(dst, 1), column(dst, 2)],
+            src: [0, 1, 2].map(|k| column(src, &src_origin, k)),
+            dst: [0, 1, 2].map(|k| column(dst, &dst_origin, k)),
+            src_origin,
+            dst_origin,
             src64: src.iter().map(|p| p.coords).collect(),
             dst64: dst.iter().map(|p| p.coords).collect(),
         }
+    }
+
+    fn hypothesis32(&self, transform: &Isometry3<f64>) -> Hypothesis32 {
+        Hypothesis32::new(transform, &self.src_origin, &self.dst_origin)
     }
 
     fn at(&self, i: usize) -> ([f32; 3], [f32; 3]) {
@@ -184,7 +218,7 @@ impl Matches {
 
     /// (inlier count, summed squared distance of the inliers).
     fn score(&self, transform: &Isometry3<f64>, threshold_sq: f64) -> (usize, f64) {
-        let h = Hypothesis32::new(transform);
+        let h = self.hypothesis32(transform);
         let threshold_sq = threshold_sq as f32;
         let n = self.src[0].len();
         let full = n - n % LANES;
@@ -225,7 +259,7 @@ impl Matches {
 
     /// The inlier mask, decided exactly as [`Matches::score`] counts.
     fn inlier_mask(&self, transform: &Isometry3<f64>, threshold_sq: f64) -> Vec<bool> {
-        let h = Hypothesis32::new(transform);
+        let h = self.hypothesis32(transform);
         (0..self.src[0].len())
             .map(|i| {
                 let (s, d) = self.at(i);
@@ -313,8 +347,9 @@ fn is_better(a: (usize, f64, usize), b: (usize, f64, usize)) -> bool {
 ///
 /// Errors: [`Error::TooFewPoints`] for fewer than 3 matches; [`Error::InvalidArgument`] for bad
 /// settings, mismatched lengths or non-finite points; [`Error::Degenerate`] when every sample drawn was
-/// collinear. With no consistent motion at all (all outliers) the result is the best hypothesis found,
-/// typically with only its own 3 sample matches as inliers: callers judge `num_inliers`.
+/// collinear, or when the answer has no inlier at all (no match within `threshold`). With no consistent
+/// motion (all outliers) the result is otherwise the best hypothesis found, with a few chance inliers:
+/// callers judge `num_inliers`, which is at least 1.
 pub fn ransac_rigid(
     src: &[Point3<f64>],
     dst: &[Point3<f64>],
@@ -440,6 +475,14 @@ pub fn ransac_rigid(
             break;
         }
     }
+    if count == 0 {
+        // No motion is supported by any match (every residual is above the threshold): report it
+        // rather than a transform with an empty consensus and an RMSE of nothing.
+        return Err(Error::Degenerate(format!(
+            "no match lies within the threshold ({} m) of any motion tried",
+            config.threshold
+        )));
+    }
     let squared: f64 = inliers
         .iter()
         .enumerate()
@@ -449,11 +492,7 @@ pub fn ransac_rigid(
                 .norm_squared()
         })
         .sum();
-    let rmse = if count > 0 {
-        (squared / count as f64).sqrt()
-    } else {
-        0.0
-    };
+    let rmse = (squared / count as f64).sqrt();
     Ok(RansacResult {
         transform,
         num_inliers: count,
@@ -744,6 +783,81 @@ mod tests {
                 < 1e-9
         );
         assert!(result.rmse < 1e-9);
+    }
+
+    #[test]
+    fn inliers_are_counted_exactly_far_from_the_origin() {
+        // Georeferenced (UTM-like) coordinates: the same scene and motion moved millions of metres from
+        // the origin must give the same consensus as near it.
+        for (outlier_ratio, noise) in [(0.0, 0.0), (0.3, 0.02)] {
+            let (src, dst, truth, is_inlier) = scene(26, 200, outlier_ratio, noise);
+            let near = ransac_rigid(&src, &dst, &RansacConfig::default()).unwrap();
+            assert_eq!(near.inliers, is_inlier);
+            for offset in [1e6, 5e6, 1e7] {
+                let shift = Isometry3::translation(offset, -0.7 * offset, 30.0);
+                let (far_src, far_dst): (Vec<_>, Vec<_>) = src
+                    .iter()
+                    .zip(&dst)
+                    .map(|(p, q)| (shift * p, shift * q))
+                    .unzip();
+                let far_truth = shift * truth * shift.inverse();
+                let far = ransac_rigid(&far_src, &far_dst, &RansacConfig::default()).unwrap();
+                assert_eq!(far.inliers, is_inlier, "offset {offset} m");
+                assert_eq!(far.num_inliers, near.num_inliers, "offset {offset} m");
+                assert!(
+                    far.iterations <= near.iterations.max(10),
+                    "offset {offset} m"
+                );
+                let rotation_error =
+                    (far.transform.rotation.inverse() * far_truth.rotation).angle();
+                assert!(rotation_error.to_degrees() < 0.05, "offset {offset} m");
+                // The motion moves the scene's own points as the truth does, to well under the noise.
+                let worst = far_src
+                    .iter()
+                    .map(|p| (far.transform * p - far_truth * p).norm())
+                    .fold(0.0, f64::max);
+                assert!(worst < 0.02 + noise, "offset {offset} m: {worst} m");
+                assert!((far.rmse - near.rmse).abs() < 1e-6, "offset {offset} m");
+                let threads = |n: usize| {
+                    in_pool(n, || {
+                        ransac_rigid(&far_src, &far_dst, &RansacConfig::default())
+                    })
+                };
+                assert_eq!(threads(1), threads(3));
+            }
+        }
+    }
+
+    #[test]
+    fn a_local_scan_is_registered_into_far_map_coordinates() {
+        // Source near its sensor, target in map coordinates millions of metres away: each side is
+        // scored relative to a point of its own, not one shared reference between them.
+        let (src, local_dst, truth, is_inlier) = scene(27, 200, 0.3, 0.02);
+        let to_map = Isometry3::new(
+            Vector3::new(4.5e6, 5.4e6, 120.0),
+            Vector3::new(0.0, 0.0, 2.0),
+        );
+        let dst: Vec<_> = local_dst.iter().map(|q| to_map * q).collect();
+        let result = ransac_rigid(&src, &dst, &RansacConfig::default()).unwrap();
+        assert_eq!(result.inliers, is_inlier);
+        let rotation_error =
+            (result.transform.rotation.inverse() * (to_map * truth).rotation).angle();
+        assert!(rotation_error.to_degrees() < 0.05);
+    }
+
+    #[test]
+    fn an_answer_without_any_inlier_is_an_error_not_an_empty_consensus() {
+        // Only outliers and a threshold far below every residual: no motion has a single inlier.
+        let (src, dst, _, _) = scene(28, 100, 1.0, 0.0);
+        let config = RansacConfig {
+            threshold: 1e-9,
+            max_iterations: 50,
+            ..Default::default()
+        };
+        assert!(matches!(
+            ransac_rigid(&src, &dst, &config),
+            Err(Error::Degenerate(_))
+        ));
     }
 
     #[test]

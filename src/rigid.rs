@@ -53,9 +53,13 @@ impl Svd3 {
         if !h.iter().all(|v| v.is_finite()) {
             return None;
         }
+        // The rotation does not depend on the scale of `H`; bringing its entries near 1 keeps the SVD
+        // from overflowing or underflowing on points of any scale, so the degeneracy test below judges
+        // shape alone.
+        let scale = power_of_two_scale(h.amax());
         for i in 0..3 {
             for j in 0..3 {
-                self.a[(i, j)] = h[(i, j)];
+                self.a[(i, j)] = h[(i, j)] * scale;
             }
         }
         faer::linalg::svd::svd(
@@ -85,6 +89,16 @@ impl Svd3 {
             v.column_mut(smallest).neg_mut();
         }
         Some(v * u.transpose())
+    }
+}
+
+/// A power of two that brings `largest` (≥ 0) to [1, 2): multiplying by it is exact, so it rescales
+/// without rounding. 1 for 0.
+fn power_of_two_scale(largest: f64) -> f64 {
+    if largest > 0.0 && largest.is_finite() {
+        2f64.powi(-(largest.log2().floor() as i32))
+    } else {
+        1.0
     }
 }
 
@@ -160,9 +174,23 @@ pub fn rigid_transform(
     }
     p_mean /= total;
     q_mean /= total;
+    // Each side's offsets from its centroid are rescaled (exactly, by a power of two) before they are
+    // multiplied, so that `H` neither overflows for huge coordinates nor underflows for tiny ones.
+    let spread = |points: &[Point3<f64>], mean: &Vector3<f64>| {
+        points
+            .iter()
+            .map(|p| (p.coords - mean).amax())
+            .fold(0.0, f64::max)
+    };
+    let (p_scale, q_scale) = (
+        power_of_two_scale(spread(src, &p_mean)),
+        power_of_two_scale(spread(dst, &q_mean)),
+    );
     let mut h = Matrix3::zeros();
     for i in 0..src.len() {
-        h += (src[i].coords - p_mean) * (dst[i].coords - q_mean).transpose() * weight(i);
+        h += ((src[i].coords - p_mean) * p_scale)
+            * ((dst[i].coords - q_mean) * q_scale).transpose()
+            * weight(i);
     }
     let rotation = Svd3::new()
         .rotation_from_cross_covariance(&h)
@@ -367,6 +395,40 @@ mod tests {
         ));
         let nan = [p(0.0, 0.0, f64::NAN), p(1.0, 0.0, 0.0), p(0.0, 1.0, 0.0)];
         assert!(rigid_transform(&nan, &three, None).is_err());
+    }
+
+    #[test]
+    fn degeneracy_is_judged_on_shape_whatever_the_scale() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for scale in [1e-100, 1e-30, 1e30, 1e100, 1e150] {
+            let truth = random_isometry(&mut rng);
+            let src = random_points(&mut rng, 20);
+            let dst: Vec<_> = src.iter().map(|p| truth * p).collect();
+            let scaled = |points: &[Point3<f64>]| -> Vec<_> {
+                points
+                    .iter()
+                    .map(|p| Point3::from(p.coords * scale))
+                    .collect()
+            };
+            let estimate = rigid_transform(&scaled(&src), &scaled(&dst), None)
+                .unwrap_or_else(|e| panic!("scale {scale}: {e}"));
+            let rotation_error = (estimate.rotation.inverse() * truth.rotation).angle();
+            assert!(rotation_error < 1e-9, "scale {scale}: {rotation_error} rad");
+            let translation_error =
+                (estimate.translation.vector / scale - truth.translation.vector).norm();
+            assert!(
+                translation_error < 1e-9,
+                "scale {scale}: {translation_error}"
+            );
+            // Collinear points stay collinear at any scale.
+            let line: Vec<_> = (0..10)
+                .map(|i| Point3::new(i as f64, 2.0 * i as f64, 3.0) * scale)
+                .collect();
+            assert!(matches!(
+                rigid_transform(&line, &line, None),
+                Err(Error::Degenerate(_))
+            ));
+        }
     }
 
     #[test]

@@ -94,6 +94,20 @@ def test_rigid_transform_bad_input() -> None:
         dmlo_rs.rigid_transform(good, good, -np.ones(10))
 
 
+def test_rigid_transform_judges_degeneracy_by_shape_not_scale() -> None:
+    rng = np.random.default_rng(17)
+    T = random_transform(rng)
+    src = rng.normal(size=(30, 3)) * 10
+    dst = apply(T, src)
+    for scale in (1e-100, 1e100):
+        estimate = dmlo_rs.rigid_transform(src * scale, dst * scale)
+        np.testing.assert_allclose(estimate[:3, :3], T[:3, :3], atol=1e-9)
+        np.testing.assert_allclose(estimate[:3, 3] / scale, T[:3, 3], atol=1e-9)
+        line = np.outer(np.arange(10.0), [1.0, 2.0, 3.0]) * scale
+        with pytest.raises(dmlo_rs.RegistrationError, match="collinear"):
+            dmlo_rs.rigid_transform(line, line)
+
+
 # ---- ransac_rigid --------------------------------------------------------------------------------
 
 
@@ -128,8 +142,13 @@ def test_ransac_with_no_consistent_motion_or_too_few_matches() -> None:
     rng = np.random.default_rng(5)
     src = rng.uniform(-40, 40, size=(300, 3))
     dst = rng.uniform(-40, 40, size=(300, 3))
-    result = dmlo_rs.ransac_rigid(src, dst, max_iterations=300)
-    assert result.num_inliers < 10  # callers fall back to the motion model
+    # No motion tried fits even its own sample within the threshold: an error (the odometry takes it as a
+    # pair without motion), not a result with an empty consensus.
+    with pytest.raises(dmlo_rs.RegistrationError, match="threshold"):
+        dmlo_rs.ransac_rigid(src, dst, max_iterations=300)
+    # With a few chance inliers the result stands and callers judge it (the odometry falls back).
+    result = dmlo_rs.ransac_rigid(src, dst, threshold=2.0, max_iterations=300)
+    assert 1 <= result.num_inliers < 10
     assert result.iterations == 300
     with pytest.raises(dmlo_rs.RegistrationError, match="at least 3"):
         dmlo_rs.ransac_rigid(src[:2], dst[:2])
@@ -146,6 +165,37 @@ def test_ransac_with_no_consistent_motion_or_too_few_matches() -> None:
         dmlo_rs.ransac_rigid(src, dst, confidence=1.5)
     with pytest.raises(TypeError, match="dst"):
         dmlo_rs.ransac_rigid(src, dst.astype(np.int32))
+
+
+@pytest.mark.parametrize("offset", [1e6, 5e6, 1e7])
+def test_ransac_counts_inliers_exactly_far_from_the_origin(offset: float) -> None:
+    # UTM-like coordinates: the scene and its motion shifted millions of metres give the consensus they
+    # give near the origin.
+    shift = np.array([offset, -0.7 * offset, 35.0])
+    rng = np.random.default_rng(18)
+    exact_src, exact_dst, T, _ = motion_scene(rng, 200, 0.0, noise=0.0)
+    exact = dmlo_rs.ransac_rigid(exact_src + shift, exact_dst + shift)
+    assert exact.num_inliers == 200 and exact.iterations < 10
+    src, dst, T, is_inlier = motion_scene(rng, 200, 0.3)
+    near = dmlo_rs.ransac_rigid(src, dst)
+    far = dmlo_rs.ransac_rigid(src + shift, dst + shift)
+    np.testing.assert_array_equal(far.inliers, near.inliers)
+    assert np.mean(far.inliers == is_inlier) > 0.99
+    assert rotation_error_deg(far.transform, T) < 0.05
+    # The far motion moves the shifted points as the true motion moves the original ones.
+    moved = apply(far.transform, src + shift) - shift
+    assert np.abs(moved - apply(T, src)).max() < 0.03
+    assert abs(far.rmse - near.rmse) < 1e-6
+    threaded = dmlo_rs.ransac_rigid(src + shift, dst + shift, num_threads=2)
+    np.testing.assert_array_equal(threaded.transform, far.transform)
+
+
+def test_ransac_without_any_inlier_raises_instead_of_an_empty_consensus() -> None:
+    rng = np.random.default_rng(19)
+    src = rng.uniform(-40, 40, size=(100, 3))
+    dst = rng.uniform(-40, 40, size=(100, 3))
+    with pytest.raises(dmlo_rs.RegistrationError, match="threshold"):
+        dmlo_rs.ransac_rigid(src, dst, threshold=1e-9, max_iterations=50)
 
 
 # ---- nms -----------------------------------------------------------------------------------------

@@ -198,7 +198,10 @@ def ransac_rigid(
     changing (at most `refine_iterations` times; 0: the best minimal-sample hypothesis itself). Each
     refit is the closed-form solve ("point_to_point"), or that solve refined by `ray_noise_refit` with
     `range_ratio` ("ray_noise"; `dst` then in its sensor's frame), whose inliers lie within `threshold`
-    along the target's ray and within max(threshold, r·tan(bearing_threshold_deg)) across it."""
+    along the target's ray and within max(threshold, r·tan(bearing_threshold_deg)) across it.
+
+    Raises RegistrationError for fewer than 3 pairs, when every sample is collinear, or when no match
+    lies within `threshold` of the answer (num_inliers is therefore at least 1)."""
 
 def ray_noise_refit(
     src: npt.NDArray[np.floating],
