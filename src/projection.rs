@@ -33,6 +33,11 @@ use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 
+/// The most cells (`height × width`) a cylinder image may have: far above any LiDAR's grid (KITTI's is
+/// 64 × 1792), and small enough that the images, index maps and per-thread buffers of one projection
+/// fit in memory, so a mistyped resolution or size is refused by name instead of failing an allocation.
+pub const MAX_IMAGE_CELLS: usize = 1 << 26;
+
 /// Geometry of a cylinder image: angular resolutions, vertical field of view and the centred crop.
 ///
 /// Angles are in degrees. `height × width` is the produced (cropped) image; the crop is centred in the
@@ -179,6 +184,30 @@ impl CylinderConfig {
                 ),
             ));
         }
+        // Resolutions so fine that the full grid's rows or columns overflow the index arithmetic (or
+        // exceed any image the crate may allocate) describe no sensor: refuse them before counting.
+        let full_rows = (self.fov_up_deg - self.fov_down_deg) / self.vertical_resolution_deg;
+        if full_rows > MAX_IMAGE_CELLS as f64 {
+            return Err(Error::invalid(
+                "vertical_resolution_deg",
+                format!(
+                    "gives {full_rows:.3e} rows over the field of view, more than the {MAX_IMAGE_CELLS} \
+                     cells an image may have; got {}",
+                    self.vertical_resolution_deg
+                ),
+            ));
+        }
+        let full_columns = 360.0 / self.horizontal_resolution_deg;
+        if full_columns > MAX_IMAGE_CELLS as f64 {
+            return Err(Error::invalid(
+                "horizontal_resolution_deg",
+                format!(
+                    "gives {full_columns:.3e} columns over 360°, more than the {MAX_IMAGE_CELLS} cells \
+                     an image may have; got {}",
+                    self.horizontal_resolution_deg
+                ),
+            ));
+        }
         if self.height == 0 || self.height > self.full_height() {
             return Err(Error::invalid(
                 "height",
@@ -196,6 +225,15 @@ impl CylinderConfig {
                     "must be in 1..={} (the full grid's columns), got {}",
                     self.full_width(),
                     self.width
+                ),
+            ));
+        }
+        if self.height as f64 * self.width as f64 > MAX_IMAGE_CELLS as f64 {
+            return Err(Error::invalid(
+                "height * width",
+                format!(
+                    "{} * {} cells, more than the {MAX_IMAGE_CELLS} (2^26) an image may have",
+                    self.height, self.width
                 ),
             ));
         }
@@ -1610,7 +1648,8 @@ mod tests {
         assert!(bad.validate().is_err());
         assert!(project_flat(&[1.0; 10], 4, &config).is_err());
         assert!(project_flat(&[1.0; 10], 5, &config).is_err());
-        // A valid config whose image has more than 2³¹ − 1 cells is refused before allocating.
+        // Images too large to allocate are refused by the validation, naming the setting, before any
+        // function allocates them.
         let huge = CylinderConfig {
             fov_up_deg: 0.5,
             fov_down_deg: -0.5,
@@ -1619,14 +1658,54 @@ mod tests {
             height: 1000,
             width: 3_600_000,
         };
-        huge.validate().unwrap();
+        let too_many_cells = Err(Error::InvalidArgument {
+            argument: "height * width",
+            reason: "1000 * 3600000 cells, more than the 67108864 (2^26) an image may have".into(),
+        });
+        assert_eq!(huge.validate(), too_many_cells);
         assert!(matches!(
             project_flat(&[], 4, &huge),
             Err(Error::InvalidArgument {
-                argument: "config",
+                argument: "height * width",
                 ..
             })
         ));
+        let wide = CylinderConfig {
+            horizontal_resolution_deg: 1e-5,
+            width: 30_000_000,
+            ..config
+        };
+        assert!(matches!(
+            wide.validate(),
+            Err(Error::InvalidArgument {
+                argument: "height * width",
+                ..
+            })
+        ));
+        for (vertical, horizontal, at_fault) in [
+            (0.4, 1e-9, "horizontal_resolution_deg"),
+            (1e-300, 0.2, "vertical_resolution_deg"),
+            (0.4, 5e-324, "horizontal_resolution_deg"),
+        ] {
+            let fine = CylinderConfig {
+                vertical_resolution_deg: vertical,
+                horizontal_resolution_deg: horizontal,
+                ..config
+            };
+            assert!(
+                matches!(fine.validate(), Err(Error::InvalidArgument { argument, .. }) if argument == at_fault),
+                "{vertical} x {horizontal}: {:?}",
+                fine.validate()
+            );
+        }
+        // Up to the cap, a large image is fine.
+        let largest = CylinderConfig {
+            horizontal_resolution_deg: 0.01,
+            width: 36_001,
+            height: 64,
+            ..config
+        };
+        largest.validate().unwrap();
     }
 
     #[test]

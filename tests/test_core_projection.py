@@ -148,6 +148,22 @@ def test_bad_configs_name_the_field(kwargs: dict, name: str) -> None:
         CylinderConfig(**kwargs)
 
 
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        # 64 × 3·10⁷ cells: the projection's buffers would fail to allocate and abort the interpreter.
+        ({"horizontal_resolution_deg": 1e-5, "width": 30_000_000}, r"height \* width"),
+        ({"horizontal_resolution_deg": 1e-9}, "horizontal_resolution_deg"),
+        ({"vertical_resolution_deg": 1e-300}, "vertical_resolution_deg"),
+    ],
+)
+def test_images_too_large_to_allocate_are_refused_by_the_config(kwargs: dict, name: str) -> None:
+    with pytest.raises(ValueError, match=name):
+        CylinderConfig(**kwargs)
+    # Large images below the cap stay allowed.
+    assert CylinderConfig(horizontal_resolution_deg=0.01, width=36_001).width == 36_001
+
+
 # ---- projection on real scans --------------------------------------------------------------------
 
 

@@ -45,7 +45,8 @@ class CylinderConfig:
     """Geometry of a cylinder image (degrees). A (sub-pixel) location ``(row, col)`` of the cropped
     image stands for elevation ``(row_of_zero_elevation - row) * vertical_resolution_deg`` and azimuth
     ``(col_of_zero_azimuth - col) * horizontal_resolution_deg``; integers are cell centres, row 0 is the
-    highest elevation, columns grow clockwise seen from above."""
+    highest elevation, columns grow clockwise seen from above. An image has at most 2^26 cells
+    (height × width): larger ones, and resolutions whose full grid exceeds that, raise ValueError."""
 
     def __new__(
         cls,
