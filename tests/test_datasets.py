@@ -631,6 +631,30 @@ def test_folder_of_mixed_scans_sorted_by_name(tmp_path: Path) -> None:
         D.read_scan(tmp_path / "notes.txt")
 
 
+def test_unpadded_frame_numbers_run_in_numeric_order(tmp_path: Path) -> None:
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    for number in (10, 2, 1, 100, 9):
+        D.write_bin(folder / f"{number}.bin", random_points(5 + number, number))
+    sequence = D.open_sequence(folder)
+    assert [frame.path.name for frame in sequence] == ["1.bin", "2.bin", "9.bin", "10.bin", "100.bin"]
+    np.testing.assert_array_equal(sequence[1].points, random_points(7, 2))
+    # A KITTI velodyne/ folder with unpadded names, its labels following the scans.
+    kitti = tmp_path / "kitti"
+    for number in (0, 1, 2, 10, 11):
+        D.write_bin(kitti / "velodyne" / f"{number}.bin", random_points(20, number))
+        D.write_labels(kitti / "labels" / f"{number}.label", np.full(20, number, dtype=np.uint32))
+    sequence = D.open_sequence(kitti)
+    assert isinstance(sequence, D.KittiSequence)
+    assert [frame.path.stem for frame in sequence] == ["0", "1", "2", "10", "11"]
+    assert [int(frame.labels[0]) for frame in sequence] == [0, 1, 2, 10, 11]
+    # Timestamps with fractions beyond a float's digits, and names that are not all numbers.
+    stamps = ["1623456789.000000002", "1623456789.000000010", "1623456790.5"]
+    assert D.in_scan_order(Path(f"{s}.pcd") for s in reversed(stamps)) == [Path(f"{s}.pcd") for s in stamps]
+    mixed = [Path("scan_10.bin"), Path("2.bin"), Path("scan_9.bin")]
+    assert D.in_scan_order(mixed) == sorted(mixed)
+
+
 def test_moving_mask_bits_and_errors() -> None:
     labels = np.array([252, 259, 251, 260, 10, (5 << 16) | 254, 0], dtype=np.uint32)
     np.testing.assert_array_equal(D.moving_mask(labels), [True, True, False, False, False, True, False])

@@ -28,6 +28,7 @@ from dmlo.datasets.folder import FolderSequence, scan_files_in
 from dmlo.datasets.kitti import KittiSequence, read_timestamps
 from dmlo.datasets.scan_files import (
     SCAN_SUFFIXES,
+    in_scan_order,
     lzf_decompress,
     read_bin,
     read_labels,
@@ -50,6 +51,7 @@ __all__ = [
     "KittiSequence",
     "ScanSequence",
     "detect_format",
+    "in_scan_order",
     "lzf_decompress",
     "moving_mask",
     "open_sequence",

@@ -1,4 +1,5 @@
-"""A plain folder of ``.bin``, ``.ply`` or ``.pcd`` scans, in file-name order.
+"""A plain folder of ``.bin``, ``.ply`` or ``.pcd`` scans, in recording order: by number when every file
+name is a number (``1.bin, 2.bin, 10.bin``), otherwise by name.
 
 Optional side files as in a KITTI sequence folder: ``poses.txt`` (+ ``calib.txt``), ``times.txt`` or
 KITTI raw ``timestamps.txt``; SemanticKITTI labels ``<stem>.label`` beside a scan or in ``labels/``.
@@ -14,20 +15,23 @@ from numpy.typing import ArrayLike, NDArray
 
 from dmlo.datasets.base import DatasetError, SequenceBase
 from dmlo.datasets.kitti import load_side_files
-from dmlo.datasets.scan_files import SCAN_SUFFIXES, read_labels, read_scan
+from dmlo.datasets.scan_files import SCAN_SUFFIXES, in_scan_order, read_labels, read_scan
 
 __all__ = ["FolderSequence", "scan_files_in"]
 
 
 def scan_files_in(directory: Path) -> list[Path]:
-    """The scan files directly in ``directory`` (suffix ``.bin``, ``.ply`` or ``.pcd``), sorted by name."""
-    return sorted(
+    """The scan files directly in ``directory`` (suffix ``.bin``, ``.ply`` or ``.pcd``), in the order of
+    :func:`~dmlo.datasets.scan_files.in_scan_order`: numerically when every stem is a number, otherwise
+    by name."""
+    return in_scan_order(
         p for p in directory.iterdir() if p.is_file() and p.suffix.lower() in SCAN_SUFFIXES
     )
 
 
 class FolderSequence(SequenceBase):
-    """Scans in a folder sorted by file name, with optional poses, timestamps and labels."""
+    """Scans in a folder in recording order (numerically when the file names are numbers, otherwise by
+    name), with optional poses, timestamps and labels."""
 
     def __init__(
         self,

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from dmlo import poses as pose_files
 from dmlo.datasets.base import DatasetError, SequenceBase
-from dmlo.datasets.scan_files import read_bin, read_labels
+from dmlo.datasets.scan_files import in_scan_order, read_bin, read_labels
 
 __all__ = ["KittiSequence", "read_timestamps", "load_side_files"]
 
@@ -117,7 +117,8 @@ def load_side_files(
 
 
 class KittiSequence(SequenceBase):
-    """A KITTI odometry sequence folder (``velodyne/*.bin``, optional labels, poses, calib, times)."""
+    """A KITTI odometry sequence folder (``velodyne/*.bin``, optional labels, poses, calib, times). Scans
+    run in file-name order, or numerically when every name is a number (``1.bin, 2.bin, 10.bin``)."""
 
     def __init__(
         self,
@@ -131,7 +132,7 @@ class KittiSequence(SequenceBase):
         scan_dir = self.directory / "velodyne"
         if not scan_dir.is_dir():
             raise DatasetError(f"{self.directory}: no velodyne/ folder (not a KITTI sequence)")
-        self._paths = sorted(scan_dir.glob("*.bin"))
+        self._paths = in_scan_order(scan_dir.glob("*.bin"))
         if not self._paths:
             raise DatasetError(f"{scan_dir}: no .bin scans")
         self.name = name or self.directory.name

@@ -14,6 +14,9 @@ clouds mark missing returns with NaN) are dropped.
 from __future__ import annotations
 
 import os
+import re
+from collections.abc import Iterable
+from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +27,7 @@ from dmlo.datasets.base import DatasetError
 
 __all__ = [
     "SCAN_SUFFIXES",
+    "in_scan_order",
     "lzf_decompress",
     "read_bin",
     "read_labels",
@@ -38,6 +42,20 @@ SCAN_SUFFIXES = (".bin", ".ply", ".pcd")
 REFLECTANCE_FIELDS = ("intensity", "reflectance", "remission", "scalar_intensity", "i")
 
 PathLike = str | os.PathLike[str]
+
+
+_NUMBER = re.compile(r"\d+(\.\d+)?")
+
+
+def in_scan_order(paths: Iterable[Path]) -> list[Path]:
+    """``paths`` in recording order: by the numeric value of their stems when every stem is a number
+    (``1.bin, 2.bin, 10.bin``, or timestamps such as ``1623456789.123456.pcd``), so unpadded frame
+    numbers do not run 1, 10, 2; otherwise by file name. Ties (``7.bin`` and ``07.bin``) go by name."""
+    paths = list(paths)
+    if paths and all(_NUMBER.fullmatch(path.stem) for path in paths):
+        # Decimal, not float: nanosecond timestamps have more digits than a float holds.
+        return sorted(paths, key=lambda path: (Decimal(path.stem), path.name))
+    return sorted(paths)
 
 
 def _read_bytes(path: Path) -> bytes:
