@@ -470,6 +470,9 @@ def test_ply_ascii_with_float_intensity_in_0_255(tmp_path: Path) -> None:
         ("ply\nformat ascii 1.0\nelement vertex many\nend_header\n", b"", "bad element count 'many'"),
         ("ply\nformat ascii 1.0\nelement vertex 1\nproperty list uchar int x\nend_header\n", b"", "list property"),
         ("plz\n", b"", "not a PLY file"),
+        ("ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty float y\nend_header\n", b"\x00" * 16, "property 'y' is declared twice"),
+        ("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float x\nproperty float y\nproperty float z\nend_header\n", b"1 2 3 4\n", "property 'x' is declared twice"),
+        ("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float X\nproperty float y\nproperty float z\nend_header\n", b"1 2 3 4\n", "field 'X' is declared twice"),
     ],
 )  # fmt: skip
 def test_malformed_ply(tmp_path: Path, header: str, body: bytes, message: str) -> None:
@@ -527,13 +530,65 @@ def test_pcd_ascii(tmp_path: Path) -> None:
         (pcd_header(1, "ascii", types="F F F Q"), "unsupported TYPE Q"),
         (pcd_header(1, "ascii", fields="a b c intensity") + "1 2 3 4\n", "no x, y, z field"),
         ("VERSION 0.7\nFIELDS x y z\n", "no 'DATA' line"),
+        (pcd_header(1, "binary", counts="3 1 1 1") + "\0" * 24, "field 'x' holds 3 values per point"),
+        (pcd_header(1, "ascii", counts="1 1 2 1") + "1 2 3 4 5\n", "field 'z' holds 2 values per point"),
+        (pcd_header(1, "binary", sizes="4 4 4 1", types="F F F F") + "\0" * 13, "unsupported TYPE F SIZE 1"),
+        (pcd_header(1, "binary", counts="1 1 1 0") + "\0" * 12, "COUNT 0"),
+        (pcd_header(1, "binary", counts="1 1 1 -2") + "\0" * 12, "COUNT -2"),
+        (pcd_header(1, "binary", counts="1 1 1 99999999999") + "\0" * 16, "COUNT 99999999999"),
+        (pcd_header(1, "ascii", fields="x y z x") + "1 2 3 4\n", "field 'x' is declared twice"),
+        (pcd_header(1, "ascii").replace("DATA ascii", "DATA") + "1 2 3 4\n", "unknown PCD DATA encoding ''"),
     ],
 )
 def test_malformed_pcd(tmp_path: Path, text: str, message: str) -> None:
     path = tmp_path / "bad.pcd"
     path.write_text(text)
-    with pytest.raises(D.DatasetError, match=message):
+    with pytest.raises(D.DatasetError, match=message) as info:
         D.read_pcd(path)
+    assert "bad.pcd" in str(info.value)
+
+
+def test_a_multi_valued_pcd_field_that_is_not_read_is_skipped(tmp_path: Path) -> None:
+    path = tmp_path / "descriptor.pcd"
+    path.write_text(pcd_header(1, "ascii", fields="x y z fpfh", sizes="4 4 4 4", counts="1 1 1 3") + "1 2 3 7 8 9\n")
+    np.testing.assert_array_equal(D.read_pcd(path), [[1, 2, 3, 0]])
+
+
+def test_mangled_headers_raise_dataset_errors_or_read_points(tmp_path: Path) -> None:
+    # Every header line of a valid PCD and PLY file replaced in turn by plausible mistakes: each read gives
+    # an N×4 float32 array or a DatasetError naming the file, never another exception.
+    rng = np.random.default_rng(5)
+    points = random_points(5)
+    words = ["0", "-1", "1", "3", "8", "1e3", "99999999999", "x", "F", "U", "", "1 1", "4 4 4 4 4", "x y z z"]
+    pcd_bodies = {"binary": points.tobytes(), "ascii": "".join(f"{x} {y} {z} {r}\n" for x, y, z, r in points).encode()}
+    ply_bodies = {"binary_little_endian": points.tobytes(), "ascii": pcd_bodies["ascii"]}
+    files: list[tuple[str, bytes]] = []
+    for data, body in pcd_bodies.items():
+        lines = pcd_header(5, data).splitlines()
+        for number in range(1, len(lines)):
+            key = lines[number].split()[0]
+            for _ in range(12):
+                value = " ".join(rng.choice(words) for _ in range(rng.integers(1, 5)))
+                mangled = lines[:number] + [f"{key} {value}"] + lines[number + 1 :]
+                files.append(("mangled.pcd", "\n".join(mangled).encode() + b"\n" + body))
+    properties = ["float x", "float y", "float z", "float intensity", "uchar intensity", "double X", "float",
+                  "list uchar int x", "char y", "half z", "float x extra"]  # fmt: skip
+    for data, body in ply_bodies.items():
+        for _ in range(150):
+            chosen = rng.choice(properties, size=rng.integers(0, 6))
+            count = rng.choice(["5", "0", "-1", "99999999999", "many"])
+            header = f"ply\nformat {data} 1.0\nelement vertex {count}\n"
+            header += "".join(f"property {p}\n" for p in chosen) + "end_header\n"
+            files.append(("mangled.ply", header.encode() + body))
+    for name, content in files:
+        path = tmp_path / name
+        path.write_bytes(content)
+        try:
+            read = D.read_scan(path)
+        except D.DatasetError as error:
+            assert name in str(error)
+        else:
+            assert read.dtype == np.float32 and read.ndim == 2 and read.shape[1] == 4, content[:200]
 
 
 def lzf_literals(raw: bytes) -> bytes:

@@ -126,16 +126,35 @@ def _normalise_reflectance(values: NDArray[np.generic]) -> NDArray[np.float32]:
     return np.clip(as_float / 255.0, 0.0, 1.0).astype(np.float32)
 
 
+def _check_fields_read_are_unique(path: Path, names: list[str]) -> None:
+    """Refuses a header declaring a field this reader takes (a coordinate or reflectance, in any case)
+    twice: which of the two is meant is unknown."""
+    read = {"x", "y", "z", *REFLECTANCE_FIELDS}
+    seen: set[str] = set()
+    for name in names:
+        key = name.lower()
+        if key in read and key in seen:
+            raise DatasetError(f"{path}: field {name!r} is declared twice in the header")
+        seen.add(key)
+
+
 def _points_from_fields(path: Path, columns: dict[str, NDArray[np.generic]]) -> NDArray[np.float32]:
     lower = {name.lower(): name for name in columns}
     missing = [axis for axis in ("x", "y", "z") if axis not in lower]
     if missing:
         raise DatasetError(f"{path}: no {', '.join(missing)} field (fields: {', '.join(columns)})")
+    reflectance_name = next((lower[n] for n in REFLECTANCE_FIELDS if n in lower), None)
+    used = [lower[axis] for axis in ("x", "y", "z")] + [reflectance_name] * (reflectance_name is not None)
+    for name in used:
+        if columns[name].ndim != 1:
+            raise DatasetError(
+                f"{path}: field {name!r} holds {columns[name].shape[1]} values per point (its COUNT); "
+                "a coordinate or reflectance holds 1"
+            )
     count = len(columns[lower["x"]])
     points = np.zeros((count, 4), dtype=np.float32)
     for axis, name in enumerate(("x", "y", "z")):
         points[:, axis] = columns[lower[name]]
-    reflectance_name = next((lower[n] for n in REFLECTANCE_FIELDS if n in lower), None)
     if reflectance_name is not None:
         points[:, 3] = _normalise_reflectance(columns[reflectance_name])
     keep = np.all(np.isfinite(points[:, :3]), axis=1)
@@ -225,6 +244,10 @@ def read_ply(path: PathLike) -> NDArray[np.float32]:
         if has_list:
             raise DatasetError(f"{path}: PLY element {name!r} before the vertices has list properties")
     names = [name for _, name in vertex_properties]
+    repeated = next((name for i, name in enumerate(names) if name in names[:i]), None)
+    if repeated is not None:
+        raise DatasetError(f"{path}: PLY vertex property {repeated!r} is declared twice")
+    _check_fields_read_are_unique(path, names)
 
     if file_format == "ascii":
         text_lines = data[body_offset:].decode("ascii", errors="replace").splitlines()
@@ -270,6 +293,10 @@ def read_ply(path: PathLike) -> NDArray[np.float32]:
 # PCD
 
 _PCD_KINDS = {"F": "f", "U": "u", "I": "i"}
+_PCD_SIZES = {"F": (2, 4, 8), "U": (1, 2, 4, 8), "I": (1, 2, 4, 8)}  # bytes numpy can read for each TYPE
+# Values per point of one field: far above PCL's largest descriptors (hundreds), and low enough that the
+# record layout numpy builds from the header stays within its limits.
+_PCD_MAX_COUNT = 1 << 20
 
 
 def read_pcd(path: PathLike) -> NDArray[np.float32]:
@@ -290,6 +317,7 @@ def read_pcd(path: PathLike) -> NDArray[np.float32]:
     counts = header.get("COUNT", ["1"] * len(fields))
     if not len(fields) == len(sizes) == len(kinds) == len(counts):
         raise DatasetError(f"{path}: PCD FIELDS, SIZE, TYPE and COUNT have different lengths")
+    _check_fields_read_are_unique(path, fields)
     try:
         size_values = [int(s) for s in sizes]
         count_values = [int(c) for c in counts]
@@ -305,14 +333,18 @@ def read_pcd(path: PathLike) -> NDArray[np.float32]:
     dtype_fields: list[tuple[Any, ...]] = []
     seen: dict[str, int] = {}
     for name, size, kind, count in zip(fields, size_values, kinds, count_values, strict=True):
-        if kind.upper() not in _PCD_KINDS or size not in (1, 2, 4, 8):
+        if size not in _PCD_SIZES.get(kind.upper(), ()):
             raise DatasetError(f"{path}: PCD field {name!r} has unsupported TYPE {kind} SIZE {size}")
+        if not 1 <= count <= _PCD_MAX_COUNT:
+            raise DatasetError(
+                f"{path}: PCD field {name!r} has COUNT {count}, expected 1 to {_PCD_MAX_COUNT} values per point"
+            )
         unique = name if name not in seen else f"{name}__{seen[name]}"  # padding fields repeat "_"
         seen[name] = seen.get(name, 0) + 1
         base = f"<{_PCD_KINDS[kind.upper()]}{size}"
         dtype_fields.append((unique, base) if count == 1 else (unique, base, (count,)))
     dtype = np.dtype(dtype_fields)
-    encoding = header.get("DATA", [""])[0].lower()
+    encoding = (header.get("DATA") or [""])[0].lower()
 
     if encoding == "binary":
         needed = points_count * dtype.itemsize
@@ -341,7 +373,8 @@ def read_pcd(path: PathLike) -> NDArray[np.float32]:
         columns = {}
         start = 0
         for (unique, base, *_), count in zip(dtype_fields, count_values, strict=True):
-            columns[unique] = table[:, start].astype(base)
+            values_of_field = table[:, start : start + count].astype(base)
+            columns[unique] = values_of_field[:, 0] if count == 1 else values_of_field
             start += count
     elif encoding == "binary_compressed":
         columns = _read_pcd_compressed(path, data, body_offset, dtype_fields, count_values, points_count)
@@ -424,7 +457,7 @@ def _read_pcd_compressed(
         if start + nbytes > len(raw):
             raise DatasetError(f"{path}: decompressed data too short for field {unique!r}")
         values = np.frombuffer(raw, dtype=item, count=count * points_count, offset=start)
-        columns[unique] = values.reshape(points_count, count)[:, 0]
+        columns[unique] = values if count == 1 else values.reshape(points_count, count)
         start += nbytes
     return columns
 
