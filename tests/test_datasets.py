@@ -710,6 +710,33 @@ def test_unpadded_frame_numbers_run_in_numeric_order(tmp_path: Path) -> None:
     assert D.in_scan_order(mixed) == sorted(mixed)
 
 
+def test_scans_without_plausible_points_are_refused_naming_the_file(tmp_path: Path) -> None:
+    good = random_points(200, 1)
+    no_returns = good.copy()
+    no_returns[::2, :3] = 0.0  # a driver's no-return markers: left out, the rest is a scan
+    scans = {
+        "0.bin": good,
+        "1.bin": good * np.float32(1e30),  # every point beyond any sensor's reach
+        "2.bin": good * np.float32(1000.0),  # millimetres read as metres: mostly beyond 1 km
+        "3.bin": np.zeros((0, 4), np.float32),
+        "4.bin": np.full((50, 4), np.nan, np.float32),
+        "5.bin": no_returns,
+    }
+    for name, points in scans.items():
+        D.write_bin(tmp_path / name, points)
+    (tmp_path / "6.bin").write_text(("The quick brown fox jumps over the lazy dog. " * 40)[:1600])
+    sequence = D.open_sequence(tmp_path)
+    np.testing.assert_array_equal(sequence[0].points, good)
+    np.testing.assert_array_equal(sequence[5].points, no_returns)
+    for index, reason in ((1, "not a plausible LiDAR scan: 0 of its 200"), (2, "not a plausible LiDAR scan"),
+                          (3, "holds no point"), (4, "0 of its 50 points"), (6, "not a plausible LiDAR scan")):  # fmt: skip
+        with pytest.raises(D.DatasetError, match=reason) as info:
+            sequence[index]
+        assert f"{index}.bin" in str(info.value)
+    # The reader alone still returns what the file holds: plausibility is the sequence's judgement.
+    assert D.read_scan(tmp_path / "1.bin").shape == (200, 4)
+
+
 def test_moving_mask_bits_and_errors() -> None:
     labels = np.array([252, 259, 251, 260, 10, (5 << 16) | 254, 0], dtype=np.uint32)
     np.testing.assert_array_equal(D.moving_mask(labels), [True, True, False, False, False, True, False])

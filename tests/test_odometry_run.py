@@ -85,6 +85,22 @@ def test_truncated_scan_is_skipped_and_recorded(drive: Path, tmp_path: Path) -> 
     assert "000003.bin" in record["skipped"]
 
 
+def test_scans_that_parse_but_hold_no_plausible_points_are_skipped_and_recorded(drive: Path, tmp_path: Path) -> None:
+    from dmlo.datasets import write_bin
+
+    damaged = tmp_path / "damaged"
+    shutil.copytree(drive, damaged)
+    scan = damaged / "velodyne" / "000002.bin"
+    write_bin(scan, open_sequence(drive)[2].points * np.float32(1e30))
+    text = ("Not a scan, yet 16-byte records all the same. " * 40)[:640]
+    (damaged / "velodyne" / "000004.bin").write_text(text)
+    summary = run_sequence(open_sequence(damaged), Odometry.from_default(), tmp_path / "out", progress=False)
+    assert summary.skipped == [2, 4]
+    records = (tmp_path / "out" / "diagnostics.jsonl").read_text().splitlines()
+    assert "000002.bin: not a plausible LiDAR scan" in json.loads(records[2])["skipped"]
+    assert "000004.bin: not a plausible LiDAR scan" in json.loads(records[4])["skipped"]
+
+
 def test_missing_scan_file_is_skipped(drive: Path, tmp_path: Path) -> None:
     damaged = tmp_path / "damaged"
     shutil.copytree(drive, damaged)
@@ -161,9 +177,11 @@ def test_register_command_mistakes_are_one_line(drive: Path, tmp_path: Path) -> 
     write_bin(tmp_path / "a.bin", sequence[0].points)
     write_bin(tmp_path / "sparse.bin", sequence[1].points[:10])
     (tmp_path / "broken.bin").write_bytes(b"\x00" * 10)
+    write_bin(tmp_path / "garbage.bin", sequence[1].points * np.float32(1e30))
     a = str(tmp_path / "a.bin")
     for args, message in (
         ([a, str(tmp_path / "missing.bin")], "target scan not found"),
+        ([a, str(tmp_path / "garbage.bin")], "garbage.bin: not a plausible LiDAR scan"),
         ([a, str(tmp_path / "sparse.bin")], "target: 10 finite points, fewer than the 1000 needed"),
         ([a, str(tmp_path / "broken.bin")], "broken.bin"),
         ([a, a, "--mapping"], "a single pair has none"),

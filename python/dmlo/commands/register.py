@@ -47,14 +47,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def _read(path: Path, role: str):  # type: ignore[no-untyped-def]
-    from dmlo.datasets import DatasetError, read_scan
+    from dmlo.datasets import DatasetError, check_plausible_scan, read_scan
 
     if not path.is_file():
         raise UserError(f"{role} scan not found: {path}")
     try:
-        return read_scan(path)
+        points = read_scan(path)
+        check_plausible_scan(path, points)
     except DatasetError as err:
         raise UserError(str(err)) from None
+    return points
 
 
 def run(args: argparse.Namespace) -> int:

@@ -23,7 +23,15 @@ from pathlib import Path
 from numpy.typing import ArrayLike
 
 from dmlo.datasets.argoverse import Argoverse1Sequence, Argoverse2Sequence
-from dmlo.datasets.base import MOVING_CLASSES, DatasetError, Frame, ScanSequence, moving_mask
+from dmlo.datasets.base import (
+    MAX_SENSOR_RANGE_M,
+    MOVING_CLASSES,
+    DatasetError,
+    Frame,
+    ScanSequence,
+    check_plausible_scan,
+    moving_mask,
+)
 from dmlo.datasets.folder import FolderSequence, scan_files_in
 from dmlo.datasets.kitti import KittiSequence, read_timestamps
 from dmlo.datasets.scan_files import (
@@ -41,6 +49,7 @@ from dmlo.datasets.scan_files import (
 
 __all__ = [
     "FORMATS",
+    "MAX_SENSOR_RANGE_M",
     "MOVING_CLASSES",
     "SCAN_SUFFIXES",
     "Argoverse1Sequence",
@@ -50,6 +59,7 @@ __all__ = [
     "Frame",
     "KittiSequence",
     "ScanSequence",
+    "check_plausible_scan",
     "detect_format",
     "in_scan_order",
     "lzf_decompress",

@@ -10,11 +10,51 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["DatasetError", "Frame", "ScanSequence", "SequenceBase", "moving_mask", "MOVING_CLASSES"]
+__all__ = [
+    "DatasetError",
+    "Frame",
+    "ScanSequence",
+    "SequenceBase",
+    "check_plausible_scan",
+    "moving_mask",
+    "MAX_SENSOR_RANGE_M",
+    "MIN_RETURN_RANGE_M",
+    "MOVING_CLASSES",
+]
 
 
 class DatasetError(ValueError):
-    """A data file that is missing, truncated or malformed; the message names the file and the problem."""
+    """A data file that is missing, truncated, malformed or holds no plausible scan; the message names the
+    file and the problem."""
+
+
+# A return farther than this from the sensor is not a LiDAR measurement: no automotive sensor reaches
+# a kilometre, so such coordinates come from garbage bytes or the wrong unit or frame.
+MAX_SENSOR_RANGE_M = 1000.0
+# Closer than this a point is no return either (sensors see nothing within decimetres); points exactly
+# at the origin are the no-return markers some drivers write and are left out of the count.
+MIN_RETURN_RANGE_M = 0.01
+
+
+def check_plausible_scan(path: Path, points: NDArray[np.floating]) -> None:
+    """Raises :class:`DatasetError` naming ``path`` when ``points`` (``N×3`` or more columns, the sensor
+    frame, metres) cannot be a LiDAR scan: no point at all, or fewer than half of its returns (finite
+    points other than the origin) between :data:`MIN_RETURN_RANGE_M` and :data:`MAX_SENSOR_RANGE_M`
+    from the sensor — what bytes that are not a scan, or a scan in millimetres, read as."""
+    xyz = np.asarray(points[:, :3], dtype=np.float64)
+    if len(xyz) == 0:
+        raise DatasetError(f"{path}: the scan holds no point")
+    with np.errstate(over="ignore", invalid="ignore"):
+        ranges = np.linalg.norm(xyz, axis=1)
+    returns = np.isfinite(ranges) & (ranges > 0.0)
+    plausible = returns & (ranges >= MIN_RETURN_RANGE_M) & (ranges <= MAX_SENSOR_RANGE_M)
+    if 2 * int(plausible.sum()) < max(int(returns.sum()), 1):
+        raise DatasetError(
+            f"{path}: not a plausible LiDAR scan: {int(plausible.sum())} of its {len(xyz)} points lie "
+            f"{MIN_RETURN_RANGE_M:g} m to {MAX_SENSOR_RANGE_M:g} m from the sensor "
+            f"({len(xyz) - int(returns.sum())} non-finite or at the origin); garbage data, or coordinates "
+            "not in metres in the sensor's frame?"
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,6 +128,9 @@ class SequenceBase:
             raise IndexError(f"frame index {index} out of range for {count} frames in {self.name}")
         i = int(index) % count
         points = self._read_points(i)
+        # Bytes that parse but hold no scan are as unreadable as a truncated file: refused here, so a run
+        # skips the frame instead of matching the next scan against them.
+        check_plausible_scan(self._paths[i], points)
         labels = self._read_labels(i)
         if labels is not None and len(labels) != len(points):
             raise DatasetError(
