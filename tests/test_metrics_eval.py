@@ -110,6 +110,8 @@ def test_eval_calib_converts_lidar_estimate(shared_data: Path, tmp_path: Path, c
         (lambda d: (d / "gt.txt", d / "short.txt"), "has 20 poses but .*short.txt has 19"),
         (lambda d: (d / "gt.txt", d / "broken.txt"), r"broken.txt:3: expected 12 numbers"),
         (lambda d: (d / "gt.txt", d / "words.txt"), r"words.txt:1: 'a' is not a number"),
+        (lambda d: (d / "gt.txt", d / "singular.txt"), r"singular.txt:3: the rotation is not orthonormal"),
+        (lambda d: (d / "scaled.txt", d / "est.txt"), r"scaled.txt:5: the rotation is not orthonormal"),
     ],
 )
 def test_eval_user_errors_are_one_line(tmp_path: Path, capsys, make, message: str) -> None:
@@ -119,6 +121,12 @@ def test_eval_user_errors_are_one_line(tmp_path: Path, capsys, make, message: st
     lines = (tmp_path / "est.txt").read_text().splitlines()
     (tmp_path / "broken.txt").write_text("\n".join(lines[:2] + [lines[2] + " 1"] + lines[3:]) + "\n")
     (tmp_path / "words.txt").write_text("a b c d e f g h i j k l\n")
+    singular = drive(20)
+    singular[2, 1, :3] = 0.0  # a rotation with a zero row: no inverse
+    P.write_kitti_poses(tmp_path / "singular.txt", singular)
+    scaled = drive(20)
+    scaled[4, :3, :3] *= 2.0  # invertible, but no rotation: metrics would be silently wrong
+    P.write_kitti_poses(tmp_path / "scaled.txt", scaled)
     gt, est = make(tmp_path)
     code, out, err = run_eval(capsys, str(gt), str(est))
     assert code == 2 and out == ""

@@ -148,6 +148,28 @@ def test_user_mistakes_are_one_line(args: list[str], message: str, drive: Path) 
     assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("value", ["0", "-1"])
+def test_max_frames_below_one_is_refused_naming_the_flag(drive: Path, tmp_path: Path, value: str) -> None:
+    result = dmlo("run", str(drive), "--out", str(tmp_path / "out"), "--max-frames", value)
+    assert result.returncode == 2
+    assert f"argument --max-frames: must be a positive integer (>= 1), got {value}" in result.stderr
+    assert "Traceback" not in result.stderr and not (tmp_path / "out").exists()
+    with pytest.raises(ValueError, match="max_frames: must be at least 1, got 0"):
+        run_sequence(open_sequence(drive), Odometry.from_default(), tmp_path / "api", max_frames=0)
+
+
+def test_simulate_seed_and_counts_are_checked_naming_the_flag(tmp_path: Path) -> None:
+    for args, message in (
+        (["--seed", "-1"], "argument --seed: must be a non-negative integer (>= 0), got -1"),
+        (["--frames", "0"], "argument --frames: must be a positive integer (>= 1), got 0"),
+        (["--start", "-2"], "argument --start: must be a non-negative integer (>= 0), got -2"),
+        (["--seed", "x"], "argument --seed: expected an integer, got 'x'"),
+    ):
+        result = dmlo("simulate", "--out", str(tmp_path / "sim"), *args)
+        assert result.returncode == 2 and message in result.stderr, (args, result.stderr)
+        assert "Traceback" not in result.stderr
+
+
 def test_register_command_prints_and_writes_the_motion_between_two_scan_files(drive: Path, tmp_path: Path) -> None:
     from dmlo.datasets import write_bin
     from dmlo.metrics import registration_errors

@@ -26,6 +26,26 @@ class UserError(Exception):
     """A mistake in what the user asked for: printed as one line, no traceback."""
 
 
+def _integer_at_least(least: int, meaning: str) -> Callable[[str], int]:
+    """An argparse ``type`` for integers ``>= least``: argparse reports a refusal naming the flag."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < least:
+            raise argparse.ArgumentTypeError(f"must be {meaning} (>= {least}), got {value}")
+        return value
+
+    parse.__name__ = f"integer >= {least}"  # how argparse names the type in its own messages
+    return parse
+
+
+positive_int = _integer_at_least(1, "a positive integer")
+non_negative_int = _integer_at_least(0, "a non-negative integer")
+
+
 # One module per subcommand under `dmlo.commands`, each with `register(subparsers)` that adds its parser
 # and sets `run`. Command modules import heavy libraries (torch, onnxruntime) inside `run` only, so
 # `dmlo --help` stays fast and the odometry never imports torch.

@@ -32,6 +32,7 @@ POSE_FORMATS: tuple[PoseFormat, ...] = ("kitti", "tum")
 
 __all__ = [
     "POSE_FORMATS",
+    "ROTATION_TOLERANCE",
     "PoseFileError",
     "PoseFormat",
     "PoseWriter",
@@ -196,7 +197,8 @@ def read_kitti_poses(path: str | os.PathLike[str]) -> NDArray[np.float64]:
     """Read a KITTI pose file (12 floats a line) into ``(N, 4, 4)`` float64 poses.
 
     Raises ``FileNotFoundError`` for a missing file and :class:`PoseFileError` for an empty file, a line
-    without exactly 12 numbers, or a non-number.
+    without exactly 12 numbers, a non-number, or a rotation that is not one (not orthonormal within
+    :data:`ROTATION_TOLERANCE`, or a reflection).
     """
     path = Path(path)
     rows = _read_rows(path, "pose")
@@ -206,7 +208,27 @@ def read_kitti_poses(path: str | os.PathLike[str]) -> NDArray[np.float64]:
     poses = np.zeros((len(values), 4, 4))
     poses[:, :3, :] = values.reshape(-1, 3, 4)
     poses[:, 3, 3] = 1.0
+    _check_rotations(path, [number for number, _ in rows], poses[:, :3, :3])
     return poses
+
+
+# Largest |RᵀR − I| entry accepted as a rotation: pose files print 6 to 9 significant digits, whose
+# rounding is far below this, while a scaled, sheared or garbled matrix is far above it.
+ROTATION_TOLERANCE = 1e-3
+
+
+def _check_rotations(path: Path, line_numbers: list[int], rotations: NDArray[np.float64]) -> None:
+    """Raises :class:`PoseFileError` naming the first line whose 3×3 block is not a rotation."""
+    deviation = np.abs(np.einsum("nji,njk->nik", rotations, rotations) - np.eye(3)).max(axis=(1, 2))
+    determinants = np.linalg.det(rotations)
+    bad = np.flatnonzero((deviation > ROTATION_TOLERANCE) | (determinants <= 0.0))
+    if bad.size:
+        first = int(bad[0])
+        raise PoseFileError(
+            f"{path}:{line_numbers[first]}: the rotation is not orthonormal with determinant +1 "
+            f"(|RᵀR − I| = {deviation[first]:.2e}, det = {determinants[first]:.4f}); "
+            f"{bad.size} of {len(rotations)} poses are not rigid"
+        )
 
 
 def read_tum_poses(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dmlo.cli import non_negative_int
+
 EXAMPLES = """examples:
   dmlo demo                       # 100 frames, seed 1, results in runs/demo
   dmlo demo --frames 300 --seed 7 --mapping
@@ -24,7 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--frames", type=int, default=100, help="scans to simulate (default: 100)")
-    parser.add_argument("--seed", type=int, default=1, help="scene and drive seed (default: 1)")
+    parser.add_argument("--seed", type=non_negative_int, default=1, help="scene and drive seed (default: 1)")
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (default: runs/demo)")
     parser.add_argument("--motion-distortion", action="store_true",
                         help="simulate skewed sweeps (each column cast from the pose of its own moment)")

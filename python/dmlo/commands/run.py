@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from dmlo.cli import UserError
+from dmlo.cli import UserError, positive_int
 
 EXAMPLES = """examples:
   dmlo run /data/kitti --sequence 07 --out runs/kitti07
@@ -44,7 +44,7 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--format", choices=DATASET_FORMATS, default=None,
                         help="dataset layout (default: detected from the folder)")
     parser.add_argument("--sequence", default=None, help="sequence or log name inside the dataset, e.g. 07")
-    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many scans")
+    parser.add_argument("--max-frames", type=positive_int, default=None, help="stop after this many scans")
 
 
 def add_odometry_arguments(parser: argparse.ArgumentParser, sequence: bool = True) -> None:

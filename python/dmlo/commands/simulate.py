@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from dmlo.cli import non_negative_int, positive_int
+
 
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
@@ -27,14 +29,14 @@ def register(subparsers: Any) -> None:
         "  dmlo simulate --frames 100 --seed 3 --sensor argoverse --traffic mixed --out runs/av_sim03\n",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--frames", type=int, default=50, help="number of scans (default 50)")
-    parser.add_argument("--seed", type=int, default=0, help="scene and noise seed (default 0)")
+    parser.add_argument("--frames", type=positive_int, default=50, help="number of scans (default 50)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="scene and noise seed (default 0)")
     parser.add_argument("--out", required=True, help="output sequence folder")
     parser.add_argument(
         "--trajectory",
         help="KITTI camera-frame pose file to drive along (12 floats a line); default: a generated drive",
     )
-    parser.add_argument("--start", type=int, default=0, help="first pose of --trajectory to use (default 0)")
+    parser.add_argument("--start", type=non_negative_int, default=0, help="first pose of --trajectory to use (default 0)")
     parser.add_argument(
         "--calib", help="KITTI calib.txt whose Tr converts --trajectory (default: KITTI 00-02 Tr)"
     )

@@ -51,8 +51,10 @@ def run_sequence(
 
     `poses_kitti.txt` / `poses_tum.txt` (T_world_lidar, world = the first scan, readable by evo),
     `diagnostics.jsonl`, `config.json`, and with ground truth `ground_truth_kitti.txt`,
-    `metrics.json` and `trajectory.png`.
+    `metrics.json` and `trajectory.png`. `max_frames` (≥ 1) stops after that many scans.
     """
+    if max_frames is not None and max_frames < 1:
+        raise ValueError(f"max_frames: must be at least 1, got {max_frames}")
     out_dir.mkdir(parents=True, exist_ok=True)
     odometry.config.save(out_dir / "config.json")
     total = len(sequence) if max_frames is None else min(max_frames, len(sequence))
