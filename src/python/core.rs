@@ -13,7 +13,7 @@ use numpy::{
     Element, IntoPyArray, PyArray1, PyArray2, PyArray3, PyArrayDescrMethods, PyReadonlyArrayDyn,
     PyUntypedArray, PyUntypedArrayMethods,
 };
-use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
+use pyo3::exceptions::{PyOverflowError, PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
 use crate::coherence::{self, CoherenceConfig};
@@ -25,16 +25,115 @@ use crate::ransac::{self, RansacConfig, Refit};
 use crate::ray_noise::{self, RayNoise};
 use crate::rigid;
 
-use super::pool::run;
+use super::pool::{run, threads};
 
 // ---- plumbing --------------------------------------------------------------------------------------
 
-/// A count or size from Python as a `usize`. Bindings take such arguments as `i64` so that a negative
-/// value is refused here by name: pyo3's own conversion to `usize` raises an `OverflowError` that does
-/// not say which argument it was.
-pub(super) fn count(name: &str, value: i64) -> PyResult<usize> {
-    usize::try_from(value)
-        .map_err(|_| PyValueError::new_err(format!("{name}: must be >= 0, got {value}")))
+/// An integer argument as Python gave it, of any size. pyo3's conversions to Rust integers raise an
+/// `OverflowError` that does not say which argument it was, for a negative `usize` as for a value beyond
+/// 64 bits; so every integer argument of the bindings arrives as an `Int` and becomes what the crate
+/// takes through [`count`], [`to_seed`] or [`super::pool::threads`], which refuse a value out of range
+/// by name as a `ValueError`. A non-integer (a float) stays pyo3's `TypeError` naming the argument.
+#[derive(Debug, Clone)]
+pub(crate) enum Int {
+    /// A value within 128 bits.
+    Fits(i128),
+    /// A larger one, kept as its decimal text for the error message.
+    Huge { negative: bool, text: String },
+}
+
+impl<'a, 'py> FromPyObject<'a, 'py> for Int {
+    type Error = PyErr;
+
+    fn extract(obj: Borrowed<'a, 'py, PyAny>) -> PyResult<Self> {
+        match obj.extract::<i128>() {
+            Ok(value) => Ok(Int::Fits(value)),
+            Err(err) if err.is_instance_of::<PyOverflowError>(obj.py()) => Ok(Int::Huge {
+                negative: obj.lt(0)?,
+                text: obj.str()?.to_string(),
+            }),
+            Err(err) => Err(err),
+        }
+    }
+}
+
+impl std::fmt::Display for Int {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Int::Fits(value) => write!(f, "{value}"),
+            Int::Huge { text, .. } => f.write_str(text),
+        }
+    }
+}
+
+impl Int {
+    /// The value when it fits a `T`.
+    pub(crate) fn fitting<T: TryFrom<i128>>(&self) -> Option<T> {
+        match self {
+            Int::Fits(value) => T::try_from(*value).ok(),
+            Int::Huge { .. } => None,
+        }
+    }
+
+    pub(crate) fn is_negative(&self) -> bool {
+        match self {
+            Int::Fits(value) => *value < 0,
+            Int::Huge { negative, .. } => *negative,
+        }
+    }
+}
+
+/// A count or size from Python as a `usize`, refused by name when negative or too large.
+pub(super) fn count(name: &str, value: Int) -> PyResult<usize> {
+    value.fitting().ok_or_else(|| {
+        let limit = if value.is_negative() {
+            ">= 0".to_string()
+        } else {
+            format!("at most {}", usize::MAX)
+        };
+        PyValueError::new_err(format!("{name}: must be {limit}, got {value}"))
+    })
+}
+
+/// A sampler seed from Python: any value a `u64` holds.
+pub(super) fn to_seed(value: Int) -> PyResult<u64> {
+    value.fitting().ok_or_else(|| {
+        PyValueError::new_err(format!("seed: must be in 0 ..= 2^64 - 1, got {value}"))
+    })
+}
+
+/// `#[pyo3(from_py_with = …)]` extractors of the integer arguments that have a literal default: such an
+/// argument must stay a plain Rust integer for its default to show in the Python signature, and goes
+/// through [`Int`] and [`count`] here under its own name (`from_py_with` takes a function path, which
+/// carries no string, hence one function per argument name).
+pub(super) mod counts {
+    use pyo3::prelude::*;
+
+    use super::{count, to_seed, Int};
+
+    macro_rules! named_counts {
+        ($($name:ident),* $(,)?) => {$(
+            pub(crate) fn $name(obj: &Bound<'_, PyAny>) -> PyResult<usize> {
+                count(stringify!($name), obj.extract::<Int>()?)
+            }
+        )*};
+    }
+
+    named_counts!(
+        height,
+        width,
+        max_iterations,
+        refine_iterations,
+        radius,
+        nms_radius,
+        max_scans,
+        min_points_per_voxel,
+        min_correspondences,
+    );
+
+    pub(crate) fn seed(obj: &Bound<'_, PyAny>) -> PyResult<u64> {
+        to_seed(obj.extract::<Int>()?)
+    }
 }
 
 /// A numpy array of floats, whichever width it came in.
@@ -263,11 +362,9 @@ impl PyCylinderConfig {
         fov_down_deg: f64,
         vertical_resolution_deg: f64,
         horizontal_resolution_deg: f64,
-        height: i64,
-        width: i64,
+        #[pyo3(from_py_with = counts::height)] height: usize,
+        #[pyo3(from_py_with = counts::width)] width: usize,
     ) -> PyResult<Self> {
-        let height = count("height", height)?;
-        let width = count("width", width)?;
         let inner = CylinderConfig {
             fov_up_deg,
             fov_down_deg,
@@ -422,13 +519,13 @@ fn project(
     py: Python<'_>,
     points: &Bound<'_, PyAny>,
     config: &PyCylinderConfig,
-    num_threads: Option<i64>,
+    num_threads: Option<Int>,
 ) -> PyResult<PyProjection> {
     let (array, columns) = scan_points(points)?;
     let data = array.f32_data();
     let config = config.inner;
     let data_ref: &[f32] = &data;
-    let image = run(py, num_threads, || {
+    let image = run(py, threads(num_threads)?, || {
         projection::project_flat(data_ref, columns, &config)
     })?;
     let (h, w) = (image.height, image.width);
@@ -476,7 +573,7 @@ fn ground_truth_flow<'py>(
     T_tgt_ref: &Bound<'py, PyAny>,
     config: &PyCylinderConfig,
     max_range_error: f64,
-    num_threads: Option<i64>,
+    num_threads: Option<Int>,
 ) -> PyResult<(Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<bool>>)> {
     let config = config.inner;
     let (reference, target) = (
@@ -486,7 +583,7 @@ fn ground_truth_flow<'py>(
     let (reference, target) = (reference.f32_data(), target.f32_data());
     let (reference, target): (&[f32], &[f32]) = (&reference, &target);
     let motion = transform("T_tgt_ref", T_tgt_ref)?;
-    let gt = run(py, num_threads, || {
+    let gt = run(py, threads(num_threads)?, || {
         ground_truth::ground_truth_flow(reference, target, &motion, &config, max_range_error)
     })?;
     let (h, w) = (gt.height, gt.width);
@@ -571,19 +668,14 @@ fn ransac_rigid(
     dst: &Bound<'_, PyAny>,
     threshold: f64,
     confidence: f64,
-    max_iterations: i64,
-    seed: i128,
-    refine_iterations: i64,
+    #[pyo3(from_py_with = counts::max_iterations)] max_iterations: usize,
+    #[pyo3(from_py_with = counts::seed)] seed: u64,
+    #[pyo3(from_py_with = counts::refine_iterations)] refine_iterations: usize,
     refit: &str,
     range_ratio: f64,
     bearing_threshold_deg: f64,
-    num_threads: Option<i64>,
+    num_threads: Option<Int>,
 ) -> PyResult<PyRansacResult> {
-    let max_iterations = count("max_iterations", max_iterations)?;
-    let seed = u64::try_from(seed).map_err(|_| {
-        PyValueError::new_err(format!("seed: must be in 0 ..= 2^64 - 1, got {seed}"))
-    })?;
-    let refine_iterations = count("refine_iterations", refine_iterations)?;
     let (src, dst) = (points3("src", src)?, points3("dst", dst)?);
     let config = RansacConfig {
         threshold,
@@ -594,7 +686,7 @@ fn ransac_rigid(
         refit: refit_kind(refit, range_ratio, bearing_threshold_deg)?,
         ..Default::default()
     };
-    let result = run(py, num_threads, || {
+    let result = run(py, threads(num_threads)?, || {
         ransac::ransac_rigid(&src, &dst, &config)
     })?;
     Ok(PyRansacResult {
@@ -660,11 +752,11 @@ fn ray_noise_refit(
     dst: &Bound<'_, PyAny>,
     initial: &Bound<'_, PyAny>,
     range_ratio: f64,
-    max_iterations: i64,
+    #[pyo3(from_py_with = counts::max_iterations)] max_iterations: usize,
 ) -> PyResult<PyRayRefit> {
     let noise = RayNoise {
         range_ratio,
-        max_iterations: count("max_iterations", max_iterations)?,
+        max_iterations,
     };
     let (src, dst) = (points3("src", src)?, points3("dst", dst)?);
     let initial = transform("initial", initial)?;
@@ -692,11 +784,10 @@ fn non_maximum_suppression<'py>(
     rows: &Bound<'py, PyAny>,
     cols: &Bound<'py, PyAny>,
     scores: &Bound<'py, PyAny>,
-    radius: i64,
-    top_n: Option<i64>,
+    #[pyo3(from_py_with = counts::radius)] radius: usize,
+    top_n: Option<Int>,
     config: Option<&PyCylinderConfig>,
 ) -> PyResult<Bound<'py, PyArray1<i64>>> {
-    let radius = count("radius", radius)?;
     let top_n = top_n.map(|n| count("top_n", n)).transpose()?;
     let (rows, cols) = (vector_i64("rows", rows)?, vector_i64("cols", cols)?);
     let array = floats("scores", scores)?;
@@ -775,12 +866,11 @@ fn decode_matches(
     min_confidence: f32,
     mask: Option<&Bound<'_, PyAny>>,
     max_relative_range_spread: f32,
-    top_n: Option<i64>,
-    nms_radius: i64,
-    num_threads: Option<i64>,
+    top_n: Option<Int>,
+    #[pyo3(from_py_with = counts::nms_radius)] nms_radius: usize,
+    num_threads: Option<Int>,
 ) -> PyResult<PyMatches> {
     let top_n = top_n.map(|n| count("top_n", n)).transpose()?;
-    let nms_radius = count("nms_radius", nms_radius)?;
     let cylinder = config.inner;
     let (h, w) = (cylinder.height, cylinder.width);
     let reference = image("ref_range", ref_range, &cylinder)?;
@@ -817,7 +907,7 @@ fn decode_matches(
         max_relative_range_spread,
     };
     let mask = mask.as_deref();
-    let decoded = run(py, num_threads, || match top_n {
+    let decoded = run(py, threads(num_threads)?, || match top_n {
         None => matches::decode_matches(
             reference, target, flow, confidence, mask, &cylinder, &decode,
         ),
@@ -853,11 +943,10 @@ fn coherent_confidence<'py>(
     confidence: &Bound<'py, PyAny>,
     ref_range: &Bound<'py, PyAny>,
     config: &PyCylinderConfig,
-    radius: i64,
+    #[pyo3(from_py_with = counts::radius)] radius: usize,
     scale_px: f32,
-    num_threads: Option<i64>,
+    num_threads: Option<Int>,
 ) -> PyResult<Bound<'py, PyArray2<f32>>> {
-    let radius = count("radius", radius)?;
     let cylinder = config.inner;
     let (h, w) = (cylinder.height, cylinder.width);
     let reference = image("ref_range", ref_range, &cylinder)?;
@@ -867,7 +956,7 @@ fn coherent_confidence<'py>(
         (reference.f32_data(), confidence.f32_data(), flow.f32_data());
     let (reference, confidence, flow): (&[f32], &[f32], &[f32]) = (&reference, &confidence, &flow);
     let settings = CoherenceConfig { radius, scale_px };
-    let weighted = run(py, num_threads, || {
+    let weighted = run(py, threads(num_threads)?, || {
         coherence::coherent_confidence(flow, confidence, reference, &cylinder, &settings)
     })?;
     Ok(image_array(h, w, weighted)?.into_pyarray(py))
@@ -885,7 +974,7 @@ fn sweep_times<'py>(
     points: &Bound<'py, PyAny>,
     clockwise: bool,
     reference_azimuth_deg: f64,
-    num_threads: Option<i64>,
+    num_threads: Option<Int>,
 ) -> PyResult<Bound<'py, PyArray1<f64>>> {
     let (array, columns) = scan_points(points)?;
     let data = array.f32_data();
@@ -894,7 +983,7 @@ fn sweep_times<'py>(
         clockwise,
         reference_azimuth_deg,
     };
-    let times = run(py, num_threads, || {
+    let times = run(py, threads(num_threads)?, || {
         crate::deskew::sweep_times(data_ref, columns, &pattern)
     })?;
     Ok(Array1::from_vec(times).into_pyarray(py))
@@ -918,7 +1007,7 @@ fn deskew<'py>(
     times: Option<&Bound<'py, PyAny>>,
     clockwise: bool,
     reference_azimuth_deg: f64,
-    num_threads: Option<i64>,
+    num_threads: Option<Int>,
 ) -> PyResult<Bound<'py, PyArray2<f32>>> {
     let (array, columns) = scan_points(points)?;
     let motion = transform("motion", motion)?;
@@ -929,7 +1018,7 @@ fn deskew<'py>(
         clockwise,
         reference_azimuth_deg,
     };
-    let moved = run(py, num_threads, || {
+    let moved = run(py, threads(num_threads)?, || {
         let derived;
         let times = match &times {
             Some(times) => times.as_slice(),

@@ -6,8 +6,8 @@ use pyo3::prelude::*;
 
 use crate::dense_match::{self, DenseMatchConfig, FeatureMap, OffsetRule, ScanFeatures};
 
-use super::core::{count, floats, flow_array, image_array, shape_error, Floats};
-use super::pool::run;
+use super::core::{count, floats, flow_array, image_array, shape_error, Floats, Int};
+use super::pool::{run, threads};
 
 /// Flow `[2, H, W]` and confidence `[H, W]` as numpy arrays.
 type FlowArrays<'py> = (Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<f32>>);
@@ -59,13 +59,13 @@ fn match_features<'py>(
     ref_refine: &Bound<'py, PyAny>,
     tgt_coarse: &Bound<'py, PyAny>,
     tgt_refine: &Bound<'py, PyAny>,
-    coarse_window: i64,
-    refine_window: i64,
+    coarse_window: Int,
+    refine_window: Int,
     coarse_scale: f32,
     refine_scale: f32,
     refine_offset: &str,
-    stride: Option<(i64, i64)>,
-    num_threads: Option<i64>,
+    stride: Option<(Int, Int)>,
+    num_threads: Option<Int>,
 ) -> PyResult<FlowArrays<'py>> {
     let coarse_window = count("coarse_window", coarse_window)?;
     let refine_window = count("refine_window", refine_window)?;
@@ -106,7 +106,7 @@ fn match_features<'py>(
         coarse: maps[2],
         refine: maps[3],
     };
-    let result = run(py, num_threads, || {
+    let result = run(py, threads(num_threads)?, || {
         dense_match::match_features(&reference, &target, &config)
     })?;
     let (height, width) = (result.height, result.width);

@@ -12,13 +12,13 @@ use numpy::{
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
-use super::core::count;
+use super::core::{counts, Int};
 
 use crate::ndt::{
     isometry_from_matrix4, NdtAlignConfig, NdtMap, NdtMapConfig, NdtResult, NeighbourSearch,
 };
 
-use super::pool::run;
+use super::pool::{run, threads};
 
 pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyNdtMap>()?;
@@ -184,12 +184,10 @@ impl PyNdtMap {
     #[pyo3(signature = (voxel_size = 1.0, max_scans = 10, min_points_per_voxel = 5, min_eigenvalue_ratio = 0.01))]
     fn new(
         voxel_size: f64,
-        max_scans: i64,
-        min_points_per_voxel: i64,
+        #[pyo3(from_py_with = counts::max_scans)] max_scans: usize,
+        #[pyo3(from_py_with = counts::min_points_per_voxel)] min_points_per_voxel: usize,
         min_eigenvalue_ratio: f64,
     ) -> PyResult<Self> {
-        let max_scans = count("max_scans", max_scans)?;
-        let min_points_per_voxel = count("min_points_per_voxel", min_points_per_voxel)?;
         let config = NdtMapConfig {
             voxel_size,
             min_points_per_voxel,
@@ -207,11 +205,11 @@ impl PyNdtMap {
         &mut self,
         py: Python<'_>,
         points_world: &Bound<'_, PyAny>,
-        num_threads: Option<i64>,
+        num_threads: Option<Int>,
     ) -> PyResult<()> {
         let points = read_points(points_world, "points_world")?;
         let inner = &mut self.inner;
-        run(py, num_threads, move || inner.insert(&points))
+        run(py, threads(num_threads)?, move || inner.insert(&points))
     }
 
     /// Adds a scan in its sensor frame (`N×3` or `N×4`) at the pose `transform` (`T_map_sensor`, 4×4):
@@ -222,13 +220,13 @@ impl PyNdtMap {
         py: Python<'_>,
         points: &Bound<'_, PyAny>,
         transform: &Bound<'_, PyAny>,
-        num_threads: Option<i64>,
+        num_threads: Option<Int>,
     ) -> PyResult<()> {
         let points = read_points(points, "points")?;
         let transform =
             isometry_from_matrix4(&read_transform(transform, "transform")?, "transform")?;
         let inner = &mut self.inner;
-        run(py, num_threads, move || {
+        run(py, threads(num_threads)?, move || {
             inner.insert_scan(&points, &transform)
         })
     }
@@ -263,7 +261,7 @@ impl PyNdtMap {
         py: Python<'_>,
         points: &Bound<'_, PyAny>,
         initial_transform: &Bound<'_, PyAny>,
-        max_iterations: i64,
+        #[pyo3(from_py_with = counts::max_iterations)] max_iterations: usize,
         translation_epsilon: f64,
         rotation_epsilon_deg: f64,
         outlier_ratio: f64,
@@ -271,13 +269,11 @@ impl PyNdtMap {
         neighbours: &str,
         max_step_translation: f64,
         max_step_rotation_deg: f64,
-        min_correspondences: i64,
+        #[pyo3(from_py_with = counts::min_correspondences)] min_correspondences: usize,
         degeneracy_threshold: f64,
         rotation_degeneracy_threshold: f64,
-        num_threads: Option<i64>,
+        num_threads: Option<Int>,
     ) -> PyResult<PyNdtResult> {
-        let max_iterations = count("max_iterations", max_iterations)?;
-        let min_correspondences = count("min_correspondences", min_correspondences)?;
         let neighbours = match neighbours {
             "containing" => NeighbourSearch::Containing,
             "direct7" => NeighbourSearch::Direct7,
@@ -304,7 +300,7 @@ impl PyNdtMap {
         let points = read_points(points, "points")?;
         let initial = read_transform(initial_transform, "initial_transform")?;
         let inner = &self.inner;
-        let result = run(py, num_threads, move || {
+        let result = run(py, threads(num_threads)?, move || {
             inner.align_matrix(&points, &initial, &config)
         })?;
         Ok(result.into())

@@ -7,6 +7,25 @@ use std::sync::{Arc, Mutex};
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 
+use super::core::Int;
+
+/// `num_threads` from Python as [`run`] takes it. Values within `i64` are checked by the pool itself;
+/// beyond that they are refused here, by the same name and rule.
+pub(super) fn threads(num_threads: Option<Int>) -> PyResult<Option<i64>> {
+    match num_threads {
+        None => Ok(None),
+        Some(n) => match n.fitting::<i64>() {
+            Some(value) => Ok(Some(value)),
+            None if n.is_negative() => Err(PyValueError::new_err(format!(
+                "num_threads: must be >= 1 (or None for all cores), got {n}"
+            ))),
+            None => Err(PyValueError::new_err(format!(
+                "num_threads: at most {MAX_THREADS}, got {n}"
+            ))),
+        },
+    }
+}
+
 /// The pools of this process by thread count, with the pid that built them: a forked child (PyTorch
 /// DataLoader workers fork) has none of the parent's worker threads and builds its own; the parent's
 /// pools are leaked in the child, never joined.
@@ -17,8 +36,7 @@ const MAX_THREADS: i64 = 1024;
 
 type ProcessPools = (u32, Vec<(usize, Arc<rayon::ThreadPool>)>);
 
-/// `num_threads` comes as a Python int (`i64`, so that a negative one is refused here by name rather than
-/// by pyo3's unnamed `OverflowError` for a `usize`).
+/// `num_threads` as [`threads`] passes it on: refused by name when below 1 or above [`MAX_THREADS`].
 fn thread_pool(num_threads: Option<i64>) -> PyResult<Arc<rayon::ThreadPool>> {
     let threads = match num_threads {
         Some(n) if n < 1 => {

@@ -9,7 +9,7 @@ use numpy::{
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-use super::core::count;
+use super::core::{count, Int};
 
 use crate::raycast::{Ellipsoid, Hit, OrientedBox, Primitive, Scene, Triangle, VerticalCylinder};
 
@@ -173,7 +173,7 @@ impl RayScene {
         py: Python<'py>,
         pose: PyReadonlyArrayDyn<'py, f64>,
         elevations_deg: PyReadonlyArray1<'py, f64>,
-        azimuth_count: i64,
+        azimuth_count: Int,
         max_range: f64,
     ) -> PyResult<CastResult<'py, numpy::Ix2>> {
         let azimuth_count = count("azimuth_count", azimuth_count)?;
@@ -240,7 +240,7 @@ fn unzip_hits(hits: &[Option<Hit>]) -> (Vec<f64>, Vec<i64>, Vec<f32>) {
 fn lidar_scan_directions<'py>(
     py: Python<'py>,
     elevations_deg: PyReadonlyArray1<'py, f64>,
-    azimuth_count: i64,
+    azimuth_count: Int,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
     let azimuth_count = count("azimuth_count", azimuth_count)?;
     let elevations: Vec<f64> = elevations_deg.as_array().iter().copied().collect();
