@@ -3,6 +3,9 @@
 //! inliers within a distance threshold, an adaptive number of hypotheses for a target confidence, and
 //! a final refit on all inliers.
 //!
+//! With a vote per match ([`ransac_rigid_voted`]) a hypothesis's consensus is the sum of its inliers'
+//! votes and samples draw each match as often as it votes.
+//!
 //! Determinism: samples are drawn serially from a ChaCha8 generator seeded by
 //! [`RansacConfig::seed`], in batches; each batch's hypotheses are solved and scored in parallel
 //! (rayon, in the caller's pool), then walked in order exactly as a serial loop would, with the best
@@ -12,6 +15,8 @@
 use std::cmp::Ordering;
 
 use nalgebra::{Isometry3, Matrix3, Point3, Vector3};
+use rand::distr::weighted::WeightedIndex;
+use rand::distr::Distribution;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
@@ -137,6 +142,8 @@ struct Matches {
     dst_origin: Vector3<f64>,
     src64: Vec<Vector3<f64>>,
     dst64: Vec<Vector3<f64>>,
+    /// Each match's vote in a hypothesis's score; `None`: one each.
+    votes: Option<Vec<f32>>,
 }
 
 /// The per-axis median of `points`: a reference point inside the bulk of the cloud that a few far
@@ -187,7 +194,7 @@ impl Hypothesis32 {
 
 impl Matches {
     /// `src` and `dst` are not empty.
-    fn new(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Self {
+    fn new(src: &[Point3<f64>], dst: &[Point3<f64>], votes: Option<&[f64]>) -> Self {
         let (src_origin, dst_origin) = (median_point(src), median_point(dst));
         let column = |points: &[Point3<f64>], origin: &Vector3<f64>, k: usize| {
             points
@@ -202,6 +209,7 @@ impl Matches {
             dst_origin,
             src64: src.iter().map(|p| p.coords).collect(),
             dst64: dst.iter().map(|p| p.coords).collect(),
+            votes: votes.map(|v| v.iter().map(|&w| w as f32).collect()),
         }
     }
 
@@ -216,16 +224,18 @@ impl Matches {
         )
     }
 
-    /// (inlier count, summed squared distance of the inliers).
-    fn score(&self, transform: &Isometry3<f64>, threshold_sq: f64) -> (usize, f64) {
+    /// (summed votes of the inliers, their count, their summed squared distance).
+    fn score(&self, transform: &Isometry3<f64>, threshold_sq: f64) -> Score {
         let h = self.hypothesis32(transform);
         let threshold_sq = threshold_sq as f32;
         let n = self.src[0].len();
         let full = n - n % LANES;
         let mut counts = [0u32; LANES];
+        let mut sums = [0.0f32; LANES];
         let mut errors = [0.0f32; LANES];
         let [sx, sy, sz] = &self.src;
         let [dx, dy, dz] = &self.dst;
+        let no_votes = [1.0f32; LANES];
         for base in (0..full).step_by(LANES) {
             let (sx, sy, sz) = (
                 &sx[base..base + LANES],
@@ -237,24 +247,35 @@ impl Matches {
                 &dy[base..base + LANES],
                 &dz[base..base + LANES],
             );
+            let votes = self
+                .votes
+                .as_ref()
+                .map_or(&no_votes[..], |v| &v[base..base + LANES]);
             for l in 0..LANES {
                 let d = h.distance_sq([sx[l], sy[l], sz[l]], [dx[l], dy[l], dz[l]]);
                 let inlier = d < threshold_sq;
                 counts[l] += inlier as u32;
+                sums[l] += if inlier { votes[l] } else { 0.0 };
                 errors[l] += if inlier { d } else { 0.0 };
             }
         }
         let mut count = counts.iter().map(|&c| c as usize).sum::<usize>();
+        let mut votes = sums.iter().map(|&v| v as f64).sum::<f64>();
         let mut error = errors.iter().map(|&e| e as f64).sum::<f64>();
         for i in full..n {
             let (s, d) = self.at(i);
             let d = h.distance_sq(s, d);
             if d < threshold_sq {
                 count += 1;
+                votes += self.votes.as_ref().map_or(1.0, |v| v[i] as f64);
                 error += d as f64;
             }
         }
-        (count, error)
+        Score {
+            votes,
+            count,
+            error,
+        }
     }
 
     /// The inlier mask, decided exactly as [`Matches::score`] counts.
@@ -312,6 +333,29 @@ impl Matches {
     }
 }
 
+/// Votes are finite, ≥ 0, not all 0, one per match.
+fn check_votes(votes: &[f64], n: usize) -> Result<()> {
+    if votes.len() != n {
+        return Err(Error::invalid(
+            "votes",
+            format!("has {} entries for {n} matches", votes.len()),
+        ));
+    }
+    if let Some(i) = votes.iter().position(|v| !(v.is_finite() && *v >= 0.0)) {
+        return Err(Error::invalid(
+            "votes",
+            format!("entry {i} is {} (votes must be finite and >= 0)", votes[i]),
+        ));
+    }
+    if votes.iter().all(|&v| v == 0.0) {
+        return Err(Error::invalid(
+            "votes",
+            "are all 0: no hypothesis could win",
+        ));
+    }
+    Ok(())
+}
+
 /// Hypotheses needed to draw an all-inlier sample of 3 with probability `confidence` when a fraction
 /// `inlier_ratio` of the matches are inliers.
 fn required_iterations(inlier_ratio: f64, confidence: f64, max_iterations: usize) -> usize {
@@ -330,15 +374,24 @@ fn required_iterations(inlier_ratio: f64, confidence: f64, max_iterations: usize
     }
 }
 
-/// (count, error, hypothesis index): `a` better than `b`?
-fn is_better(a: (usize, f64, usize), b: (usize, f64, usize)) -> bool {
-    match a.0.cmp(&b.0) {
+/// A hypothesis's consensus: the summed votes of its inliers (their count when matches carry no votes),
+/// how many they are, and their summed squared distance.
+#[derive(Debug, Clone, Copy)]
+struct Score {
+    votes: f64,
+    count: usize,
+    error: f64,
+}
+
+/// (score, hypothesis index): `a` better than `b`? More votes, then a lower error, then the earlier.
+fn is_better(a: (Score, usize), b: (Score, usize)) -> bool {
+    match a.0.votes.total_cmp(&b.0.votes) {
         Ordering::Greater => true,
         Ordering::Less => false,
-        Ordering::Equal => match a.1.total_cmp(&b.1) {
+        Ordering::Equal => match a.0.error.total_cmp(&b.0.error) {
             Ordering::Less => true,
             Ordering::Greater => false,
-            Ordering::Equal => a.2 < b.2,
+            Ordering::Equal => a.1 < b.1,
         },
     }
 }
@@ -353,6 +406,21 @@ fn is_better(a: (usize, f64, usize), b: (usize, f64, usize)) -> bool {
 pub fn ransac_rigid(
     src: &[Point3<f64>],
     dst: &[Point3<f64>],
+    config: &RansacConfig,
+) -> Result<RansacResult> {
+    ransac_rigid_voted(src, dst, None, config)
+}
+
+/// [`ransac_rigid`] with a vote per match: a hypothesis's consensus is the sum of its inliers' votes
+/// instead of their count, and minimal samples draw each match with a probability in proportion to its
+/// vote, so that matches which cannot tell motions apart (e.g. the road's, whose vote
+/// [`crate::surface::horizontal_votes`] lowers) neither outvote nor crowd out the few that can. The
+/// refits are unchanged: they solve on every inlier of the winning hypothesis. `votes` (≥ 0, finite,
+/// not all 0) has one entry per match; with fewer than 3 non-zero votes samples are drawn uniformly.
+pub fn ransac_rigid_voted(
+    src: &[Point3<f64>],
+    dst: &[Point3<f64>],
+    votes: Option<&[f64]>,
     config: &RansacConfig,
 ) -> Result<RansacResult> {
     if !(config.threshold.is_finite() && config.threshold > 0.0) {
@@ -382,10 +450,30 @@ pub fn ransac_rigid(
     if n < 3 {
         return Err(Error::TooFewPoints { needed: 3, got: n });
     }
-    let matches = Matches::new(src, dst);
+    if let Some(votes) = votes {
+        check_votes(votes, n)?;
+    }
+    let matches = Matches::new(src, dst, votes);
     let threshold_sq = config.threshold * config.threshold;
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    // With votes, a match is drawn as often as it votes: a sample of the matches that can tell
+    // motions apart, rather than of the road's many that cannot.
+    let weighted = votes
+        .filter(|v| v.iter().filter(|&&w| w > 0.0).count() >= 3)
+        .map(|v| WeightedIndex::new(v).expect("votes checked: finite, >= 0, not all 0"));
     let mut draw = || -> [usize; 3] {
+        if let Some(weighted) = &weighted {
+            let a = weighted.sample(&mut rng);
+            let mut b = weighted.sample(&mut rng);
+            while b == a {
+                b = weighted.sample(&mut rng);
+            }
+            let mut c = weighted.sample(&mut rng);
+            while c == a || c == b {
+                c = weighted.sample(&mut rng);
+            }
+            return [a, b, c];
+        }
         let a = rng.random_range(0..n);
         let mut b = rng.random_range(0..n - 1);
         if b >= a {
@@ -401,36 +489,39 @@ pub fn ransac_rigid(
         }
         [a, b, c]
     };
+    let total_votes = votes.map_or(n as f64, |v| v.iter().sum());
 
-    let mut best: Option<(usize, f64, usize, Isometry3<f64>)> = None;
+    let mut best: Option<(Score, usize, Isometry3<f64>)> = None;
     let mut required = config.max_iterations;
     let mut iterations = 0;
     while iterations < required {
         let batch = config.batch_size.min(config.max_iterations - iterations);
         let samples: Vec<[usize; 3]> = (0..batch).map(|_| draw()).collect();
-        let scored: Vec<Option<(usize, f64, Isometry3<f64>)>> = samples
+        let scored: Vec<Option<(Score, Isometry3<f64>)>> = samples
             .par_iter()
             .map_init(Svd3::new, |svd, &sample| {
                 let hypothesis = matches.minimal_solve(sample, svd)?;
-                let (count, error) = matches.score(&hypothesis, threshold_sq);
-                Some((count, error, hypothesis))
+                Some((matches.score(&hypothesis, threshold_sq), hypothesis))
             })
             .collect();
         let start = iterations;
         for (k, outcome) in scored.into_iter().enumerate() {
             let index = start + k;
             iterations = index + 1;
-            if let Some((count, error, hypothesis)) = outcome {
+            if let Some((score, hypothesis)) = outcome {
                 let improves = best
                     .as_ref()
-                    .is_none_or(|b| is_better((count, error, index), (b.0, b.1, b.2)));
+                    .is_none_or(|b| is_better((score, index), (b.0, b.1)));
                 if improves {
-                    best = Some((count, error, index, hypothesis));
-                    required = required_iterations(
-                        count as f64 / n as f64,
-                        config.confidence,
-                        config.max_iterations,
-                    );
+                    best = Some((score, index, hypothesis));
+                    // The chance of an all-inlier sample: the winner's share of the votes (of the
+                    // matches, without votes), as samples are drawn.
+                    let share = if weighted.is_some() {
+                        score.votes / total_votes
+                    } else {
+                        score.count as f64 / n as f64
+                    };
+                    required = required_iterations(share, config.confidence, config.max_iterations);
                 }
             }
             if iterations >= required {
@@ -438,7 +529,7 @@ pub fn ransac_rigid(
             }
         }
     }
-    let Some((mut count, _, _, mut transform)) = best else {
+    let Some((Score { mut count, .. }, _, mut transform)) = best else {
         return Err(Error::Degenerate(format!(
             "all {iterations} samples were collinear"
         )));
@@ -718,6 +809,7 @@ mod tests {
                 Point3::new(60.15, 0.0, 0.0), // 0.15 m along the ray: beyond the 0.1 m threshold
                 Point3::new(60.07, 0.1, 0.0), // (0.07/0.1)² + (0.1/0.209)² = 0.72
             ],
+            None,
         );
         let tan = 0.2f64.to_radians().tan();
         let identity = Isometry3::identity();
@@ -733,8 +825,103 @@ mod tests {
         let near = Matches::new(
             &[Point3::new(5.0, 0.0, 0.0)],
             &[Point3::new(5.0, 0.09, 0.0)],
+            None,
         );
         assert_eq!(near.ray_inlier_mask(&identity, 0.1, tan), [true]);
+    }
+
+    /// A highway pair: many road matches that agree on no motion at all (the rings locked) with a
+    /// low vote, fewer matches on posts that agree on the true motion, and outliers.
+    fn locked_rings(seed: u64) -> (Vec<Point3<f64>>, Vec<Point3<f64>>, Vec<f64>, Isometry3<f64>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let truth = Isometry3::new(Vector3::new(-1.0, 0.05, 0.0), Vector3::new(0.0, 0.0, 0.03));
+        let (mut src, mut dst, mut votes) = (Vec::new(), Vec::new(), Vec::new());
+        for i in 0..600 {
+            let angle: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+            let range: f64 = rng.random_range(4.0..15.0);
+            let road = Point3::new(range * angle.cos(), range * angle.sin(), -1.73);
+            let post = Point3::new(
+                rng.random_range(-30.0..30.0),
+                rng.random_range(-12.0..12.0),
+                rng.random_range(-1.0..3.0),
+            );
+            let (p, q, vote) = match i % 6 {
+                0..=3 => (road, road, 0.05), // locked: the same point in both scans
+                4 => (post, truth * post, 1.0),
+                _ => {
+                    let q = Point3::new(
+                        rng.random_range(-30.0..30.0),
+                        rng.random_range(-12.0..12.0),
+                        rng.random_range(-1.0..3.0),
+                    );
+                    (post, q, rng.random_range(0.05..1.0))
+                }
+            };
+            src.push(p);
+            dst.push(q);
+            votes.push(vote);
+        }
+        (src, dst, votes, truth)
+    }
+
+    #[test]
+    fn votes_keep_locked_road_matches_from_outvoting_the_posts() {
+        let (src, dst, votes, truth) = locked_rings(5);
+        let config = RansacConfig::default();
+        let counted = ransac_rigid(&src, &dst, &config).unwrap();
+        assert!(
+            counted.transform.translation.vector.norm() < 0.05,
+            "the rings win a count"
+        );
+        let voted = ransac_rigid_voted(&src, &dst, Some(&votes), &config).unwrap();
+        let error = voted.transform.inverse() * truth;
+        assert!(error.translation.vector.norm() < 1e-6, "{error:?}");
+        assert_eq!(voted.num_inliers, 100);
+    }
+
+    #[test]
+    fn equal_votes_change_nothing_and_voting_is_thread_independent() {
+        let (src, dst, _, _) = scene(23, 500, 0.5, 0.05);
+        let config = RansacConfig::default();
+        let counted = ransac_rigid(&src, &dst, &config).unwrap();
+        let ones = vec![1.0; src.len()];
+        assert_eq!(
+            ransac_rigid_voted(&src, &dst, Some(&ones), &config)
+                .unwrap()
+                .transform,
+            counted.transform
+        );
+        let (src, dst, votes, _) = locked_rings(6);
+        let config = RansacConfig {
+            batch_size: 16,
+            ..Default::default()
+        };
+        let run = |threads: usize| {
+            in_pool(threads, || {
+                ransac_rigid_voted(&src, &dst, Some(&votes), &config).unwrap()
+            })
+        };
+        assert_eq!(run(1), run(3));
+    }
+
+    #[test]
+    fn bad_votes_are_named() {
+        let (src, dst, _, _) = scene(24, 20, 0.0, 0.0);
+        let config = RansacConfig::default();
+        for votes in [
+            vec![1.0; 19],
+            vec![-1.0; 20],
+            vec![f64::NAN; 20],
+            vec![0.0; 20],
+        ] {
+            let err = ransac_rigid_voted(&src, &dst, Some(&votes), &config).unwrap_err();
+            assert!(err.to_string().starts_with("votes:"), "{err}");
+        }
+        // Fewer than 3 matches with a vote: samples are drawn uniformly, never stuck.
+        let mut two = vec![0.0; 20];
+        two[0] = 1.0;
+        two[1] = 1.0;
+        ransac_rigid_voted(&src, &dst, Some(&two), &config).unwrap();
     }
 
     #[test]

@@ -10,70 +10,128 @@
 //! ([`horizontal_votes`]): 1 on a wall, ≈ 0 on the road. The refit still solves on every inlier, road
 //! matches included, which fix the height, roll and pitch.
 //!
-//! The normal of a cell comes from its virtual points (Φ⁻¹ at the cell centres, Eq. 4) and its nearer
-//! neighbour along each image axis (the nearer in 3D, so that a depth edge on one side does not bend
-//! it); "level" is relative to the sensor's z axis (up, by the crate's convention).
+//! The normal of a cell is that of the plane through the scan's own points around it (within a radius
+//! in 3D, so that what lies across a depth edge does not bend it). The scan's points, not the virtual
+//! ones at the cell centres (Eq. 4): a real sensor's lasers sit off the image's even grid of
+//! elevations, each by its own angle (some rows of the grid stay empty), and near the car that alone
+//! tilts the virtual road by tens of degrees from row to row. "Level" is relative to the sensor's z axis (up, by the crate's
+//! convention).
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 use crate::error::{Error, Result};
-use crate::ground_truth::check_range_image;
 use crate::projection::CylinderConfig;
 
-/// The unit normal of the surface at a cell of a range image, `None` when the cell or both of its
-/// neighbours along either image axis are empty (or the three points are collinear).
+/// The image of a scan's points: per cell of `config`'s image, row-major, the x, y, z of the point the
+/// projection kept there, NaN for an empty cell (`3·height·width` values).
+pub fn check_cell_points(points: &[f32], config: &CylinderConfig) -> Result<()> {
+    let cells = config.height * config.width;
+    if points.len() != 3 * cells {
+        return Err(Error::invalid(
+            "points",
+            format!(
+                "has {} values, the config's {}x{} image needs 3 per cell ({})",
+                points.len(),
+                config.height,
+                config.width,
+                3 * cells
+            ),
+        ));
+    }
+    if let Some(i) = points.iter().position(|v| v.is_infinite()) {
+        return Err(Error::invalid(
+            "points",
+            format!("value {i} is infinite (NaN marks an empty cell)"),
+        ));
+    }
+    Ok(())
+}
+
+/// Rows searched above and below a cell for its neighbours: a real sensor's lasers leave some rows of
+/// an even elevation grid empty.
+const ROWS_AROUND: usize = 3;
+/// Columns searched either side, at most (near the sensor a column is a centimetre wide).
+const MAX_COLUMNS_AROUND: usize = 24;
+/// The neighbourhood's radius: this many metres, or this fraction of the cell's range beyond …
+const MIN_RADIUS: f64 = 0.5;
+const RADIUS_PER_RANGE: f64 = 0.1;
+/// … and the fewest points that make a plane.
+const MIN_NEIGHBOURS: usize = 6;
+/// A neighbourhood whose second spread is below this fraction of its first is a line (one ring, one
+/// edge): it has no one normal.
+const MIN_FLATNESS: f64 = 0.01;
+
+/// The unit normal of the surface at a cell of a scan's point image (see [`check_cell_points`]): the
+/// direction of least spread of the points within a radius of the cell's (0.5 m, or a tenth of its
+/// range beyond 5 m), searched a few rows up and down and as many columns either side as the radius
+/// spans, so that several rings of the road take part. `None` for an empty cell, too few neighbours,
+/// or neighbours along a line.
 pub fn surface_normal(
-    range: &[f32],
+    points: &[f32],
     config: &CylinderConfig,
     row: usize,
     col: usize,
 ) -> Option<Vector3<f64>> {
     let (height, width) = (config.height, config.width);
     let at = |r: usize, c: usize| -> Option<Vector3<f64>> {
-        let value = range[r * width + c];
-        (value > 0.0).then(|| {
-            config
-                .unproject(r as f64, c as f64, value as f64)
-                .coords
-        })
+        let i = 3 * (r * width + c);
+        let p = Vector3::new(points[i] as f64, points[i + 1] as f64, points[i + 2] as f64);
+        (p.iter().all(|v| v.is_finite())).then_some(p)
     };
     let centre = at(row, col)?;
+    let radius = MIN_RADIUS.max(RADIUS_PER_RANGE * centre.norm());
+    let column_width = centre.norm() * config.horizontal_resolution_deg.to_radians();
+    let columns = ((radius / column_width).ceil() as usize).clamp(1, MAX_COLUMNS_AROUND) as isize;
     let period = config.column_period();
     let column = |offset: isize| -> Option<usize> {
         let c = col as isize + offset;
         let c = period.map_or(c, |p| c.rem_euclid(p as isize));
         (0..width as isize).contains(&c).then_some(c as usize)
     };
-    let nearer = |a: Option<Vector3<f64>>, b: Option<Vector3<f64>>| -> Option<Vector3<f64>> {
-        let (a, b) = (a.map(|p| p - centre), b.map(|p| p - centre));
-        match (a, b) {
-            (Some(a), Some(b)) => Some(if a.norm_squared() <= b.norm_squared() { a } else { b }),
-            (a, b) => a.or(b),
+    let mut sum = Vector3::zeros();
+    let mut outer = Matrix3::zeros();
+    let mut count = 0usize;
+    for r in row.saturating_sub(ROWS_AROUND)..(row + ROWS_AROUND + 1).min(height) {
+        for offset in -columns..=columns {
+            let Some(p) = column(offset).and_then(|c| at(r, c)) else {
+                continue;
+            };
+            let d = p - centre; // relative to the centre: no cancellation far from the sensor
+            if d.norm_squared() <= radius * radius {
+                sum += d;
+                outer += d * d.transpose();
+                count += 1;
+            }
         }
-    };
-    let along_row = nearer(
-        column(-1).and_then(|c| at(row, c)),
-        column(1).and_then(|c| at(row, c)),
-    )?;
-    let along_column = nearer(
-        row.checked_sub(1).and_then(|r| at(r, col)),
-        (row + 1 < height).then(|| at(row + 1, col)).flatten(),
-    )?;
-    let normal = along_row.cross(&along_column);
+    }
+    if count < MIN_NEIGHBOURS {
+        return None;
+    }
+    let mean = sum / count as f64;
+    let covariance = outer / count as f64 - mean * mean.transpose();
+    let eigen = SymmetricEigen::new(covariance);
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| eigen.eigenvalues[a].total_cmp(&eigen.eigenvalues[b]));
+    let [least, middle, most] = order.map(|k| eigen.eigenvalues[k]);
+    if !(most > 0.0) || middle < MIN_FLATNESS * most || !least.is_finite() {
+        return None;
+    }
+    let normal = eigen.eigenvectors.column(order[0]).into_owned();
     let length = normal.norm();
     (length > 0.0 && length.is_finite()).then(|| normal / length)
 }
 
 /// Per reference cell `[row, col]`: the weight of its match's vote for a horizontal motion, the
-/// horizontal part of the surface normal `√(n_x² + n_y²)` (the sine of the surface's tilt), at least
-/// `floor`. A cell whose normal cannot be told (no neighbours) keeps the full vote, 1.
+/// horizontal part of the surface normal `√(n_x² + n_y²)` (the sine of the surface's tilt) in the
+/// reference scan's point image `points` ([`check_cell_points`]), at least `floor`. A cell whose normal
+/// cannot be told (no neighbours) keeps the full vote, 1.
 pub fn horizontal_votes(
-    range: &[f32],
+    points: &[f32],
     config: &CylinderConfig,
     cells: &[[usize; 2]],
     floor: f64,
 ) -> Result<Vec<f64>> {
-    check_range_image("range", range, config)?;
+    check_cell_points(points, config)?;
     if !(0.0..=1.0).contains(&floor) {
         return Err(Error::invalid(
             "floor",
@@ -92,7 +150,7 @@ pub fn horizontal_votes(
                     ),
                 ));
             }
-            Ok(surface_normal(range, config, row, col)
+            Ok(surface_normal(points, config, row, col)
                 .map_or(1.0, |n| (n.x * n.x + n.y * n.y).sqrt().max(floor)))
         })
         .collect()
@@ -102,93 +160,185 @@ pub fn horizontal_votes(
 mod tests {
     use super::*;
 
-    /// The range image of the plane `n·p = d` seen from the origin (cells whose ray misses it in front
-    /// stay empty).
-    fn plane_image(config: &CylinderConfig, normal: Vector3<f64>, d: f64) -> Vec<f32> {
-        let mut range = vec![0.0f32; config.height * config.width];
+    const EMPTY: [f32; 3] = [f32::NAN; 3];
+
+    /// The point image of the plane `n·p = d` seen from the origin, each point at its cell's centre
+    /// angles (cells whose ray misses it within 80 m stay empty).
+    fn plane_image(config: &CylinderConfig, normal: Vector3<f64>, d: f64) -> Vec<[f32; 3]> {
+        let mut image = vec![EMPTY; config.height * config.width];
         for row in 0..config.height {
             for col in 0..config.width {
                 let ray = config.unproject(row as f64, col as f64, 1.0).coords;
                 let along = normal.dot(&ray);
                 if along.abs() > 1e-9 && d / along > 0.0 && d / along < 80.0 {
-                    range[row * config.width + col] = (d / along) as f32;
+                    let p = ray * (d / along);
+                    image[row * config.width + col] = [p.x as f32, p.y as f32, p.z as f32];
                 }
             }
         }
-        range
+        image
     }
 
-    fn cells_of(range: &[f32], width: usize) -> Vec<[usize; 2]> {
-        (0..range.len())
-            .filter(|&i| range[i] > 0.0)
-            .map(|i| [i / width, i % width])
-            .collect()
+    fn flat(image: &[[f32; 3]]) -> Vec<f32> {
+        image.iter().flatten().copied().collect()
+    }
+
+    /// The cells whose normal can be told (the edges of a plane's image have too few neighbours, its
+    /// far rows a ring each), and that they are most of the plane's cells.
+    fn cells_with_normals(image: &[[f32; 3]], config: &CylinderConfig) -> Vec<[usize; 2]> {
+        let points = flat(image);
+        let occupied: Vec<[usize; 2]> = (0..image.len())
+            .filter(|&i| !image[i][0].is_nan())
+            .map(|i| [i / config.width, i % config.width])
+            .collect();
+        let cells: Vec<[usize; 2]> = occupied
+            .iter()
+            .copied()
+            .filter(|&[r, c]| surface_normal(&points, config, r, c).is_some())
+            .collect();
+        assert!(
+            2 * cells.len() > occupied.len(),
+            "{} of {}",
+            cells.len(),
+            occupied.len()
+        );
+        cells
     }
 
     #[test]
     fn the_road_has_no_horizontal_vote_and_a_wall_a_full_one() {
         let config = CylinderConfig::kitti();
         let road = plane_image(&config, Vector3::z(), -1.73);
-        let votes = horizontal_votes(&road, &config, &cells_of(&road, config.width), 0.0).unwrap();
+        let votes = horizontal_votes(
+            &flat(&road),
+            &config,
+            &cells_with_normals(&road, &config),
+            0.0,
+        )
+        .unwrap();
         assert!(!votes.is_empty());
-        assert!(votes.iter().all(|&v| v < 1e-3), "max {:?}", votes.iter().cloned().fold(0.0, f64::max));
+        assert!(votes.iter().all(|&v| v < 1e-3));
 
         let wall = plane_image(&config, Vector3::new(0.6, 0.8, 0.0), 12.0);
-        let votes = horizontal_votes(&wall, &config, &cells_of(&wall, config.width), 0.0).unwrap();
+        let votes = horizontal_votes(
+            &flat(&wall),
+            &config,
+            &cells_with_normals(&wall, &config),
+            0.0,
+        )
+        .unwrap();
         assert!(!votes.is_empty());
         assert!(votes.iter().all(|&v| (v - 1.0).abs() < 1e-6));
+    }
+
+    #[test]
+    fn the_road_stays_level_when_the_lasers_sit_off_the_grid() {
+        // Each row's laser a different fraction of a row off its cell centre, as a real sensor's: the
+        // scan's own points still lie on the road.
+        let config = CylinderConfig::kitti();
+        let mut road = vec![EMPTY; config.height * config.width];
+        for row in 0..config.height {
+            let offset = 0.45 * ((row * 7 % 11) as f64 / 10.0 - 0.5);
+            for col in 0..config.width {
+                let ray = config
+                    .unproject(row as f64 + offset, col as f64, 1.0)
+                    .coords;
+                if ray.z < -1e-3 && -1.73 / ray.z < 80.0 {
+                    let p = ray * (-1.73 / ray.z);
+                    road[row * config.width + col] = [p.x as f32, p.y as f32, p.z as f32];
+                }
+            }
+        }
+        let votes = horizontal_votes(
+            &flat(&road),
+            &config,
+            &cells_with_normals(&road, &config),
+            0.0,
+        )
+        .unwrap();
+        assert!(!votes.is_empty());
+        assert!(votes.iter().all(|&v| v < 1e-3));
     }
 
     #[test]
     fn a_tilted_plane_votes_the_sine_of_its_tilt() {
         let config = CylinderConfig::kitti();
         let tilt = 30f64.to_radians();
-        let normal = Vector3::new(tilt.sin(), 0.0, tilt.cos());
-        let ramp = plane_image(&config, normal, -3.0);
-        // Cells at the edge of the plane's image have no neighbour to tell the normal by.
-        let cells: Vec<[usize; 2]> = cells_of(&ramp, config.width)
-            .into_iter()
-            .filter(|&[r, c]| surface_normal(&ramp, &config, r, c).is_some())
-            .collect();
-        let votes = horizontal_votes(&ramp, &config, &cells, 0.0).unwrap();
-        assert!(!votes.is_empty());
-        let worst = votes.iter().map(|v| (v - tilt.sin()).abs()).fold(0.0, f64::max);
+        let ramp = plane_image(&config, Vector3::new(tilt.sin(), 0.0, tilt.cos()), -3.0);
+        let votes = horizontal_votes(
+            &flat(&ramp),
+            &config,
+            &cells_with_normals(&ramp, &config),
+            0.0,
+        )
+        .unwrap();
+        let worst = votes
+            .iter()
+            .map(|v| (v - tilt.sin()).abs())
+            .fold(0.0, f64::max);
         assert!(worst < 1e-3, "{worst}");
     }
 
     #[test]
-    fn the_normal_follows_the_nearer_neighbour_across_a_depth_edge() {
+    fn what_lies_across_a_depth_edge_does_not_bend_the_normal() {
         let config = CylinderConfig::kitti();
         let mut wall = plane_image(&config, Vector3::x(), 10.0);
         let (row, col) = (30, config.width / 2);
-        // Something far behind on the left and far in front above the cell.
-        wall[row * config.width + col - 1] = 60.0;
-        wall[(row - 1) * config.width + col] = 2.0;
-        let normal = surface_normal(&wall, &config, row, col).unwrap();
+        // A pole 3 m in front of the wall, just left of the cell, and the wall's cells above it gone.
+        for r in row - 3..=row + 3 {
+            for c in col - 4..col {
+                let p = config.unproject(r as f64, c as f64, 3.0);
+                wall[r * config.width + c] = [p.x as f32, p.y as f32, p.z as f32];
+            }
+            wall[(row - 3) * config.width + col + 2] = [f32::NAN; 3];
+        }
+        let normal = surface_normal(&flat(&wall), &config, row, col).unwrap();
         assert!((normal.x.abs() - 1.0).abs() < 1e-6, "{normal:?}");
+    }
+
+    #[test]
+    fn a_single_ring_has_no_normal() {
+        let config = CylinderConfig::kitti();
+        let mut ring = vec![EMPTY; config.height * config.width];
+        let row = 50;
+        for col in 0..config.width {
+            let ray = config.unproject(row as f64, col as f64, 1.0).coords;
+            let p = ray * (-1.73 / ray.z);
+            ring[row * config.width + col] = [p.x as f32, p.y as f32, p.z as f32];
+        }
+        assert_eq!(surface_normal(&flat(&ring), &config, row, 900), None);
     }
 
     #[test]
     fn unknown_normals_keep_the_full_vote_and_the_floor_holds() {
         let config = CylinderConfig::kitti();
-        let mut range = vec![0.0f32; config.height * config.width];
-        range[10 * config.width + 100] = 5.0; // a lone point
-        let votes = horizontal_votes(&range, &config, &[[10, 100]], 0.0).unwrap();
+        let mut lone = vec![EMPTY; config.height * config.width];
+        lone[10 * config.width + 100] = [5.0, 0.0, 0.0];
+        let votes = horizontal_votes(&flat(&lone), &config, &[[10, 100]], 0.0).unwrap();
         assert_eq!(votes, vec![1.0]);
         let road = plane_image(&config, Vector3::z(), -1.73);
-        let votes = horizontal_votes(&road, &config, &cells_of(&road, config.width), 0.05).unwrap();
+        let votes = horizontal_votes(
+            &flat(&road),
+            &config,
+            &cells_with_normals(&road, &config),
+            0.05,
+        )
+        .unwrap();
         assert!(votes.iter().all(|&v| (v - 0.05).abs() < 1e-3));
     }
 
     #[test]
     fn bad_arguments_are_named() {
         let config = CylinderConfig::kitti();
-        let range = vec![0.0f32; config.height * config.width];
-        let err = horizontal_votes(&range, &config, &[[config.height, 0]], 0.0).unwrap_err();
+        let mut points = vec![f32::NAN; 3 * config.height * config.width];
+        let err = horizontal_votes(&points, &config, &[[config.height, 0]], 0.0).unwrap_err();
         assert!(err.to_string().starts_with("cells:"), "{err}");
-        let err = horizontal_votes(&range, &config, &[], 1.5).unwrap_err();
+        let err = horizontal_votes(&points, &config, &[], 1.5).unwrap_err();
         assert!(err.to_string().starts_with("floor:"), "{err}");
-        let err = horizontal_votes(&range[1..], &config, &[], 0.0).unwrap_err();
-        assert!(err.to_string().starts_with("range:"), "{err}");
+        let err = horizontal_votes(&points[1..], &config, &[], 0.0).unwrap_err();
+        assert!(err.to_string().starts_with("points:"), "{err}");
+        points[7] = f32::INFINITY;
+        let err = horizontal_votes(&points, &config, &[], 0.0).unwrap_err();
+        assert!(err.to_string().starts_with("points:"), "{err}");
     }
 }

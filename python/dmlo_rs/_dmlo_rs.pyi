@@ -191,9 +191,13 @@ def ransac_rigid(
     refit: Literal["point_to_point", "ray_noise"] = "point_to_point",
     range_ratio: float = 4.0,
     bearing_threshold_deg: float = 0.2,
+    votes: npt.NDArray[np.floating] | None = None,
     num_threads: int | None = None,
 ) -> RansacResult:
     """RANSAC (samples of 3) around the rigid solve; deterministic for a seed whatever num_threads.
+
+    With `votes` (one per match, finite, >= 0, not all 0) a hypothesis's consensus is the sum of its
+    inliers' votes instead of their count, and samples draw each match in proportion to its vote.
 
     The answer is a least-squares refit on the inliers, repeated on the refit's inliers until they stop
     changing (at most `refine_iterations` times; 0: the best minimal-sample hypothesis itself). Each
@@ -224,6 +228,19 @@ def refit_rigid(
 ) -> npt.NDArray[np.float64]:
     """The motion (4×4 float64, dst ≈ T·src) of pairs taken as inliers, solved as one of `ransac_rigid`'s
     refits: the closed-form solve (Eq. 12-14), then for "ray_noise" `ray_noise_refit` from it."""
+
+def horizontal_votes(
+    points: npt.NDArray[np.floating],
+    rows: npt.NDArray[np.integer],
+    cols: npt.NDArray[np.integer],
+    config: CylinderConfig,
+    *,
+    floor: float = 0.0,
+) -> npt.NDArray[np.float64]:
+    """Per reference cell (rows[i], cols[i]): its match's vote for a horizontal motion, the horizontal part
+    of the normal of the plane through the scan's points around it in `points` ([H, W, 3], each cell's
+    kept point, NaN where empty): ~0 on level ground, 1 on a wall; at least `floor` (0..1), and 1 where
+    no plane fits (too few neighbours, or one ring's)."""
 
 def nms(
     rows: npt.NDArray[np.integer],

@@ -283,7 +283,7 @@ pub(super) fn vector_i64(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Vec<i64
 }
 
 /// A `height × width` float image (float32, or float64 to be converted by `f32_data`).
-pub(super) fn image<'py>(
+fn image<'py>(
     name: &str,
     obj: &Bound<'py, PyAny>,
     config: &CylinderConfig,
@@ -656,11 +656,12 @@ fn refit_kind(refit: &str, range_ratio: f64, bearing_threshold_deg: f64) -> PyRe
 }
 
 /// RANSAC around the rigid solve: minimal samples of 3, inliers within `threshold` metres,
-/// adaptive iterations for `confidence`, deterministic for a `seed` whatever `num_threads`.
+/// adaptive iterations for `confidence`, deterministic for a `seed` whatever `num_threads`. With
+/// `votes` (one per match, ≥ 0) a hypothesis's consensus is the sum of its inliers' votes.
 #[pyfunction]
 #[pyo3(signature = (src, dst, threshold = 0.1, confidence = 0.999, max_iterations = 1000, seed = 0, *,
                     refine_iterations = 10, refit = "point_to_point", range_ratio = 4.0,
-                    bearing_threshold_deg = 0.2, num_threads = None))]
+                    bearing_threshold_deg = 0.2, votes = None, num_threads = None))]
 #[allow(clippy::too_many_arguments)]
 fn ransac_rigid(
     py: Python<'_>,
@@ -674,9 +675,11 @@ fn ransac_rigid(
     refit: &str,
     range_ratio: f64,
     bearing_threshold_deg: f64,
+    votes: Option<&Bound<'_, PyAny>>,
     num_threads: Option<Int>,
 ) -> PyResult<PyRansacResult> {
     let (src, dst) = (points3("src", src)?, points3("dst", dst)?);
+    let votes = votes.map(|v| vector_f64("votes", v)).transpose()?;
     let config = RansacConfig {
         threshold,
         confidence,
@@ -687,7 +690,7 @@ fn ransac_rigid(
         ..Default::default()
     };
     let result = run(py, threads(num_threads)?, || {
-        ransac::ransac_rigid(&src, &dst, &config)
+        ransac::ransac_rigid_voted(&src, &dst, votes.as_deref(), &config)
     })?;
     Ok(PyRansacResult {
         transform: matrix_to_numpy(py, &result.transform).unbind(),

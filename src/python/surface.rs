@@ -7,24 +7,35 @@ use pyo3::prelude::*;
 
 use crate::surface;
 
-use super::core::{image, vector_i64, PyCylinderConfig};
+use super::core::{floats, shape_error, vector_i64, PyCylinderConfig};
 use super::pool::run;
 
 /// Per reference cell (`rows[i]`, `cols[i]`, e.g. a decoded match's cell): the weight of its vote for a
-/// horizontal motion, the horizontal part of the normal of the surface there in `range` (`[H, W]`):
-/// ≈ 0 on level ground, 1 on a wall; at least `floor`, and 1 where the normal cannot be told. → float64.
+/// horizontal motion, the horizontal part of the normal of the surface there in the reference scan's
+/// point image `points` (`[H, W, 3]`, each cell's kept point, NaN where empty): ≈ 0 on level ground, 1
+/// on a wall; at least `floor`, and 1 where the normal cannot be told. → float64.
 #[pyfunction]
-#[pyo3(signature = (range, rows, cols, config, *, floor = 0.0))]
+#[pyo3(signature = (points, rows, cols, config, *, floor = 0.0))]
 fn horizontal_votes<'py>(
     py: Python<'py>,
-    range: &Bound<'py, PyAny>,
+    points: &Bound<'py, PyAny>,
     rows: &Bound<'py, PyAny>,
     cols: &Bound<'py, PyAny>,
     config: &PyCylinderConfig,
     floor: f64,
 ) -> PyResult<Bound<'py, PyArray1<f64>>> {
     let cylinder = config.inner;
-    let range = image("range", range, &cylinder)?;
+    let points = floats("points", points)?;
+    if points.shape() != [cylinder.height, cylinder.width, 3] {
+        return Err(shape_error(
+            "points",
+            &format!(
+                "({}, {}, 3) (the config's image)",
+                cylinder.height, cylinder.width
+            ),
+            points.shape(),
+        ));
+    }
     let (rows, cols) = (vector_i64("rows", rows)?, vector_i64("cols", cols)?);
     if rows.len() != cols.len() {
         return Err(PyValueError::new_err(format!(
@@ -43,10 +54,10 @@ fn horizontal_votes<'py>(
             ))),
         })
         .collect::<PyResult<Vec<[usize; 2]>>>()?;
-    let range = range.f32_data();
-    let range: &[f32] = &range;
+    let points = points.f32_data();
+    let points: &[f32] = &points;
     let votes = run(py, Some(1), || {
-        surface::horizontal_votes(range, &cylinder, &cells, floor)
+        surface::horizontal_votes(points, &cylinder, &cells, floor)
     })?;
     Ok(Array1::from_vec(votes).into_pyarray(py))
 }

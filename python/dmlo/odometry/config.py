@@ -58,6 +58,14 @@ class RansacConfig:
     # … and the refits' inliers within `threshold` along the target's ray and, across it, within the
     # threshold or this angle's width at the match's range (0.2°: a column of the KITTI image), whichever is larger.
     ray_bearing_threshold_deg: float = 0.2
+    # Beyond the paper: a match's vote in a hypothesis's consensus is the horizontal part of the normal of
+    # the surface under its reference cell (`dmlo_rs.horizontal_votes`: ≈ 0 on the road, 1 on a wall), at
+    # least `min_vote`, instead of 1 each. The road's rings look alike from scan to scan, so at speed its
+    # matches lock onto the same rings and agree on no motion at all; counted one each they outvote the
+    # few matches on posts and signs that see the car move (a feature-poor highway, reported standing
+    # still). The refits still solve on every inlier, road matches included. False: one vote each (the paper).
+    vote_by_tilt: bool = True
+    min_vote: float = 0.05
 
 
 @dataclass

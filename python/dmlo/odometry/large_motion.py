@@ -33,8 +33,8 @@ def register_far(
     *,
     wide: Matcher,
     matcher: Matcher,
-    project: Callable[[npt.NDArray[np.float32]], tuple[Image, Image]],
-    match: Callable[[Image, Image, Image, Image], PairResult],
+    project: Callable[[npt.NDArray[np.float32]], tuple[Image, Image, Image]],
+    match: Callable[..., PairResult],
     config: LargeMotionConfig,
     min_inliers: int,
     starts: list[Matrix4] | None = None,
@@ -45,10 +45,10 @@ def register_far(
     `min_inliers` inliers keeps the estimate before it."""
     best: tuple[PairResult, Matrix4] | None = None
     for start in starts or search_starts(config.search_ahead_m, config.search_yaw_deg):
-        ref_image, ref_range = project(moved(reference, start))
+        ref_image, ref_range, ref_points = project(moved(reference, start))
         output = wide.frame(tgt_image, matcher.encode(ref_image))
         assert output.flow is not None and output.confidence is not None
-        pair = match(ref_range, tgt_range, output.flow, output.confidence)
+        pair = match(ref_range, tgt_range, output.flow, output.confidence, ref_points=ref_points)
         if best is None or pair.num_inliers > best[0].num_inliers:
             best = (pair, start)
     assert best is not None, "at least one start (checked with the config)"
@@ -69,8 +69,8 @@ def rematch(
     rounds: range,
     last_correction: Matrix4 | None,
     matcher: Matcher,
-    project: Callable[[npt.NDArray[np.float32]], tuple[Image, Image]],
-    match: Callable[[Image, Image, Image, Image], PairResult],
+    project: Callable[[npt.NDArray[np.float32]], tuple[Image, Image, Image]],
+    match: Callable[..., PairResult],
     config: LargeMotionConfig,
     min_inliers: int,
 ) -> PairResult | None:
@@ -85,9 +85,9 @@ def rematch(
             moved_m, turned_deg = pose_difference(np.eye(4), correction)
             if moved_m < config.min_step and turned_deg < config.min_step_deg:
                 break
-        ref_image, ref_range = project(moved(reference, estimate))
+        ref_image, ref_range, ref_points = project(moved(reference, estimate))
         flow, confidence = matcher.match(matcher.encode(ref_image), tgt_features)
-        pair = match(ref_range, tgt_range, flow, confidence)
+        pair = match(ref_range, tgt_range, flow, confidence, ref_points=ref_points)
         if pair.num_inliers < min_inliers:
             break
         result, correction = in_given_frames(pair, estimate, rounds=round_), pair.T_tgt_ref

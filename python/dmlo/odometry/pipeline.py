@@ -123,6 +123,7 @@ class PairResult:
 class _Scan:
     cloud: npt.NDArray[np.float32]  # N×4, the points matched (moving ones and non-finite left out)
     range: npt.NDArray[np.float32]
+    points: npt.NDArray[np.float32]  # [H, W, 3] the point each cell of `range` holds, NaN where empty
     features: Features
     pose: Matrix4
     deskewed: bool = False  # motion-compensated (`deskew.enabled`)
@@ -245,7 +246,7 @@ class Odometry:
                     self._deskew_reference(self._reference)
             diagnostics.deskewed = True
 
-        image, ranges = self._project(cloud)  # Eq. 1
+        image, ranges, points = self._project(cloud)  # Eq. 1
         diagnostics.image_fill = float(np.count_nonzero(ranges) / ranges.size)
         self._check_sensor(diagnostics.image_fill)
         previous = self._reference
@@ -258,7 +259,7 @@ class Odometry:
         if previous is None:
             pose = self._predict()
         else:
-            motion = self._motion_from_flow(previous, image, ranges, output, diagnostics, watch)
+            motion = self._motion_from_flow(previous, image, ranges, points, output, diagnostics, watch)
             pose = previous.pose @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
             if self._map is not None:
                 pose = self._refine_with_map(cloud, pose, diagnostics)
@@ -272,7 +273,8 @@ class Odometry:
             watch.lap("map_update")
 
         self._reference = _Scan(
-            cloud=cloud, range=ranges, features=output.features, pose=pose, deskewed=deskewed, times=times
+            cloud=cloud, range=ranges, points=points, features=output.features, pose=pose, deskewed=deskewed,
+            times=times,
         )
         self._reference_frame = self._clock.frame
         return self._record(pose, diagnostics)
@@ -293,7 +295,7 @@ class Odometry:
         one loses the skew's cancellation between two sweeps of the same motion (on the highway a 19 cm
         error and a re-match), and with mapping the map then holds only deskewed scans."""
         reference.cloud = self._deskew(reference.cloud, reference.times)
-        image, reference.range = self._project(reference.cloud)
+        image, reference.range, reference.points = self._project(reference.cloud)
         reference.features = self._encode(image)
         reference.deskewed = True
         if self._map is not None:
@@ -340,13 +342,13 @@ class Odometry:
         the identity would be a silent wrong answer.
         """
         reference_cloud = self._finite_scan(reference, "reference")
-        tgt_image, tgt_range = self._project(self._finite_scan(target, "target"))
+        tgt_image, tgt_range, tgt_points = self._project(self._finite_scan(target, "target"))
         if large_motion:
             return self._register_far(reference_cloud, tgt_image, tgt_range)
-        ref_image, ref_range = self._project(reference_cloud)
+        ref_image, ref_range, ref_points = self._project(reference_cloud)
         ref_features = self.matcher.encode(ref_image)
         output = self.matcher.frame(tgt_image, ref_features)
-        pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features)
+        pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features, ref_points, tgt_points)
         return pair
 
     def _finite_scan(self, points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
@@ -383,7 +385,8 @@ class Odometry:
 
     def project(self, points: npt.ArrayLike) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """The network input `[2, H, W]` (range, reflectance) of a scan and its range image `[H, W]` (Eq. 1)."""
-        return self._project(_as_scan(points, "points"))
+        image, ranges, _ = self._project(_as_scan(points, "points"))
+        return image, ranges
 
     def pose_from_flow(
         self,
@@ -396,15 +399,24 @@ class Odometry:
         images → NMS → RANSAC around the SVD solve, with this odometry's settings (§III-D).
 
         For evaluating the geometry on other flows (ground truth, another network) or one step at a time.
+        Without the scans, the surfaces under the matches (`ransac.vote_by_tilt`) are those of the virtual
+        points at the reference's cell centres.
         """
         def as_f32(array: npt.ArrayLike) -> npt.NDArray[np.float32]:
             return np.ascontiguousarray(array, dtype=np.float32)
 
         return self._match(as_f32(ref_range), as_f32(tgt_range), as_f32(flow), as_f32(confidence))
 
-    def _project(self, cloud: npt.NDArray[np.float32]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    def _project(
+        self, cloud: npt.NDArray[np.float32]
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """The network input `[2, H, W]`, the range image `[H, W]` and the point image `[H, W, 3]` (each
+        cell's kept point, NaN where empty) of a scan."""
         projection = dmlo_rs.project(cloud, self.cylinder)
-        return np.stack([projection.range, projection.reflectance]), projection.range
+        index = projection.index
+        points = np.take(cloud[:, :3], np.maximum(index, 0), axis=0)
+        points[index < 0] = np.nan
+        return np.stack([projection.range, projection.reflectance]), projection.range, points
 
     def _match(
         self,
@@ -414,7 +426,10 @@ class Odometry:
         confidence: npt.NDArray[np.float32],
         watch: _Stopwatch | None = None,
         leave_out: npt.NDArray[np.bool_] | None = None,
+        ref_points: npt.NDArray[np.float32] | None = None,
     ) -> PairResult:
+        """The pair's motion from a flow (§III-D); `ref_points` is the reference's point image (`_project`),
+        None: the virtual points of `ref_range`'s cells."""
         m, r = self.config.matching, self.config.ransac
         if m.coherence_px is not None:
             confidence = dmlo_rs.coherent_confidence(
@@ -434,12 +449,18 @@ class Odometry:
             watch.lap("decode_nms")
         transform, inliers, num_inliers = np.eye(4), np.zeros(len(src), dtype=bool), 0
         if len(src) >= 3:
+            votes = None
+            if r.vote_by_tilt:  # road matches cannot tell horizontal motions apart: they vote less
+                if ref_points is None:
+                    ref_points = self._virtual_points(ref_range)
+                cells = matches.cells
+                votes = dmlo_rs.horizontal_votes(ref_points, cells[:, 0], cells[:, 1], self.cylinder, floor=r.min_vote)
             try:
                 # RANSAC around the closed-form SVD solve, Eq. 12–14 (§III-D-b); refits as `ransac.refit` says.
                 ransac = dmlo_rs.ransac_rigid(
                     src, dst, threshold=r.threshold, confidence=r.confidence,
                     max_iterations=r.max_iterations, seed=r.seed, refit=r.refit, range_ratio=r.ray_range_ratio,
-                    bearing_threshold_deg=r.ray_bearing_threshold_deg,
+                    bearing_threshold_deg=r.ray_bearing_threshold_deg, votes=votes,
                 )
                 transform, inliers, num_inliers = ransac.transform, ransac.inliers, ransac.num_inliers
             except dmlo_rs.RegistrationError:  # degenerate or all-outlier matches: no motion from this pair
@@ -455,21 +476,31 @@ class Odometry:
             inliers=np.asarray(inliers, dtype=bool),
         )
 
+    def _virtual_points(self, ranges: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        """The point image of a range image alone: Φ⁻¹ at each cell's centre (Eq. 4), NaN where empty."""
+        height, width = ranges.shape
+        rows, cols = np.divmod(np.arange(height * width, dtype=np.float64), width)
+        points = dmlo_rs.unproject(rows, cols, ranges.reshape(-1).astype(np.float64), self.cylinder)
+        points[ranges.reshape(-1) <= 0] = np.nan
+        return points.astype(np.float32).reshape(height, width, 3)
+
     def _pair(
         self,
         ref_range: npt.NDArray[np.float32],
         tgt_range: npt.NDArray[np.float32],
         output: FrameOutput,
         ref_features: Features,
+        ref_points: npt.NDArray[np.float32],
+        tgt_points: npt.NDArray[np.float32],
         watch: _Stopwatch | None = None,
     ) -> tuple[PairResult, PairResult, PairResult | None]:
         """The pair's motion from the frame graph's `output`, and the one-way pairs it came from: the
         forward pair alone, or with `matching.symmetric` the forward and the backward pair combined."""
         assert output.flow is not None and output.confidence is not None
         if not self.config.matching.symmetric:
-            forward = self._match(ref_range, tgt_range, output.flow, output.confidence, watch)
+            forward = self._match(ref_range, tgt_range, output.flow, output.confidence, watch, ref_points=ref_points)
             return forward, forward, None
-        forward, backward = self._match_both_ways(ref_range, tgt_range, output, ref_features, watch)
+        forward, backward = self._match_both_ways(ref_range, tgt_range, output, ref_features, ref_points, tgt_points, watch)
         if watch:
             watch.lap("backward")
         return _symmetric(forward, backward, self.config.motion_model.min_inliers), forward, backward
@@ -480,6 +511,8 @@ class Odometry:
         tgt_range: npt.NDArray[np.float32],
         output: FrameOutput,
         ref_features: Features,
+        ref_points: npt.NDArray[np.float32],
+        tgt_points: npt.NDArray[np.float32],
         watch: _Stopwatch | None,
     ) -> tuple[PairResult, PairResult]:
         """The forward pair of `output` (reference → target) and the target matched back against the
@@ -495,8 +528,8 @@ class Odometry:
         if limit is not None:
             forward_out = _round_trip_error(output.flow, back_flow, wraps) > limit
             backward_out = _round_trip_error(back_flow, output.flow, wraps) > limit
-        forward = self._match(ref_range, tgt_range, output.flow, output.confidence, watch, forward_out)
-        backward = self._match(tgt_range, ref_range, back_flow, back_confidence, None, backward_out)
+        forward = self._match(ref_range, tgt_range, output.flow, output.confidence, watch, forward_out, ref_points)
+        backward = self._match(tgt_range, ref_range, back_flow, back_confidence, None, backward_out, tgt_points)
         return forward, backward
 
     def _motion_from_flow(
@@ -504,11 +537,14 @@ class Odometry:
         previous: _Scan,
         tgt_image: npt.NDArray[np.float32],
         tgt_range: npt.NDArray[np.float32],
+        tgt_points: npt.NDArray[np.float32],
         output: FrameOutput,
         diagnostics: FrameDiagnostics,
         watch: _Stopwatch,
     ) -> Matrix4:
-        pair, forward, backward = self._pair(previous.range, tgt_range, output, previous.features, watch)
+        pair, forward, backward = self._pair(
+            previous.range, tgt_range, output, previous.features, previous.points, tgt_points, watch
+        )
         diagnostics.num_matches = forward.num_matches
         diagnostics.num_inliers = forward.num_inliers
         diagnostics.inlier_ratio = forward.inlier_ratio
@@ -732,7 +768,7 @@ class Odometry:
 
 # Limits that None turns off, and limits that must be > 0 rather than >= 0 (a scale divides by them).
 _OPTIONAL_LIMITS = {("matching", "consistency_px"), ("matching", "coherence_px")}
-_POSITIVE_LIMITS = {("matching", "coherence_px"), ("ransac", "ray_range_ratio")}
+_POSITIVE_LIMITS = {("matching", "coherence_px"), ("ransac", "ray_range_ratio"), ("ransac", "min_vote")}
 
 
 def _check_limits(config: OdometryConfig) -> None:
@@ -741,7 +777,7 @@ def _check_limits(config: OdometryConfig) -> None:
         "matching": ("consistency_px", "coherence_px"),
         "motion_model": ("max_deviation", "max_deviation_deg", "guided_fraction"),
         "large_motion": ("min_step", "min_step_deg"),
-        "ransac": ("ray_range_ratio", "ray_bearing_threshold_deg"),
+        "ransac": ("ray_range_ratio", "ray_bearing_threshold_deg", "min_vote"),
         "mapping": (
             "keyframe_distance",
             "keyframe_angle_deg",
@@ -759,6 +795,10 @@ def _check_limits(config: OdometryConfig) -> None:
                 raise ValueError(f"{section}.{name}: must be a number {'>' if positive else '>='} 0, got {value!r}")
     if config.ransac.refit not in REFITS:
         raise ValueError(f"ransac.refit: must be one of {', '.join(REFITS)}, got {config.ransac.refit!r}")
+    if config.ransac.min_vote > 1:
+        raise ValueError(f"ransac.min_vote: must be at most 1 (a wall's vote), got {config.ransac.min_vote!r}")
+    if not isinstance(config.ransac.vote_by_tilt, bool):
+        raise ValueError(f"ransac.vote_by_tilt: must be true or false, got {config.ransac.vote_by_tilt!r}")
     if config.ransac.ray_bearing_threshold_deg >= 90:
         raise ValueError(f"ransac.ray_bearing_threshold_deg: must be below 90, got {config.ransac.ray_bearing_threshold_deg!r}")
     for name in ("search_ahead_m", "search_yaw_deg"):
