@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -101,3 +102,44 @@ def test_network_benchmark_times_the_matching_stage_both_ways(drive: Path, capsy
         assert int(total) == 64 * 1792 and int(count) < 0.001 * int(total)  # the same matches both ways
     with pytest.raises(SystemExit, match="--stages needs --drive"):
         network.main(["--stages"])
+
+
+def test_real_scan_benchmark_runs_on_a_plain_folder_of_scans(drive: Path, tmp_path: Path) -> None:
+    pytest.importorskip("small_gicp")
+    scans = tmp_path / "my_drive"
+    scans.mkdir()
+    for path in sorted((drive / "velodyne").glob("*.bin"))[:3]:
+        shutil.copy(path, scans / path.name)  # no poses, no calibration: anyone's own drive
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "dmlo.benchmarks.real", str(scans), "--peers", "--out", str(out)]
+    result = subprocess.run(command, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith("| DMLO")]
+    assert [row.split(" | ")[0] for row in rows] == ["| DMLO", "| DMLO + mapping"]
+    report = json.loads((out / "real.json").read_text())
+    (entry,) = report["sets"].values()
+    assert len(entry["reference"]["motions"]) == 2
+    refused = subprocess.run([*command[:-2], "--max-frames", "1"], capture_output=True, text=True)
+    assert refused.returncode == 2 and "--max-frames" in refused.stderr
+
+
+def test_real_scan_pair_errors_are_measured_against_the_reference() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from dmlo.bench.consensus import ConsensusReference
+    from dmlo.benchmarks.real import pair_errors
+
+    rng = np.random.default_rng(0)
+    motions = np.tile(np.eye(4), (5, 1, 1))
+    motions[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.02, (5, 3))).as_matrix()
+    motions[:, :3, 3] = rng.normal(0, 1, (5, 3))
+    error = np.eye(4)
+    error[:3, :3] = Rotation.from_rotvec([0.0, np.radians(0.1), 0.0]).as_matrix()  # nose down by 0.1°
+    error[:3, 3] = [0.02, 0.0, 0.0]
+    estimate = [np.eye(4)]
+    for motion in motions:
+        estimate.append(estimate[-1] @ motion @ error)
+    reference = ConsensusReference(motions, np.zeros(5), np.zeros(5), ("test",))
+    row = pair_errors("m", np.stack(estimate), reference, hz=10.0)
+    assert row.translation_mean_cm == pytest.approx(2.0) and row.translation_max_cm == pytest.approx(2.0)
+    assert row.rotation_mean_deg == pytest.approx(0.1) and row.pitch_bias_deg == pytest.approx(0.1)

@@ -367,3 +367,17 @@ def test_evaluate_trajectory_degenerate_inputs() -> None:
         M.evaluate_trajectory(straight_line(2), straight_line(1))
     with pytest.raises(ValueError, match="delta must be"):
         M.evaluate_trajectory(straight_line(2), straight_line(2), delta=0)
+
+
+def test_signed_rotation_errors_per_axis_are_scipys_rotation_vector() -> None:
+    estimate = Rotation.random(50, random_state=3)
+    truth = Rotation.random(50, random_state=4)
+    axes = M.rotation_error_axes_deg(estimate.as_matrix(), truth.as_matrix())
+    np.testing.assert_allclose(axes, np.degrees((truth.inv() * estimate).as_rotvec()), atol=1e-9)
+    np.testing.assert_allclose(
+        np.linalg.norm(axes, axis=1), M.rotation_error_deg(estimate.as_matrix(), truth.as_matrix()), atol=1e-9
+    )
+    small = Rotation.from_rotvec([0.0, 1e-9, 0.0]).as_matrix()
+    np.testing.assert_allclose(M.rotation_error_axes_deg(small, np.eye(3)), [0.0, np.degrees(1e-9), 0.0], atol=1e-15)
+    with pytest.raises(ValueError, match="rotations"):
+        M.rotation_error_axes_deg(np.eye(3), np.eye(4))

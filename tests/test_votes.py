@@ -1,0 +1,105 @@
+"""Each match's vote in RANSAC by the tilt of the surface under it (`dmlo_rs.horizontal_votes`,
+`ransac_rigid(votes=)`, `ransac.vote_by_tilt`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import dmlo_rs
+from dmlo.odometry import Odometry, OdometryConfig
+from dmlo_rs import CylinderConfig
+
+
+def _plane_scan(normal: np.ndarray, offset: float, config: CylinderConfig) -> np.ndarray:
+    """Points of the plane `n·p = offset` where every cell's ray meets it within 60 m (N×4)."""
+    rows, cols = np.meshgrid(np.arange(config.height, dtype=float), np.arange(config.width, dtype=float), indexing="ij")
+    rays = dmlo_rs.unproject(rows.ravel(), cols.ravel(), np.ones(rows.size), config)
+    along = rays @ normal
+    with np.errstate(divide="ignore"):
+        distance = offset / along
+    hit = np.isfinite(distance) & (distance > 0.5) & (distance < 60)
+    points = rays[hit] * distance[hit, None]
+    return np.hstack([points, np.zeros((len(points), 1))]).astype(np.float32)
+
+
+def _votes(scan: np.ndarray, config: CylinderConfig, floor: float = 0.0) -> np.ndarray:
+    """The vote of every occupied cell, with its point image as the odometry builds it."""
+    projection = dmlo_rs.project(scan, config)
+    points = np.where((projection.index >= 0)[..., None], scan[np.maximum(projection.index, 0), :3], np.nan)
+    rows, cols = np.nonzero(projection.index >= 0)
+    return dmlo_rs.horizontal_votes(points.astype(np.float32), rows, cols, config, floor=floor)
+
+
+@pytest.mark.parametrize(
+    ("normal", "offset", "vote"),
+    [
+        ((0.0, 0.0, 1.0), -1.73, 0.0),  # the road
+        ((0.6, 0.8, 0.0), 12.0, 1.0),  # a wall
+        ((np.sin(np.radians(20)), 0.0, np.cos(np.radians(20))), -2.0, np.sin(np.radians(20))),  # a ramp
+    ],
+)
+def test_a_plane_votes_the_sine_of_its_tilt(normal: tuple[float, float, float], offset: float, vote: float) -> None:
+    config = CylinderConfig.kitti()
+    votes = _votes(_plane_scan(np.array(normal), offset, config), config)
+    told = votes[votes < 1.0] if vote < 1.0 else votes  # 1: cells whose neighbourhood is one ring
+    assert len(told) > 0.5 * len(votes)
+    np.testing.assert_allclose(told, vote, atol=2e-3)
+
+
+def test_the_floor_holds_and_bad_arguments_are_named() -> None:
+    config = CylinderConfig.kitti()
+    road = _plane_scan(np.array([0.0, 0.0, 1.0]), -1.73, config)
+    votes = _votes(road, config, floor=0.05)
+    assert votes.min() == pytest.approx(0.05)
+    points = np.full((config.height, config.width, 3), np.nan, np.float32)
+    one = np.array([1])
+    with pytest.raises(ValueError, match="points"):
+        dmlo_rs.horizontal_votes(points[1:], one, one, config)
+    with pytest.raises(ValueError, match="rows and cols"):
+        dmlo_rs.horizontal_votes(points, one, np.array([1, 2]), config)
+    with pytest.raises(ValueError, match="rows and cols"):
+        dmlo_rs.horizontal_votes(points, np.array([-1]), one, config)
+    with pytest.raises(ValueError, match="cells"):
+        dmlo_rs.horizontal_votes(points, np.array([config.height]), one, config)
+    with pytest.raises(ValueError, match="floor"):
+        dmlo_rs.horizontal_votes(points, one, one, config, floor=2.0)
+
+
+def _locked_rings(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Road matches that agree on no motion (low votes), post matches on the true one, outliers."""
+    rng = np.random.default_rng(seed)
+    truth = np.eye(4)
+    truth[:3, 3] = [-1.0, 0.05, 0.0]
+    angle, distance = rng.uniform(0, 2 * np.pi, 400), rng.uniform(4, 15, 400)
+    road = np.stack([distance * np.cos(angle), distance * np.sin(angle), np.full(400, -1.73)], axis=1)
+    posts = rng.uniform([-30, -12, -1], [30, 12, 3], (100, 3))
+    outliers = rng.uniform([-30, -12, -1], [30, 12, 3], (2, 100, 3))
+    src = np.concatenate([road, posts, outliers[0]])
+    dst = np.concatenate([road, posts + truth[:3, 3], outliers[1]])
+    votes = np.concatenate([np.full(400, 0.05), np.ones(100), rng.uniform(0.05, 1, 100)])
+    return src, dst, votes, truth
+
+
+def test_votes_keep_the_road_from_outvoting_the_posts() -> None:
+    src, dst, votes, truth = _locked_rings(1)
+    counted = dmlo_rs.ransac_rigid(src, dst)
+    assert np.linalg.norm(counted.transform[:3, 3]) < 0.05
+    voted = dmlo_rs.ransac_rigid(src, dst, votes=votes)
+    np.testing.assert_allclose(voted.transform, truth, atol=1e-6)
+    assert voted.num_inliers == 100
+    same = [dmlo_rs.ransac_rigid(src, dst, votes=votes, num_threads=t).transform for t in (1, 2)]
+    np.testing.assert_array_equal(same[0], same[1])
+    with pytest.raises(ValueError, match="votes"):
+        dmlo_rs.ransac_rigid(src, dst, votes=votes[1:])
+    with pytest.raises(ValueError, match="votes"):
+        dmlo_rs.ransac_rigid(src, dst, votes=np.zeros(len(src)))
+
+
+@pytest.mark.parametrize(
+    ("key", "value"), [("vote_by_tilt", "false"), ("vote_by_tilt", 1), ("min_vote", 0.0), ("min_vote", 1.5), ("min_vote", None)]
+)
+def test_a_bad_vote_setting_is_refused_by_name(key: str, value: object) -> None:
+    config = OdometryConfig.from_dict({"ransac": {key: value}})
+    with pytest.raises(ValueError, match=f"ransac.{key}"):
+        Odometry.from_default(config)
