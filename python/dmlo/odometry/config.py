@@ -63,7 +63,8 @@ class RansacConfig:
     # least `min_vote`, instead of 1 each. The road's rings look alike from scan to scan, so at speed its
     # matches lock onto the same rings and agree on no motion at all; counted one each they outvote the
     # few matches on posts and signs that see the car move (a feature-poor highway, reported standing
-    # still). The refits still solve on every inlier, road matches included. False: one vote each (the paper).
+    # still). The refits still solve on every inlier, road matches included. Consecutive scans only: large-motion
+    # registration (`large_motion`, re-matching) compares its starts by inlier counts. False: one vote each (the paper).
     vote_by_tilt: bool = True
     min_vote: float = 0.05
 

@@ -42,13 +42,15 @@ def register_far(
     """`T_tgt_ref` of the N×4 `reference` scan and the projected target: `wide` (the wide-window graph) from
     every start (`T_tgt_ref` guesses; default the configured search), then rounds of `matcher` (the model's
     own window), `project` and `match` the odometry's projection and back end. A round with fewer than
-    `min_inliers` inliers keeps the estimate before it."""
+    `min_inliers` inliers keeps the estimate before it. RANSAC counts inliers here, one vote each
+    (`ransac.vote_by_tilt` is for consecutive scans, whose road rings lock): starts and rounds are compared
+    by their inlier counts, and from a start near the motion the road's matches are as right as any."""
     best: tuple[PairResult, Matrix4] | None = None
     for start in starts or search_starts(config.search_ahead_m, config.search_yaw_deg):
-        ref_image, ref_range, ref_points = project(moved(reference, start))
+        ref_image, ref_range, _ = project(moved(reference, start))
         output = wide.frame(tgt_image, matcher.encode(ref_image))
         assert output.flow is not None and output.confidence is not None
-        pair = match(ref_range, tgt_range, output.flow, output.confidence, ref_points=ref_points)
+        pair = match(ref_range, tgt_range, output.flow, output.confidence, votes=False)
         if best is None or pair.num_inliers > best[0].num_inliers:
             best = (pair, start)
     assert best is not None, "at least one start (checked with the config)"
@@ -85,9 +87,9 @@ def rematch(
             moved_m, turned_deg = pose_difference(np.eye(4), correction)
             if moved_m < config.min_step and turned_deg < config.min_step_deg:
                 break
-        ref_image, ref_range, ref_points = project(moved(reference, estimate))
+        ref_image, ref_range, _ = project(moved(reference, estimate))
         flow, confidence = matcher.match(matcher.encode(ref_image), tgt_features)
-        pair = match(ref_range, tgt_range, flow, confidence, ref_points=ref_points)
+        pair = match(ref_range, tgt_range, flow, confidence, votes=False)
         if pair.num_inliers < min_inliers:
             break
         result, correction = in_given_frames(pair, estimate, rounds=round_), pair.T_tgt_ref
