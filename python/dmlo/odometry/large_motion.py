@@ -50,7 +50,7 @@ def register_far(
         ref_image, ref_range, _ = project(moved(reference, start))
         output = wide.frame(tgt_image, matcher.encode(ref_image))
         assert output.flow is not None and output.confidence is not None
-        pair = match(ref_range, tgt_range, output.flow, output.confidence, votes=False)
+        pair = match(ref_range, tgt_range, output.flow, output.confidence, tilt_votes=False)
         if best is None or pair.num_inliers > best[0].num_inliers:
             best = (pair, start)
     assert best is not None, "at least one start (checked with the config)"
@@ -89,7 +89,7 @@ def rematch(
                 break
         ref_image, ref_range, _ = project(moved(reference, estimate))
         flow, confidence = matcher.match(matcher.encode(ref_image), tgt_features)
-        pair = match(ref_range, tgt_range, flow, confidence, votes=False)
+        pair = match(ref_range, tgt_range, flow, confidence, tilt_votes=False)
         if pair.num_inliers < min_inliers:
             break
         result, correction = in_given_frames(pair, estimate, rounds=round_), pair.T_tgt_ref

@@ -427,10 +427,10 @@ class Odometry:
         watch: _Stopwatch | None = None,
         leave_out: npt.NDArray[np.bool_] | None = None,
         ref_points: npt.NDArray[np.float32] | None = None,
-        votes: bool = True,
+        tilt_votes: bool = True,
     ) -> PairResult:
         """The pair's motion from a flow (§III-D); `ref_points` is the reference's point image (`_project`),
-        None: the virtual points of `ref_range`'s cells. `votes`: RANSAC weighs matches by the tilt of their
+        None: the virtual points of `ref_range`'s cells. `tilt_votes`: RANSAC weighs matches by the tilt of their
         surface as `ransac.vote_by_tilt` says; False: one vote each."""
         m, r = self.config.matching, self.config.ransac
         if m.coherence_px is not None:
@@ -452,7 +452,7 @@ class Odometry:
         transform, inliers, num_inliers = np.eye(4), np.zeros(len(src), dtype=bool), 0
         if len(src) >= 3:
             votes = None
-            if votes and r.vote_by_tilt:  # road matches cannot tell horizontal motions apart: they vote less
+            if tilt_votes and r.vote_by_tilt:  # road matches cannot tell horizontal motions apart: they vote less
                 if ref_points is None:
                     ref_points = self._virtual_points(ref_range)
                 cells = matches.cells
