@@ -144,7 +144,9 @@ def _points_from_fields(path: Path, columns: dict[str, NDArray[np.generic]]) -> 
     if missing:
         raise DatasetError(f"{path}: no {', '.join(missing)} field (fields: {', '.join(columns)})")
     reflectance_name = next((lower[n] for n in REFLECTANCE_FIELDS if n in lower), None)
-    used = [lower[axis] for axis in ("x", "y", "z")] + [reflectance_name] * (reflectance_name is not None)
+    used = [lower[axis] for axis in ("x", "y", "z")]
+    if reflectance_name is not None:
+        used.append(reflectance_name)
     for name in used:
         if columns[name].ndim != 1:
             raise DatasetError(
