@@ -111,7 +111,11 @@ def test_symmetric_pair_leaves_out_the_cells_the_backward_flow_does_not_lead_bac
     back_flow, back_confidence = odometry.matcher.match(forward.features, ref_features)
     assert forward.flow is not None and forward.confidence is not None
 
-    def solve(a, b, flow, confidence, other):  # type: ignore[no-untyped-def]
+    def point_image(scan: np.ndarray) -> np.ndarray:
+        index = dmlo_rs.project(scan, odometry.cylinder).index
+        return np.where((index >= 0)[..., None], scan[np.maximum(index, 0), :3], np.nan).astype(np.float32)
+
+    def solve(a, b, flow, confidence, other, points):  # type: ignore[no-untyped-def]
         leave_out = reference_round_trip(flow, other, False) > 1.0
         assert 0.05 < leave_out.mean() < 0.95  # the check really removes cells, and not all of them
         settings = odometry.config.matching
@@ -120,13 +124,14 @@ def test_symmetric_pair_leaves_out_the_cells_the_backward_flow_does_not_lead_bac
         )
         m = dmlo_rs.decode_matches(a, b, flow, weighted, odometry.cylinder, mask=leave_out, top_n=1000, nms_radius=1)
         r = odometry.config.ransac
+        votes = dmlo_rs.horizontal_votes(points, m.cells[:, 0], m.cells[:, 1], odometry.cylinder, floor=r.min_vote)
         return dmlo_rs.ransac_rigid(
             m.source, m.target, threshold=0.1, seed=0, refit=r.refit, range_ratio=r.ray_range_ratio,
-            bearing_threshold_deg=r.ray_bearing_threshold_deg,
+            bearing_threshold_deg=r.ray_bearing_threshold_deg, votes=votes,
         ).transform
 
-    T_forward = solve(ref_range, tgt_range, forward.flow, forward.confidence, back_flow)
-    T_backward = solve(tgt_range, ref_range, back_flow, back_confidence, forward.flow)
+    T_forward = solve(ref_range, tgt_range, forward.flow, forward.confidence, back_flow, point_image(scans[0]))
+    T_backward = solve(tgt_range, ref_range, back_flow, back_confidence, forward.flow, point_image(scans[1]))
     np.testing.assert_allclose(symmetric.T_tgt_ref, _midpoint(T_forward, np.linalg.inv(T_backward)), atol=1e-9)
 
 
