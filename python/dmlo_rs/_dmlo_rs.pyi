@@ -28,6 +28,7 @@ __all__ += [
     "ransac_rigid",
     "ray_noise_refit",
     "refit_rigid",
+    "horizontal_votes",
     "nms",
     "decode_matches",
     "coherent_confidence",
