@@ -50,6 +50,23 @@ def test_finetune_starts_from_the_first_stages_best_checkpoint(captured: list[li
     assert float(option(argv, "--pose-loss-weight")) > 0 and option(argv, "--crop-width") == "0"
 
 
+def test_range_only_fine_tunes_the_bundled_final_weights_without_reflectance(captured: list[list[str]], tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    assert default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--range-only"]) == 0
+    (argv,) = captured
+    assert option(argv, "--init") == str(default_recipe.BUNDLED_FINAL)
+    assert default_recipe.BUNDLED_FINAL == TRAINING_STATE / "finetune" / "best.pt"
+    assert option(argv, "--out") == str(run / "range_only")
+    assert "--no-reflectance" in argv and "--resume" in argv
+
+
+def test_range_only_refuses_a_missing_start_and_the_finetune_stage_beside_it(captured: list[list[str]], tmp_path: Path) -> None:
+    for extra in (["--init", str(tmp_path / "missing.pt")], ["--finetune"]):
+        with pytest.raises(SystemExit):
+            default_recipe.main(["--data", str(tmp_path), "--out", str(tmp_path / "run"), "--range-only", *extra])
+    assert captured == []
+
+
 @pytest.mark.skipif(not (TRAINING_STATE / "finetune" / "train.json").is_file(), reason="no fine-tune state committed")
 def test_committed_finetune_state_was_made_by_the_recipe() -> None:
     config = TrainConfig.from_dict(json.loads((TRAINING_STATE / "finetune" / "train.json").read_text()))

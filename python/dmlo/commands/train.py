@@ -35,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     model.add_argument("--refine-deformable", type=int, help="number of deformable refine layers")
     model.add_argument("--no-feature-norm", action="store_true", help="ablation: no L2 feature normalisation")
     model.add_argument("--one-hot-loss", action="store_true", help="ablation: one-hot instead of sub-pixel loss")
+    model.add_argument("--no-reflectance", action="store_true",
+                       help="a range-only model: the reflectance channel zeroed in every sample (for sensors without a "
+                       "usable one); applies over --init's config too and is recorded in the exported metadata")
 
     optim = parser.add_argument_group("optimisation (defaults: the paper's)")
     optim.add_argument("--epochs", type=int, default=60)
@@ -90,6 +93,8 @@ def model_config_from_args(args: argparse.Namespace) -> Any:
         changes["normalize_features"] = False
     if args.one_hot_loss:
         changes["subpixel_loss"] = False
+    if args.no_reflectance:
+        changes["use_reflectance"] = False
     return dataclasses.replace(config, **changes)
 
 
@@ -113,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed, workers=args.workers, device=args.device, checkpoint_every=args.checkpoint_every,
             max_steps=args.max_steps, pose_loss_weight=args.pose_loss_weight,
             confidence_loss_weight=args.confidence_loss_weight,
-            init=str(args.init) if args.init else None,
+            init=str(args.init) if args.init else None, no_reflectance=args.no_reflectance,
         )
         if config.init is not None and not Path(config.init).is_file():
             raise UserError(f"--init checkpoint not found: {config.init}")

@@ -46,6 +46,10 @@ class MatcherConfig:
     but no gain on the bench drives (README), so the paper's stays the default."""
     range_scale_m: float = 80.0
     """The range channel enters the network divided by this (metres); reflectance enters as is."""
+    use_reflectance: bool = True
+    """False: a range-only model (beyond the paper, for sensors without a usable reflectance): the
+    reflectance channel is multiplied by 0 where it enters the network, in training and in the exported
+    graphs alike, so the model sees the same zeros whatever a scan's reflectance holds."""
     leaky_slope: float = 0.1
 
     def __post_init__(self) -> None:
@@ -62,6 +66,8 @@ class MatcherConfig:
             raise ValueError("the refine net needs at least one layer")
         if self.refine_offset not in ("window", "peak_centroid"):
             raise ValueError(f"refine_offset must be 'window' or 'peak_centroid', got {self.refine_offset!r}")
+        if not isinstance(self.use_reflectance, bool):
+            raise ValueError(f"use_reflectance must be true or false, got {self.use_reflectance!r}")
         if self.similarity_scale <= 0 or self.range_scale_m <= 0:
             raise ValueError("similarity_scale and range_scale_m must be > 0")
 

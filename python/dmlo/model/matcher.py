@@ -80,7 +80,8 @@ class Matcher(nn.Module):
 
     def encode(self, scan: Tensor) -> Features:
         check_scan(scan)
-        scale = torch.tensor([1.0 / self.config.range_scale_m, 1.0], dtype=scan.dtype, device=scan.device)
+        reflectance = 1.0 if self.config.use_reflectance else 0.0  # 0: a range-only model
+        scale = torch.tensor([1.0 / self.config.range_scale_m, reflectance], dtype=scan.dtype, device=scan.device)
         scan = scan * scale.view(1, 2, 1, 1)
         coarse = self.coarse_encoder(scan)
         refine = self.refine_encoder(scan)

@@ -51,6 +51,9 @@ class TrainConfig:
     probability that the match lies within 1 px of the truth; 0: off."""
     init: str | None = None
     """A checkpoint whose weights (and model config) a new run starts from: fine-tuning."""
+    no_reflectance: bool = False
+    """Train a range-only model (``MatcherConfig.use_reflectance`` False, also over the config of ``init``):
+    the network sees the reflectance channel zeroed in every sample."""
 
     def __post_init__(self) -> None:
         positive = ("epochs", "batch_size", "lr_step_epochs", "checkpoint_every", "max_gap")

@@ -1,6 +1,6 @@
 """The recipe of the bundled default model: its simulated drives and its training command, in one place.
 
-    python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR] [--finetune]
+    python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR] [--finetune | --range-only]
 
 simulates the drives (skipping those already written; deterministic per seed) and then trains, resuming
 from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. `--finetune` runs
@@ -8,6 +8,13 @@ the second stage instead: from `RUN_DIR/best.pt`, full-width pairs with the pose
 into `RUN_DIR/finetune`. Afterwards `dmlo export RUN_DIR/finetune --out python/dmlo/models/default
 --wide-window 41 --refine-window 7` refreshes the bundled model (its refine window, 5 in training, widened
 to 7 at inference).
+
+`--range-only` makes the range-only model that the odometry runs on scans without a usable reflectance:
+the bundled model's final weights (`models/default/training/finetune/best.pt`, or `--init CKPT`) fine-tuned
+with the reflectance channel zeroed in every sample (`--no-reflectance`), into `RUN_DIR/range_only`,
+resumable like the other stages; two epochs on 448-column crops, sized to finish within 10 minutes on one
+GPU (about an hour on 2 CPU cores; `best.pt` from the first epoch's validation on). Then `dmlo export
+RUN_DIR/range_only --out python/dmlo/models/default/range_only --wide-window 41 --refine-window 7`.
 """
 
 from __future__ import annotations
@@ -42,6 +49,14 @@ FINETUNE_ARGUMENTS = (
 ).split()
 
 
+# The range-only stage: the flow loss on 448-column crops, as the first stage, from the final weights.
+RANGE_ONLY_ARGUMENTS = (
+    "--no-reflectance --optimizer adam --lr 5e-4 --lr-step 1 --epochs 2 --batch-size 4 --crop-width 448 "
+    "--val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume --mirror"
+).split()
+BUNDLED_FINAL = Path(__file__).resolve().parents[1] / "models" / "default" / "training" / "finetune" / "best.pt"
+
+
 def simulate_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Path]]:
     from dmlo.simulator import simulate_sequence
 
@@ -66,12 +81,22 @@ def main(argv: list[str] | None = None) -> int:
                         help="KITTI ground-truth pose files to drive along (default: ../shared/data/kitti_gt_poses)")
     parser.add_argument("--finetune", action="store_true",
                         help="the second stage: fine-tune OUT/best.pt with the pose loss into OUT/finetune")
+    parser.add_argument("--range-only", action="store_true",
+                        help="fine-tune the range-only model (reflectance zeroed) from --init into OUT/range_only")
+    parser.add_argument("--init", type=Path, default=BUNDLED_FINAL,
+                        help="with --range-only: the weights to start from (default: the bundled model's final ones)")
     args = parser.parse_args(argv)
+    if args.finetune and args.range_only:
+        parser.error("--finetune and --range-only are separate stages: choose one")
     train, val = simulate_drives(args.data, args.poses if args.poses.is_dir() else None)
 
     from dmlo.train.__main__ import main as train_main
 
     data = ["--data", *map(str, train), "--val", *map(str, val)]
+    if args.range_only:
+        if not args.init.is_file():
+            parser.error(f"--range-only starts from {args.init}, which does not exist")
+        return train_main([*data, "--out", str(args.out / "range_only"), "--init", str(args.init), *RANGE_ONLY_ARGUMENTS])
     if args.finetune:
         start = args.out / "best.pt"
         if not start.is_file():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -71,6 +72,8 @@ class Trainer:
         elif config.init is not None:
             initial = checkpoint.load(config.init, "cpu")
             model_config = MatcherConfig.from_dict(initial["model_config"])
+        if config.no_reflectance:  # over the config of `init` too: fine-tuning a model into a range-only one
+            model_config = dataclasses.replace(model_config, use_reflectance=False)
         torch.manual_seed(config.seed)
         self.model_config = model_config
         self.model: torch.nn.Module = Matcher(model_config).to(self.device)
