@@ -47,30 +47,56 @@ pub fn check_cell_points(points: &[f32], config: &CylinderConfig) -> Result<()> 
     Ok(())
 }
 
-/// Rows searched above and below a cell for its neighbours: a real sensor's lasers leave some rows of
-/// an even elevation grid empty.
-const ROWS_AROUND: usize = 3;
+/// The neighbourhood of a cell, first (near): rows searched above and below (a real sensor's lasers
+/// leave some rows of an even elevation grid empty) and its radius, this many metres or this fraction of
+/// the cell's range, whichever is larger.
+const NEAR: Neighbourhood = Neighbourhood {
+    rows: 3,
+    min_radius: 0.5,
+    radius_per_range: 0.1,
+};
+/// … and when that holds one ring only (far from the sensor, the road's rings lie metres apart).
+const WIDE: Neighbourhood = Neighbourhood {
+    rows: 8,
+    min_radius: 1.0,
+    radius_per_range: 0.3,
+};
 /// Columns searched either side, at most (near the sensor a column is a centimetre wide).
 const MAX_COLUMNS_AROUND: usize = 24;
-/// The neighbourhood's radius: this many metres, or this fraction of the cell's range beyond …
-const MIN_RADIUS: f64 = 0.5;
-const RADIUS_PER_RANGE: f64 = 0.1;
-/// … and the fewest points that make a plane.
+/// The fewest points that make a plane.
 const MIN_NEIGHBOURS: usize = 6;
 /// A neighbourhood whose second spread is below this fraction of its first is a line (one ring, one
 /// edge): it has no one normal.
 const MIN_FLATNESS: f64 = 0.01;
 
+struct Neighbourhood {
+    rows: usize,
+    min_radius: f64,
+    radius_per_range: f64,
+}
+
 /// The unit normal of the surface at a cell of a scan's point image (see [`check_cell_points`]): the
 /// direction of least spread of the points within a radius of the cell's (0.5 m, or a tenth of its
-/// range beyond 5 m), searched a few rows up and down and as many columns either side as the radius
-/// spans, so that several rings of the road take part. `None` for an empty cell, too few neighbours,
-/// or neighbours along a line.
+/// range beyond 5 m), searched three rows up and down and as many columns either side as the radius
+/// spans, so that several rings of the road take part; where that finds one ring only, within three
+/// tenths of the range and eight rows. `None` for an empty cell, too few neighbours, or neighbours
+/// along a line.
 pub fn surface_normal(
     points: &[f32],
     config: &CylinderConfig,
     row: usize,
     col: usize,
+) -> Option<Vector3<f64>> {
+    plane_normal(points, config, row, col, &NEAR)
+        .or_else(|| plane_normal(points, config, row, col, &WIDE))
+}
+
+fn plane_normal(
+    points: &[f32],
+    config: &CylinderConfig,
+    row: usize,
+    col: usize,
+    around: &Neighbourhood,
 ) -> Option<Vector3<f64>> {
     let (height, width) = (config.height, config.width);
     let at = |r: usize, c: usize| -> Option<Vector3<f64>> {
@@ -79,7 +105,7 @@ pub fn surface_normal(
         (p.iter().all(|v| v.is_finite())).then_some(p)
     };
     let centre = at(row, col)?;
-    let radius = MIN_RADIUS.max(RADIUS_PER_RANGE * centre.norm());
+    let radius = around.min_radius.max(around.radius_per_range * centre.norm());
     let column_width = centre.norm() * config.horizontal_resolution_deg.to_radians();
     let columns = ((radius / column_width).ceil() as usize).clamp(1, MAX_COLUMNS_AROUND) as isize;
     let period = config.column_period();
@@ -91,7 +117,7 @@ pub fn surface_normal(
     let mut sum = Vector3::zeros();
     let mut outer = Matrix3::zeros();
     let mut count = 0usize;
-    for r in row.saturating_sub(ROWS_AROUND)..(row + ROWS_AROUND + 1).min(height) {
+    for r in row.saturating_sub(around.rows)..(row + around.rows + 1).min(height) {
         for offset in -columns..=columns {
             let Some(p) = column(offset).and_then(|c| at(r, c)) else {
                 continue;

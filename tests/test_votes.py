@@ -97,9 +97,29 @@ def test_votes_keep_the_road_from_outvoting_the_posts() -> None:
 
 
 @pytest.mark.parametrize(
-    ("key", "value"), [("vote_by_tilt", "false"), ("vote_by_tilt", 1), ("min_vote", 0.0), ("min_vote", 1.5), ("min_vote", None)]
+    ("key", "value"), [("vote_by_tilt", "false"), ("vote_by_tilt", 1), ("min_vote", 0.0), ("min_vote", 1.5), ("min_vote", None)],
 )
 def test_a_bad_vote_setting_is_refused_by_name(key: str, value: object) -> None:
     config = OdometryConfig.from_dict({"ransac": {key: value}})
     with pytest.raises(ValueError, match=f"ransac.{key}"):
         Odometry.from_default(config)
+
+
+def test_a_scene_of_road_alone_is_reported_degenerate_and_bridged_by_the_motion_model() -> None:
+    """An empty lot: every scan the same rings wherever the car is; their matches say nothing of where it went."""
+    config = CylinderConfig.kitti()
+    road = _plane_scan(np.array([0.0, 0.0, 1.0]), -1.73, config)
+    road[:, 3] = np.random.default_rng(0).uniform(0.1, 0.6, len(road))  # asphalt's texture
+    odometry = Odometry.from_default()
+    for _ in range(3):
+        odometry.register(road)
+    matched = odometry.diagnostics[1:]
+    assert all(d.num_inliers >= 10 and d.inlier_votes is not None and d.inlier_votes < 5 for d in matched)
+    assert all(d.fallback == "degenerate_scene" for d in matched)
+    assert odometry.diagnostics[1].to_dict()["inlier_votes"] == pytest.approx(matched[0].inlier_votes, abs=0.01)
+    trusting = OdometryConfig()
+    trusting.motion_model.min_inlier_votes = 0.0
+    odometry = Odometry.from_default(trusting)
+    for _ in range(2):
+        odometry.register(road)
+    assert odometry.diagnostics[1].fallback is None

@@ -74,6 +74,10 @@ class MotionModelConfig:
     """Constant-velocity fallback when too few matches agree (§III-D-c) or their motion is implausible."""
 
     min_inliers: int = 10  # the paper's 10
+    # Beyond the paper, with `ransac.vote_by_tilt`: RANSAC's inliers must vote at least this much above the
+    # floor (a match on a wall adds about 1, on the road about 0): a consensus resting on the road alone cannot
+    # tell where the car went horizontally (an empty lot), and the prediction is taken instead.
+    min_inlier_votes: float = 5.0
     # Beyond the paper: a RANSAC motion further than this (m, °; per frame, at 10 Hz a 3 g change of speed)
     # from the constant-velocity prediction is a wrong consensus. The matches that agree with the
     # prediction (within twice the RANSAC threshold) are solved instead when they are a consensus of their

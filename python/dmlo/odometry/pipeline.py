@@ -60,11 +60,15 @@ class FrameDiagnostics:
     num_matches: int = 0
     num_inliers: int = 0
     inlier_ratio: float = 0.0
+    # with ransac.vote_by_tilt: the inliers' summed votes above the floor (`ransac.min_vote`), how many matches
+    # on walls, posts and other upright surfaces the motion rests on (a road match adds ~0); None when not voted
+    inlier_votes: float | None = None
     # "constant_velocity" when RANSAC found too few inliers; when its motion was far from the prediction,
     # "guided_consensus" (the matches agreeing with the prediction were solved) or "implausible_motion" (too
     # few agreed: the prediction was taken); "rematched_from_prediction" when the pair matched again from the
-    # prediction gave the motion (`motion_model.rematch_gap`); "too_few_points" / "unreadable_scan" for scans
-    # not matched
+    # prediction gave the motion (`motion_model.rematch_gap`); "degenerate_scene" when the inliers rest on too
+    # few upright surfaces to tell the horizontal motion (`motion_model.min_inlier_votes`); "too_few_points" /
+    # "unreadable_scan" for scans not matched
     fallback: str | None = None
     # with motion_model.rematch_gap: the rounds of matching from the prediction whose motion was taken, 0 when
     # they were tried and the pair's own motion kept; None when not tried
@@ -89,6 +93,7 @@ class FrameDiagnostics:
             "num_matches": self.num_matches,
             "num_inliers": self.num_inliers,
             "inlier_ratio": round(self.inlier_ratio, 4),
+            "inlier_votes": None if self.inlier_votes is None else round(self.inlier_votes, 2),
             "fallback": self.fallback,
             "rematch_rounds": self.rematch_rounds,
             "backward_inliers": self.backward_inliers,
@@ -113,6 +118,7 @@ class PairResult:
     target_points: npt.NDArray[np.float64]
     inliers: npt.NDArray[np.bool_]
     rounds: int = 1  # with `large_motion`: matching rounds whose estimate was kept (`LargeMotionConfig`)
+    inlier_votes: float | None = None  # the inliers' summed votes above the floor when RANSAC voted (`ransac.vote_by_tilt`)
 
     @property
     def inlier_ratio(self) -> float:
@@ -449,7 +455,7 @@ class Odometry:
         src, dst = matches.source, matches.target
         if watch:
             watch.lap("decode_nms")
-        transform, inliers, num_inliers = np.eye(4), np.zeros(len(src), dtype=bool), 0
+        transform, inliers, num_inliers, inlier_votes = np.eye(4), np.zeros(len(src), dtype=bool), 0, None
         if len(src) >= 3:
             votes = None
             if tilt_votes and r.vote_by_tilt:  # road matches cannot tell horizontal motions apart: they vote less
@@ -465,6 +471,8 @@ class Odometry:
                     bearing_threshold_deg=r.ray_bearing_threshold_deg, votes=votes,
                 )
                 transform, inliers, num_inliers = ransac.transform, ransac.inliers, ransac.num_inliers
+                if votes is not None:  # above the floor: how much of the consensus stands on upright surfaces
+                    inlier_votes = float((votes[inliers] - r.min_vote).sum())
             except dmlo_rs.RegistrationError:  # degenerate or all-outlier matches: no motion from this pair
                 pass
         if watch:
@@ -476,6 +484,7 @@ class Odometry:
             source_points=src,
             target_points=dst,
             inliers=np.asarray(inliers, dtype=bool),
+            inlier_votes=inlier_votes,
         )
 
     def _virtual_points(self, ranges: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
@@ -550,6 +559,7 @@ class Odometry:
         diagnostics.num_matches = forward.num_matches
         diagnostics.num_inliers = forward.num_inliers
         diagnostics.inlier_ratio = forward.inlier_ratio
+        diagnostics.inlier_votes = pair.inlier_votes
         diagnostics.backward_inliers = None if backward is None else backward.num_inliers
         gap = diagnostics.gap = self._clock.frame - self._reference_frame
         predicted = self._predicted_motion(gap)
@@ -558,6 +568,10 @@ class Odometry:
             watch.lap("rematch")
         if pair.num_inliers < self.config.motion_model.min_inliers:
             diagnostics.fallback = "constant_velocity"  # the motion model of §III-D-c
+            return predicted
+        if pair.inlier_votes is not None and pair.inlier_votes < self.config.motion_model.min_inlier_votes:
+            # Inliers nearly all on the road: they fix the height, roll and pitch but not where the car went.
+            diagnostics.fallback = "degenerate_scene"
             return predicted
         gated_before, self._gated_last = self._gated_last, False
         if self._velocity_measured and not gated_before:
@@ -777,7 +791,7 @@ def _check_limits(config: OdometryConfig) -> None:
     """The distance and angle limits only Python reads (Rust checks its own settings)."""
     limits = {
         "matching": ("consistency_px", "coherence_px"),
-        "motion_model": ("max_deviation", "max_deviation_deg", "guided_fraction"),
+        "motion_model": ("max_deviation", "max_deviation_deg", "guided_fraction", "min_inlier_votes"),
         "large_motion": ("min_step", "min_step_deg"),
         "ransac": ("ray_range_ratio", "ray_bearing_threshold_deg", "min_vote"),
         "mapping": (
@@ -845,6 +859,7 @@ def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> P
         source_points=backward.target_points,
         target_points=backward.source_points,
         inliers=backward.inliers,
+        inlier_votes=backward.inlier_votes,
     )
     usable = [pair for pair in (forward, reverse) if pair.num_inliers >= min_inliers]
     if len(usable) < 2:
@@ -856,6 +871,8 @@ def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> P
         source_points=np.concatenate([forward.source_points, reverse.source_points]),
         target_points=np.concatenate([forward.target_points, reverse.target_points]),
         inliers=np.concatenate([forward.inliers, reverse.inliers]),
+        inlier_votes=None if forward.inlier_votes is None or reverse.inlier_votes is None
+        else forward.inlier_votes + reverse.inlier_votes,
     )
 
 
