@@ -59,6 +59,21 @@ def register(subparsers: Any) -> None:
         "also cross streets with cars crossing and turning on their own paths (default lanes)",
     )
     parser.add_argument(
+        "--scene",
+        choices=("street", "highway"),
+        default="street",
+        help="street: buildings, furniture, parked cars (default); highway: wide asphalt, guard rails, sparse "
+        "sign poles, fast lanes (drive it along a highway trajectory, e.g. KITTI 01's)",
+    )
+    parser.add_argument(
+        "--laser-gain-spread",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="each laser's reflectance scaled by its own gain, uniform in 1 ± S (0 ≤ S < 1; default 0): real "
+        "sensors' lasers differ in intensity calibration, so the road's rings differ in brightness",
+    )
+    parser.add_argument(
         "--motion-distortion",
         action="store_true",
         help="the sensor moves while it spins (raw-KITTI-like skew); default: instantaneous sweeps",
@@ -88,6 +103,8 @@ def run(args: argparse.Namespace) -> int:
             sensor=args.sensor,
             layout=args.layout,
             traffic=args.traffic,
+            scene=args.scene,
+            laser_gain_spread=args.laser_gain_spread,
             motion_distortion=args.motion_distortion,
             overwrite=args.overwrite,
         )

@@ -5,7 +5,7 @@ HDL-64E-like sensor or Argoverse 1's pair of VLP-32C, KITTI-layout or Argoverse-
 """
 
 from dmlo.simulator.layouts import LAYOUTS, reflectance_to_intensity
-from dmlo.simulator.scene import TRAFFIC, StreetScene, generate_street
+from dmlo.simulator.scene import SCENES, TRAFFIC, StreetScene, generate_street
 from dmlo.simulator.sensor import (
     ARGOVERSE_VLP32C_PAIR,
     HDL64E,
@@ -30,6 +30,7 @@ __all__ = [
     "KITTI_TR",
     "LAYOUTS",
     "SENSORS",
+    "SCENES",
     "TRAFFIC",
     "LidarModel",
     "SimulationResult",

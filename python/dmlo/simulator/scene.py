@@ -42,11 +42,13 @@ from dmlo.simulator.primitives import (
     PrimitiveSet,
     yaw_pitch_rotation,
 )
+from dmlo.simulator.highway import add_highway_roadside
 from dmlo.simulator.traffic import TRAFFIC, PathCar, Traffic, add_cross_traffic
 from dmlo.simulator.trajectory import FRAME_RATE_HZ
 
 __all__ = ["TRAFFIC", "MovingCar", "PathCar", "StreetLayout", "StreetPath", "StreetScene", "generate_street"]
 
+SCENES = ("street", "highway")
 PATH_SPACING = 2.0
 PATH_EXTENSION = 150.0
 TERRAIN_CELL = 5.0
@@ -280,14 +282,26 @@ def _add_car(
 
 
 def generate_street(
-    lidar_poses: npt.NDArray[np.float64], seed: int, mount_height: float = 1.73, traffic: str = "lanes"
+    lidar_poses: npt.NDArray[np.float64],
+    seed: int,
+    mount_height: float = 1.73,
+    traffic: str = "lanes",
+    scene: str = "street",
 ) -> StreetScene:
     """A street scene covering the whole trajectory `lidar_poses` ((N,4,4) `T_world_lidar`, one a frame at
-    10 Hz), `mount_height` above the ground. `traffic`: `"lanes"` or `"mixed"` (see `simulate_sequence`)."""
+    10 Hz), `mount_height` above the ground. `traffic`: `"lanes"` or `"mixed"` (see `simulate_sequence`).
+    `scene`: `"street"` (buildings, furniture, parked cars) or `"highway"` (`dmlo.simulator.highway`: wide
+    asphalt, guard rails, sparse sign poles and trees, fast traffic in the lanes beside the ego's)."""
     if traffic not in TRAFFIC:
         raise ValueError(f"traffic: unknown {traffic!r}; known: {', '.join(TRAFFIC)}")
+    if scene not in SCENES:
+        raise ValueError(f"scene: unknown {scene!r}; known: {', '.join(SCENES)}")
+    if scene == "highway" and traffic != "lanes":
+        raise ValueError("traffic: a highway has no cross streets; only 'lanes' traffic")
     rng = np.random.default_rng([seed, 0x5CE7E])
     path = StreetPath(lidar_poses, mount_height)
+    if scene == "highway":
+        return _highway(path, rng)
     layout = StreetLayout(
         road_left=float(rng.uniform(7.0, 9.0)),
         road_right=float(rng.uniform(7.0, 8.5)),
@@ -310,6 +324,27 @@ def generate_street(
             prims, path, layout, lidar_poses, FRAME_RATE_HZ, seed, instances, _car_size, moving
         )
     return StreetScene(path=path, layout=layout, static=prims, moving_cars=moving, traffic=cross)
+
+
+# Highway lanes beside the ego's: (lateral offset, direction, speed range m/s), as `_moving_cars` takes them.
+_HIGHWAY_LANES = ((3.6, -1, 20.0, 32.0), (-3.6, 1, 18.0, 30.0), (7.2, -1, 20.0, 32.0))
+
+
+def _highway(path: StreetPath, rng: np.random.Generator) -> StreetScene:
+    layout = StreetLayout(
+        road_left=float(rng.uniform(10.5, 12.5)),  # three lanes and a shoulder
+        road_right=float(rng.uniform(10.5, 12.5)),
+        sidewalk_left=1.0,  # a gravel verge
+        sidewalk_right=1.0,
+        kerb=0.02,
+    )
+    prims = PrimitiveSet()
+    _add_corridor(prims, path, layout, rng)
+    _add_terrain(prims, path, layout, rng)
+    for side in (1, -1):
+        add_highway_roadside(prims, path, layout, side, rng)
+    moving = _moving_cars(path, layout, rng, iter(range(1, 65535)), lanes=_HIGHWAY_LANES)
+    return StreetScene(path=path, layout=layout, static=prims, moving_cars=moving, traffic=None)
 
 
 def _add_corridor(
@@ -721,10 +756,14 @@ def _add_parked_cars(
 
 
 def _moving_cars(
-    path: StreetPath, layout: StreetLayout, rng: np.random.Generator, instances: Iterator[int]
+    path: StreetPath,
+    layout: StreetLayout,
+    rng: np.random.Generator,
+    instances: Iterator[int],
+    lanes: tuple[tuple[float, int, float, float], ...] = ((3.3, -1, 6.0, 15.0), (-3.3, 1, 3.0, 17.0)),
 ) -> list[MovingCar]:
+    """Cars in `lanes` (lateral offset, direction, speed range m/s) along the ego's path."""
     cars = []
-    lanes = [(3.3, -1, 6.0, 15.0), (-3.3, 1, 3.0, 17.0)]  # (offset, direction, speed range)
     for lateral, direction, v_min, v_max in lanes:
         count = int(rng.poisson(2.0 * path.length / 100.0))
         for _ in range(count):

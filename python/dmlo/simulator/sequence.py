@@ -14,7 +14,7 @@ import numpy.typing as npt
 
 from dmlo.simulator.layouts import LAYOUTS, make_layout
 from dmlo.simulator.primitives import SceneAttributes
-from dmlo.simulator.scene import TRAFFIC, StreetScene, generate_street
+from dmlo.simulator.scene import SCENES, TRAFFIC, StreetScene, generate_street
 from dmlo.simulator.sensor import SENSORS, LidarModel, measure_rays
 from dmlo.simulator.trajectory import (
     FRAME_RATE_HZ,
@@ -55,6 +55,8 @@ def simulate_sequence(
     overwrite: bool = False,
     layout: str | None = None,
     traffic: str = "lanes",
+    scene: str = "street",
+    laser_gain_spread: float = 0.0,
 ) -> SimulationResult:
     """Simulates `frames` scans of a street drive with the `sensor` preset (`"hdl64e"`: KITTI's HDL-64E;
     `"argoverse"`: Argoverse 1's two stacked VLP-32C, sweeps in the ego frame) and writes them into
@@ -66,7 +68,12 @@ def simulate_sequence(
 
     `traffic`: `"lanes"` (moving cars only in the lanes beside the ego's, along its path: what earlier
     versions simulated, byte for byte) or `"mixed"` (also cross streets with cars crossing the ego's path
-    and cars turning into and out of it, each on its own path; see `dmlo.simulator.traffic`).
+    and cars turning into and out of it, each on its own path; see `dmlo.simulator.traffic`). `scene`:
+    `"street"` or `"highway"` (guard rails, sparse sign poles, fast lanes; `dmlo.simulator.highway`; drive it
+    along a highway trajectory such as KITTI 01's). `laser_gain_spread`: each laser's reflectance scaled by a
+    gain of its own, drawn uniformly from 1 ± the spread (0: all equal, as earlier versions): a real sensor's
+    lasers differ in their intensity calibration, so the road's rings differ in brightness, and those
+    stripes move with the sensor, not with the road (with 0.6 on a highway the rings lock as on real scans).
 
     The ego motion is frames `start … start+frames−1` of the KITTI camera-frame pose file `trajectory`
     (converted with `Tr` from `calib`, or the built-in KITTI 00–02 `Tr`), or else a generated drive.
@@ -92,6 +99,10 @@ def simulate_sequence(
         raise ValueError(f"layout: unknown {layout_name!r}; known: {', '.join(LAYOUTS)}")
     if traffic not in TRAFFIC:
         raise ValueError(f"traffic: unknown {traffic!r}; known: {', '.join(TRAFFIC)}")
+    if scene not in SCENES:
+        raise ValueError(f"scene: unknown {scene!r}; known: {', '.join(SCENES)}")
+    if not 0.0 <= laser_gain_spread < 1.0:
+        raise ValueError(f"laser_gain_spread: must be in [0, 1), got {laser_gain_spread}")
     tr = read_kitti_calib_tr(calib) if calib is not None else KITTI_TR
     if trajectory is not None:
         camera_poses = read_kitti_poses(trajectory)
@@ -125,7 +136,7 @@ def simulate_sequence(
     result = SimulationResult(out_dir=out, lidar_poses=lidar_poses)
 
     began = time.perf_counter()
-    street = generate_street(lidar_poses, seed, model.mount_height, traffic=traffic)
+    street = generate_street(lidar_poses, seed, model.mount_height, traffic=traffic, scene=scene)
     static_scene, static_attributes = street.static.build()
     result.scene_seconds = time.perf_counter() - began
     result.static_primitives = len(static_scene)
@@ -134,6 +145,10 @@ def simulate_sequence(
     directions = dmlo_rs.lidar_scan_directions(elevations, model.azimuth_count)
     times = np.arange(frames) / FRAME_RATE_HZ
 
+    # Their own stream, so that the rest of a seed's drive is the same with any spread.
+    laser_gains = np.random.default_rng([seed, 0x6A15]).uniform(
+        1.0 - laser_gain_spread, 1.0 + laser_gain_spread, model.beams
+    ) if laser_gain_spread > 0 else None
     indices = range(frames)
     if progress:
         from tqdm import tqdm  # type: ignore[import-untyped]
@@ -153,6 +168,7 @@ def simulate_sequence(
             sweep_poses,
             float(times[k]),
             np.random.default_rng([seed, 0x5CA7, k]),
+            laser_gains,
         )
         writer.write_frame(out, k, points, labels, lasers)
         result.points_per_frame.append(len(points))
@@ -175,6 +191,8 @@ def simulate_sequence(
         "static_primitives": result.static_primitives,
         "layout": layout_name,
         "traffic": traffic,
+        "scene": scene,
+        "laser_gain_spread": laser_gain_spread,
         "moving_cars": len(street.moving_cars) + len(street.path_cars),
         "motion_distortion": motion_distortion,
     }
@@ -191,6 +209,7 @@ def render_frame(
     pose: npt.NDArray[np.float64],
     time_s: float,
     rng: np.random.Generator,
+    laser_gains: npt.NDArray[np.float64] | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], npt.NDArray[np.uint16], float]:
     """One scan at `pose` ((4,4), or (W,4,4) per azimuth column; the rig's pose for a multi-unit sensor) and
     `time_s`: static scene plus the moving cars at that time, every unit of the sensor in turn. Returns
@@ -226,7 +245,10 @@ def render_frame(
         )
         if mount is not None:
             xyz = xyz @ mount[:3, :3].T + mount[:3, 3]
-        parts.append((xyz, reflectance, labels, (rays // model.azimuth_count).astype(np.uint16)))
+        beams = rays // model.azimuth_count
+        if laser_gains is not None:
+            reflectance = np.clip(reflectance * laser_gains[beams], 0.0, 1.0)
+        parts.append((xyz, reflectance, labels, beams.astype(np.uint16)))
     points = np.empty((sum(len(p[0]) for p in parts), 4), dtype=np.float32)
     points[:, :3] = np.concatenate([p[0] for p in parts])
     points[:, 3] = np.concatenate([p[1] for p in parts])
