@@ -143,3 +143,13 @@ def test_real_scan_pair_errors_are_measured_against_the_reference() -> None:
     row = pair_errors("m", np.stack(estimate), reference, hz=10.0)
     assert row.translation_mean_cm == pytest.approx(2.0) and row.translation_max_cm == pytest.approx(2.0)
     assert row.rotation_mean_deg == pytest.approx(0.1) and row.pitch_bias_deg == pytest.approx(0.1)
+
+
+def test_odometry_benchmark_adds_the_named_highway_drive(tmp_path: Path) -> None:
+    command = [sys.executable, "-m", "dmlo.benchmarks.odometry", "--frames", "3", "--seeds", "1", "--highway", "3",
+               "--poses", str(tmp_path / "no_poses"), "--peers", "--out", str(tmp_path)]
+    result = subprocess.run(command, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "### highway_seed3 (generated trajectory, 3 frames)" in result.stdout
+    info = json.loads((tmp_path / "highway_seed3" / "simulation.json").read_text())
+    assert info["scene"] == "highway" and info["laser_gain_spread"] == 0.6

@@ -6,6 +6,10 @@ and the ratios to KISS-ICP measured in this run.
 
     python -m dmlo.benchmarks.odometry --frames 300 --seeds 1 2 3 --trajectories 07 07 05 --out runs/bench_odometry
 
+With `--highway SEED` a named drive is added: the simulator's highway (`--scene highway`, guard rails and
+sparse poles) along KITTI 01's trajectory (~1 m a frame), its lasers' reflectance gains spread by ±0.6, the
+feature-poor scene where the road's rings lock from scan to scan.
+
 With `--motion-distortion` the drives are simulated with skewed sweeps (every column cast from the pose of
 the moment it fires, as a real spinning sensor's) and DMLO runs with and without deskewing
 (`deskew.enabled`); name "KISS-ICP deskewed" among the peers for KISS-ICP's own motion compensation.
@@ -23,6 +27,8 @@ from dmlo.odometry import Odometry, OdometryConfig
 from dmlo.simulator import simulate_sequence
 
 TRAJECTORIES = ("07", "05", "00")  # KITTI sequences whose ground truth the drives follow, by seed
+HIGHWAY_TRAJECTORY = "01"  # KITTI's highway
+HIGHWAY_LASER_GAIN_SPREAD = 0.6
 
 
 def _dmlo(model: Path | None, mapping: bool, symmetric: bool = False, deskew: bool = False) -> Odometry:
@@ -46,16 +52,22 @@ def main() -> None:
     parser.add_argument("--symmetric", action="store_true", help="add a row for DMLO with symmetric matching")
     parser.add_argument("--motion-distortion", action="store_true",
                         help="simulate skewed sweeps and add deskewed DMLO rows")
+    parser.add_argument("--highway", type=int, default=None, metavar="SEED",
+                        help="add the named highway drive of this scene seed (along KITTI 01)")
     parser.add_argument("--out", type=Path, default=Path("runs/bench_odometry"))
     args = parser.parse_args()
 
-    for index, seed in enumerate(args.seeds):
-        trajectory = args.poses / f"{args.trajectories[index % len(args.trajectories)]}.txt"
-        drive = args.out / f"drive_seed{seed}"
+    drives = [(seed, args.trajectories[index % len(args.trajectories)], "street") for index, seed in enumerate(args.seeds)]
+    if args.highway is not None:
+        drives.append((args.highway, HIGHWAY_TRAJECTORY, "highway"))
+    for seed, trajectory_name, scene in drives:
+        trajectory = args.poses / f"{trajectory_name}.txt"
+        drive = args.out / (f"drive_seed{seed}" if scene == "street" else f"{scene}_seed{seed}")
         if not (drive / "poses.txt").is_file():
             simulate_sequence(drive, frames=args.frames, seed=seed,
                               trajectory=trajectory if trajectory.is_file() else None,
-                              motion_distortion=args.motion_distortion)
+                              motion_distortion=args.motion_distortion, scene=scene,
+                              laser_gain_spread=HIGHWAY_LASER_GAIN_SPREAD if scene == "highway" else 0.0)
         elif _skewed(drive) != args.motion_distortion:
             parser.error(f"{drive} holds drives {'with' if _skewed(drive) else 'without'} motion distortion; "
                          "choose another --out")
