@@ -42,7 +42,7 @@ def _dmlo(model: Path | None, mapping: bool, symmetric: bool = False, deskew: bo
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=200)
-    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    parser.add_argument("--seeds", type=int, nargs="*", default=[1, 2, 3])
     parser.add_argument("--poses", type=Path, default=Path(__file__).resolve().parents[3].parent / "shared/data/kitti_gt_poses",
                         help="folder of KITTI ground-truth pose files to drive along (default: ../shared/data)")
     parser.add_argument("--trajectories", nargs="+", default=list(TRAJECTORIES), metavar="XX",
