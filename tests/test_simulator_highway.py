@@ -1,4 +1,5 @@
-"""The simulated highway (`scene="highway"`) and per-laser reflectance gains (`laser_gain_spread`)."""
+"""The simulated highway (`scene="highway"`), per-laser reflectance gains (`laser_gain_spread`) and cars that
+keep pace with the ego (`escorts`)."""
 
 from __future__ import annotations
 
@@ -47,3 +48,20 @@ def test_laser_gains_scale_each_lasers_reflectance_and_leave_the_rest_of_the_dri
     assert ratio[unclipped].std() > 0.1  # the lasers differ
     with pytest.raises(ValueError, match="laser_gain_spread"):
         simulate_sequence(tmp_path / "bad", frames=1, seed=5, laser_gain_spread=1.0, progress=False)
+
+
+def test_escorts_keep_pace_with_the_ego(tmp_path: Path) -> None:
+    from dmlo.simulator.primitives import MOVING_CAR
+
+    simulate_sequence(tmp_path, frames=3, seed=5, escorts=True, progress=False)
+    sequence = open_sequence(tmp_path)
+    ahead = []
+    for k in (0, 2):
+        frame = sequence[k]
+        assert frame.labels is not None
+        cars = frame.points[(frame.labels & 0xFFFF) == MOVING_CAR, :3]
+        lead = cars[(cars[:, 0] > 3) & (cars[:, 0] < 15) & (np.abs(cars[:, 1]) < 1.5)]
+        assert len(lead) > 50
+        ahead.append(lead[:, 0].min())
+    moved = np.linalg.norm((np.linalg.inv(sequence.poses[0]) @ sequence.poses[2])[:3, 3])
+    assert moved > 0.1 and abs(ahead[1] - ahead[0]) < 0.1  # the ego moved; its lead car stayed as far ahead

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -123,3 +125,34 @@ def test_a_scene_of_road_alone_is_reported_degenerate_and_bridged_by_the_motion_
     for _ in range(2):
         odometry.register(road)
     assert odometry.diagnostics[1].fallback is None
+
+
+def test_cars_keeping_pace_with_the_ego_do_not_outvote_the_static_scene(tmp_path: Path) -> None:
+    """A traffic jam (`simulate_sequence(escorts=True)`): six cars ride along a few metres around the ego, each
+    filling much of the image; counted by the matches they hold they pull the motion towards standing still."""
+    from dmlo.datasets import open_sequence
+    from dmlo.simulator import simulate_sequence
+
+    trajectory = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_gt_poses" / "07.txt"
+    simulate_sequence(tmp_path, frames=15, seed=41, trajectory=trajectory if trajectory.is_file() else None,
+                      escorts=True, progress=False)
+    sequence = open_sequence(tmp_path)
+    truth = np.linalg.inv(sequence.poses[:-1]) @ sequence.poses[1:]
+
+    def errors(voxel: float | None) -> np.ndarray:
+        config = OdometryConfig()
+        config.ransac.vote_voxel = voxel
+        odometry = Odometry.from_default(config)
+        poses = np.stack([odometry.register(sequence[i].points) for i in range(len(sequence))])
+        deltas = np.linalg.inv(poses[:-1]) @ poses[1:]
+        return np.linalg.norm((np.linalg.inv(truth) @ deltas)[:, :3, 3], axis=1)
+
+    spread, crowded = errors(2.0), errors(None)
+    assert spread.mean() < 0.7 * crowded.mean(), (spread.mean(), crowded.mean())
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0, "2"])
+def test_a_bad_vote_voxel_is_refused_by_name(value: object) -> None:
+    config = OdometryConfig.from_dict({"ransac": {"vote_voxel": value}})
+    with pytest.raises(ValueError, match="ransac.vote_voxel"):
+        Odometry.from_default(config)

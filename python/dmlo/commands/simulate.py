@@ -74,6 +74,11 @@ def register(subparsers: Any) -> None:
         "sensors' lasers differ in intensity calibration, so the road's rings differ in brightness",
     )
     parser.add_argument(
+        "--escorts",
+        action="store_true",
+        help="six cars keep pace with the ego (lead car, follower, two beside on each side): a traffic jam",
+    )
+    parser.add_argument(
         "--motion-distortion",
         action="store_true",
         help="the sensor moves while it spins (raw-KITTI-like skew); default: instantaneous sweeps",
@@ -105,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
             traffic=args.traffic,
             scene=args.scene,
             laser_gain_spread=args.laser_gain_spread,
+            escorts=args.escorts,
             motion_distortion=args.motion_distortion,
             overwrite=args.overwrite,
         )

@@ -67,6 +67,11 @@ class RansacConfig:
     # registration (`large_motion`, re-matching) compares its starts by inlier counts. False: one vote each (the paper).
     vote_by_tilt: bool = True
     min_vote: float = 0.05
+    # Beyond the paper, for consecutive scans: each match's vote divided by the square root of how many matches
+    # share its cube of this many metres in the reference scan. A car a few metres away fills much of the image
+    # and holds hundreds of matches; in a traffic jam the cars keeping pace with the ego outvoted the static
+    # scene and the car was reported standing still. None: no such division.
+    vote_voxel: float | None = 2.0
 
 
 @dataclass

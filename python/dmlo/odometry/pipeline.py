@@ -457,12 +457,16 @@ class Odometry:
             watch.lap("decode_nms")
         transform, inliers, num_inliers, inlier_votes = np.eye(4), np.zeros(len(src), dtype=bool), 0, None
         if len(src) >= 3:
-            votes = None
+            votes = tilt = None
             if tilt_votes and r.vote_by_tilt:  # road matches cannot tell horizontal motions apart: they vote less
                 if ref_points is None:
                     ref_points = self._virtual_points(ref_range)
                 cells = matches.cells
-                votes = dmlo_rs.horizontal_votes(ref_points, cells[:, 0], cells[:, 1], self.cylinder, floor=r.min_vote)
+                votes = tilt = dmlo_rs.horizontal_votes(
+                    ref_points, cells[:, 0], cells[:, 1], self.cylinder, floor=r.min_vote
+                )
+            if tilt_votes and r.vote_voxel is not None:  # a nearby car fills much of the image: it votes less
+                votes = (1.0 if votes is None else votes) / np.sqrt(_voxel_crowding(src, r.vote_voxel))
             try:
                 # RANSAC around the closed-form SVD solve, Eq. 12–14 (§III-D-b); refits as `ransac.refit` says.
                 ransac = dmlo_rs.ransac_rigid(
@@ -471,8 +475,8 @@ class Odometry:
                     bearing_threshold_deg=r.ray_bearing_threshold_deg, votes=votes,
                 )
                 transform, inliers, num_inliers = ransac.transform, ransac.inliers, ransac.num_inliers
-                if votes is not None:  # above the floor: how much of the consensus stands on upright surfaces
-                    inlier_votes = float((votes[inliers] - r.min_vote).sum())
+                if tilt is not None:  # above the floor: how much of the consensus stands on upright surfaces
+                    inlier_votes = float((tilt[inliers] - r.min_vote).sum())
             except dmlo_rs.RegistrationError:  # degenerate or all-outlier matches: no motion from this pair
                 pass
         if watch:
@@ -783,8 +787,10 @@ class Odometry:
 
 
 # Limits that None turns off, and limits that must be > 0 rather than >= 0 (a scale divides by them).
-_OPTIONAL_LIMITS = {("matching", "consistency_px"), ("matching", "coherence_px")}
-_POSITIVE_LIMITS = {("matching", "coherence_px"), ("ransac", "ray_range_ratio"), ("ransac", "min_vote")}
+_OPTIONAL_LIMITS = {("matching", "consistency_px"), ("matching", "coherence_px"), ("ransac", "vote_voxel")}
+_POSITIVE_LIMITS = {
+    ("matching", "coherence_px"), ("ransac", "ray_range_ratio"), ("ransac", "min_vote"), ("ransac", "vote_voxel")
+}
 
 
 def _check_limits(config: OdometryConfig) -> None:
@@ -793,7 +799,7 @@ def _check_limits(config: OdometryConfig) -> None:
         "matching": ("consistency_px", "coherence_px"),
         "motion_model": ("max_deviation", "max_deviation_deg", "guided_fraction", "min_inlier_votes"),
         "large_motion": ("min_step", "min_step_deg"),
-        "ransac": ("ray_range_ratio", "ray_bearing_threshold_deg", "min_vote"),
+        "ransac": ("ray_range_ratio", "ray_bearing_threshold_deg", "min_vote", "vote_voxel"),
         "mapping": (
             "keyframe_distance",
             "keyframe_angle_deg",
@@ -874,6 +880,13 @@ def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> P
         inlier_votes=None if forward.inlier_votes is None or reverse.inlier_votes is None
         else forward.inlier_votes + reverse.inlier_votes,
     )
+
+
+def _voxel_crowding(points: npt.NDArray[np.float64], voxel: float) -> npt.NDArray[np.int64]:
+    """For each point, how many of `points` share its cube of `voxel` metres."""
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    return counts[inverse.ravel()]
 
 
 def _round_trip_error(

@@ -84,8 +84,14 @@ class StreetPath:
         tangent = np.gradient(self.xy, axis=0)
         tangent = np.column_stack([_smooth(tangent[:, 0], 2), _smooth(tangent[:, 1], 2)])
         self.heading = np.unwrap(np.arctan2(tangent[:, 1], tangent[:, 0]))
-        # Arc length of the real trajectory's start (the extension comes first).
+        # Arc length of the real trajectory's start (the extension comes first), and of every frame's pose.
         self.start_s = float(arc[len(before)])
+        self.frame_s = arc[len(before) + np.cumsum(keep) - 1]
+
+    def ego_s(self, time: float) -> float:
+        """Arc length of the ego at `time` seconds (frames at 10 Hz, linear between them)."""
+        frame = time * FRAME_RATE_HZ
+        return float(np.interp(frame, np.arange(len(self.frame_s)), self.frame_s))
 
     def at(
         self, s: npt.ArrayLike
@@ -162,6 +168,20 @@ class MovingCar:
     albedo: float
 
 
+@dataclass(frozen=True)
+class EscortCar:
+    """A car keeping pace with the ego, `offset` metres ahead along the axis (negative: behind) and
+    `lateral` to its left: the lead car of a traffic jam, and the cars beside and behind the ego."""
+
+    instance: int
+    offset: float
+    lateral: float
+    length: float
+    width: float
+    height: float
+    albedo: float
+
+
 @dataclass
 class StreetScene:
     """A generated street: static primitives, moving cars in the lanes along the axis, and (mixed traffic)
@@ -172,6 +192,7 @@ class StreetScene:
     static: PrimitiveSet
     moving_cars: list[MovingCar] = field(default_factory=list)
     traffic: Traffic | None = None
+    escort_cars: list[EscortCar] = field(default_factory=list)
 
     @property
     def path_cars(self) -> list[PathCar]:
@@ -208,6 +229,12 @@ class StreetScene:
                 car.instance,
                 car.albedo,
             )
+        ego_s = self.path.ego_s(time) if self.escort_cars else 0.0
+        for escort in self.escort_cars:
+            xy, z, heading = self.path.place(ego_s + escort.offset, escort.lateral)
+            pitch = -np.arctan(self.path.grade(ego_s + escort.offset))
+            _add_car(dynamic, xy, z, heading, pitch, escort.length, escort.width, escort.height, MOVING_CAR,
+                     escort.instance, escort.albedo)
         for path_car in self.path_cars:
             assert self.traffic is not None
             car_path = self.traffic.paths[path_car.path]
@@ -287,11 +314,13 @@ def generate_street(
     mount_height: float = 1.73,
     traffic: str = "lanes",
     scene: str = "street",
+    escorts: bool = False,
 ) -> StreetScene:
     """A street scene covering the whole trajectory `lidar_poses` ((N,4,4) `T_world_lidar`, one a frame at
     10 Hz), `mount_height` above the ground. `traffic`: `"lanes"` or `"mixed"` (see `simulate_sequence`).
     `scene`: `"street"` (buildings, furniture, parked cars) or `"highway"` (`dmlo.simulator.highway`: wide
-    asphalt, guard rails, sparse sign poles and trees, fast traffic in the lanes beside the ego's)."""
+    asphalt, guard rails, sparse sign poles and trees, fast traffic in the lanes beside the ego's).
+    `escorts`: cars that keep pace with the ego (`EscortCar`), as in a traffic jam."""
     if traffic not in TRAFFIC:
         raise ValueError(f"traffic: unknown {traffic!r}; known: {', '.join(TRAFFIC)}")
     if scene not in SCENES:
@@ -300,8 +329,11 @@ def generate_street(
         raise ValueError("traffic: a highway has no cross streets; only 'lanes' traffic")
     rng = np.random.default_rng([seed, 0x5CE7E])
     path = StreetPath(lidar_poses, mount_height)
+    escort_cars = _escort_cars(np.random.default_rng([seed, 0xE5C0]), 70000) if escorts else []
     if scene == "highway":
-        return _highway(path, rng)
+        highway = _highway(path, rng)
+        highway.escort_cars = escort_cars
+        return highway
     layout = StreetLayout(
         road_left=float(rng.uniform(7.0, 9.0)),
         road_right=float(rng.uniform(7.0, 8.5)),
@@ -323,7 +355,29 @@ def generate_street(
         cross = add_cross_traffic(
             prims, path, layout, lidar_poses, FRAME_RATE_HZ, seed, instances, _car_size, moving
         )
-    return StreetScene(path=path, layout=layout, static=prims, moving_cars=moving, traffic=cross)
+    return StreetScene(
+        path=path, layout=layout, static=prims, moving_cars=moving, traffic=cross, escort_cars=escort_cars
+    )
+
+
+# Where the escorts ride, relative to the ego: (offset along the axis, lateral offset), metres.
+_ESCORT_PLACES = ((8.0, 0.0), (-9.0, 0.0), (1.5, 3.4), (-7.0, 3.4), (4.0, -3.4), (-4.5, -3.4))
+
+
+def _escort_cars(rng: np.random.Generator, first_instance: int) -> list[EscortCar]:
+    """A lead car and a follower in the ego's lane and two cars in each lane beside it, each placed a
+    little off its slot so that no two drives look alike."""
+    cars = []
+    for k, (offset, lateral) in enumerate(_ESCORT_PLACES):
+        length, width, height = _car_size(rng)
+        cars.append(EscortCar(
+            instance=first_instance + k,
+            offset=offset + float(rng.uniform(-1.0, 1.0)) + float(np.sign(offset)) * length / 2,
+            lateral=lateral + float(rng.uniform(-0.3, 0.3)),
+            length=length, width=width, height=height,
+            albedo=float(np.clip(rng.choice([0.08, 0.2, 0.35, 0.6]) + rng.normal(0, 0.03), 0.03, 1.0)),
+        ))
+    return cars
 
 
 # Highway lanes beside the ego's: (lateral offset, direction, speed range m/s), as `_moving_cars` takes them.

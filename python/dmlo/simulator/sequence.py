@@ -57,6 +57,7 @@ def simulate_sequence(
     traffic: str = "lanes",
     scene: str = "street",
     laser_gain_spread: float = 0.0,
+    escorts: bool = False,
 ) -> SimulationResult:
     """Simulates `frames` scans of a street drive with the `sensor` preset (`"hdl64e"`: KITTI's HDL-64E;
     `"argoverse"`: Argoverse 1's two stacked VLP-32C, sweeps in the ego frame) and writes them into
@@ -74,6 +75,8 @@ def simulate_sequence(
     gain of its own, drawn uniformly from 1 ± the spread (0: all equal, as earlier versions): a real sensor's
     lasers differ in their intensity calibration, so the road's rings differ in brightness, and those
     stripes move with the sensor, not with the road (with 0.6 on a highway the rings lock as on real scans).
+    `escorts`: six cars keep pace with the ego — a lead car and a follower in its lane, two in each lane
+    beside it — as in a traffic jam (labelled moving; `dmlo.simulator.scene.EscortCar`).
 
     The ego motion is frames `start … start+frames−1` of the KITTI camera-frame pose file `trajectory`
     (converted with `Tr` from `calib`, or the built-in KITTI 00–02 `Tr`), or else a generated drive.
@@ -136,7 +139,7 @@ def simulate_sequence(
     result = SimulationResult(out_dir=out, lidar_poses=lidar_poses)
 
     began = time.perf_counter()
-    street = generate_street(lidar_poses, seed, model.mount_height, traffic=traffic, scene=scene)
+    street = generate_street(lidar_poses, seed, model.mount_height, traffic=traffic, scene=scene, escorts=escorts)
     static_scene, static_attributes = street.static.build()
     result.scene_seconds = time.perf_counter() - began
     result.static_primitives = len(static_scene)
@@ -193,7 +196,8 @@ def simulate_sequence(
         "traffic": traffic,
         "scene": scene,
         "laser_gain_spread": laser_gain_spread,
-        "moving_cars": len(street.moving_cars) + len(street.path_cars),
+        "escorts": escorts,
+        "moving_cars": len(street.moving_cars) + len(street.path_cars) + len(street.escort_cars),
         "motion_distortion": motion_distortion,
     }
     (out / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
