@@ -288,7 +288,7 @@ def test_large_motion_rounds_rematch_the_moved_reference_and_keep_the_scans_fram
     assert once.rounds == 1 and rounds.rounds > 1
     # The paper's single wide pass, by hand; large-motion registration counts inliers one vote each.
     counted = OdometryConfig()
-    counted.ransac.vote_by_tilt = False
+    counted.ransac.vote_by_tilt, counted.ransac.vote_voxel = False, None
     odometry = Odometry.from_default(counted)
     wide = odometry._wide_matcher()
     (ref_image, ref_range), (tgt_image, tgt_range) = odometry.project(reference.points), odometry.project(target.points)
