@@ -76,3 +76,15 @@ def test_committed_finetune_state_was_made_by_the_recipe() -> None:
     assert config.lr == float(option(arguments, "--lr")) and config.epochs == int(option(arguments, "--epochs"))
     assert config.batch_size == int(option(arguments, "--batch-size")) and config.mirror
     assert config.init is not None and Path(config.init).name == "best.pt"
+
+
+@pytest.mark.skipif(not (TRAINING_STATE / "range_only" / "train.json").is_file(), reason="no range-only state committed")
+def test_committed_range_only_state_was_made_by_the_recipe() -> None:
+    config = TrainConfig.from_dict(json.loads((TRAINING_STATE / "range_only" / "train.json").read_text()))
+    model = json.loads((TRAINING_STATE / "range_only" / "model.json").read_text())
+    arguments = default_recipe.RANGE_ONLY_ARGUMENTS
+    assert config.no_reflectance and model["use_reflectance"] is False
+    assert config.init is not None and config.init.endswith("finetune/best.pt")
+    assert config.crop_width == int(option(arguments, "--crop-width")) and config.mirror
+    assert config.lr == float(option(arguments, "--lr")) and config.epochs == int(option(arguments, "--epochs"))
+    assert config.batch_size == int(option(arguments, "--batch-size"))

@@ -66,6 +66,9 @@ def add_odometry_arguments(parser: argparse.ArgumentParser, sequence: bool = Tru
     parser.add_argument("--matching-stage", choices=("auto", "crate", "graph"), default=None,
                         help="where the network's correlation and window decoding run: in the Rust crate "
                         "(fast on a CPU), in the ONNX graph (e.g. on a GPU), or auto (default; config matching_stage)")
+    parser.add_argument("--reflectance", choices=("auto", "unit", "0-255", "0-65535", "none"), default=None,
+                        help="the scans' reflectance scale: auto (default; config reflectance) reads it from the first "
+                        "scan; none (or no usable reflectance) runs the range-only model beside the model")
     parser.add_argument("--no-coherence", action="store_true",
                         help="rank the matches by the network's confidence alone, as the paper does, instead of "
                         "also by how well each agrees with its neighbours' flow")
@@ -88,6 +91,8 @@ def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # ty
         config.matching.coherence_px = None
     if args.matching_stage:
         config.matching_stage = args.matching_stage
+    if getattr(args, "reflectance", None):
+        config.reflectance = args.reflectance
     if getattr(args, "deskew", False):
         config.deskew.enabled = True
     model = args.model or default_model_path()

@@ -11,6 +11,7 @@ from dmlo.odometry.config import (
     RansacConfig,
 )
 from dmlo.odometry.pipeline import FrameDiagnostics, Odometry, PairResult, SensorMismatchWarning
+from dmlo.odometry.reflectance import ReflectanceNotice
 
 __all__ = [
     "DeskewConfig",
@@ -23,6 +24,7 @@ __all__ = [
     "OdometryConfig",
     "PairResult",
     "RansacConfig",
+    "ReflectanceNotice",
     "SensorMismatchWarning",
     "TimestampWarning",
 ]

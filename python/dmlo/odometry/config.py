@@ -7,6 +7,8 @@ from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args
 
+from dmlo.odometry.reflectance import check_mode as check_reflectance_mode
+
 
 @dataclass
 class MatchingConfig:
@@ -189,6 +191,14 @@ class OdometryConfig:
     # model allows it.
     matching_stage: str = "auto"
     min_points: int = 1000  # scans with fewer finite points are bridged by the motion model
+    # The scans' reflectance scale (`dmlo.odometry.reflectance`): "auto" decides from the first scan's values
+    # (max ≤ 1: [0, 1]; ≤ 255: 0–255; ≤ 65535: 0–65535; absent, one value everywhere or none of these: no
+    # usable reflectance); "unit", "0-255", "0-65535" say it; "none" ignores it. Without usable reflectance
+    # the range-only model beside the model runs (`range_only/`).
+    reflectance: str = "auto"
+
+    def __post_init__(self) -> None:
+        check_reflectance_mode(self.reflectance)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

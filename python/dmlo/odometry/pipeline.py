@@ -23,6 +23,8 @@ from dmlo.poses import midpoint_motion
 from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import REFITS, OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
+from dmlo.odometry import reflectance
+from dmlo.odometry.reflectance import ReflectanceNotice, check_mode as check_reflectance_mode
 from dmlo.odometry.matcher import (
     ENCODER_GRAPH,
     MATCH_GRAPH,
@@ -167,6 +169,7 @@ class Odometry:
     def __init__(self, model_path: str | Path, config: OdometryConfig | None = None) -> None:
         self.config = config or OdometryConfig()
         _check_limits(self.config)
+        check_reflectance_mode(self.config.reflectance)  # again: a config's fields may change after loading
         self.matcher: Matcher = OnnxMatcher(
             Path(model_path),
             threads=self.config.threads,
@@ -189,6 +192,12 @@ class Odometry:
         self._warned_sensor = False
         self._rematch_gap = self._available_rematch_gap()
         self._wide_graph_beside = self.matcher.path.with_name(WIDE_FRAME_GRAPH).is_file()
+        # Reflectance (`dmlo.odometry.reflectance`): the scale chosen on the first scan, and the range-only model
+        # beside this one (opened on the first scan without usable reflectance), unless this one is range-only.
+        self._reflectance: reflectance.Choice | None = None
+        self._model_is_range_only = getattr(self.matcher, "model_config", {}).get("use_reflectance", True) is False
+        self._range_only_graph = None if self._model_is_range_only else reflectance.range_only_model(self.matcher.path)
+        self._warned_clipping = False
 
     def _available_rematch_gap(self) -> int | None:
         """`motion_model.rematch_gap`, or None with a warning when the model lacks the graphs it needs."""
@@ -229,7 +238,7 @@ class Odometry:
         than `min_points` finite points is not matched: its pose comes from the motion model and the
         diagnostics say so.
         """
-        cloud = _as_scan(points, "points")
+        cloud = self._scan_in(points, "points")
         times = None if point_times is None else _as_point_times(point_times, len(cloud))
         self._clock.advance(timestamp)
         diagnostics = FrameDiagnostics(index=len(self.poses), num_points=len(cloud))
@@ -358,7 +367,7 @@ class Odometry:
         return pair
 
     def _finite_scan(self, points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
-        cloud = _as_scan(points, name)
+        cloud = self._scan_in(points, name)
         cloud = _rows(cloud, _finite_rows(cloud))
         if len(cloud) < self.config.min_points:
             raise ValueError(
@@ -366,6 +375,88 @@ class Odometry:
                 "a pair (config.min_points)"
             )
         return cloud
+
+    @property
+    def reflectance_choice(self) -> reflectance.Choice | None:
+        """What is done with the scans' reflectance (`config.reflectance`): the scale, or "none" (the range-only
+        model, when there is one), and why; None before the first scan."""
+        return self._reflectance
+
+    def _scan_in(self, points: npt.ArrayLike, name: str, decide: bool = True) -> npt.NDArray[np.float32]:
+        """A scan as the model takes it: N×4 float32 with the reflectance on its [0, 1] scale. The first scan
+        decides the scale (`config.reflectance`) or the range-only model, with a `ReflectanceNotice`; a later
+        scan without usable reflectance moves to the range-only model. `decide=False`: no decision kept."""
+        cloud = _as_scan(points, name)
+        given = cloud[:, 3] if np.shape(points)[1] == 4 else None  # N×3: no reflectance at all
+        choice = self._reflectance
+        if choice is None:
+            choice = self._choose_reflectance(given)
+            if decide:
+                self._reflectance = choice
+                self._use_reflectance_choice(choice, f"reflectance: {choice.reason}")
+        elif decide and choice.mode != reflectance.NONE and not reflectance.usable(given):
+            self._reflectance = choice = reflectance.Choice(reflectance.NONE, reflectance.detect(given).reason)
+            self._use_reflectance_choice(choice, f"reflectance: scan {len(self.poses)}: {choice.reason}")
+        cloud, largest = reflectance.normalise(cloud, choice.mode)
+        if decide and largest > 1 and not self._warned_clipping:
+            self._warned_clipping = True
+            warnings.warn(
+                f"reflectance: scan {len(self.poses)} reaches {largest:g}× the top of the {choice.mode} scale chosen "
+                f"({choice.reason}): clipped to it; the config's reflectance ({', '.join(reflectance.MODES[1:])}) "
+                "sets the scale",
+                ReflectanceNotice,
+                stacklevel=3,
+            )
+        return cloud
+
+    def _choose_reflectance(self, given: npt.NDArray[np.float32] | None) -> reflectance.Choice:
+        if self._model_is_range_only:
+            return reflectance.Choice(reflectance.NONE, "the model is range-only")
+        setting = self.config.reflectance
+        detected = reflectance.detect(given)
+        if setting == "auto" or detected.mode == reflectance.NONE:  # no scale makes absent values usable
+            return detected
+        if setting == reflectance.NONE:
+            return reflectance.Choice(reflectance.NONE, "the config says reflectance none")
+        return reflectance.Choice(setting, f"the config says reflectance {setting}")
+
+    def _use_reflectance_choice(self, choice: reflectance.Choice, why: str) -> None:
+        """Runs the model the choice needs from now on (the range-only one, opened here, for no reflectance;
+        the reference scan encoded again by it) and says so, once; reflectance already in [0, 1], as the
+        model takes it, goes on silently (`reflectance_choice` tells)."""
+        if choice.mode == "unit":
+            return
+        if choice.mode != reflectance.NONE:
+            message = f"{why}: divided by {reflectance.SCALES[choice.mode]:g} for the model's [0, 1] scale"
+        elif self._model_is_range_only:
+            message = f"{why}: the scans' reflectance is not used"
+        elif self._range_only_graph is None:
+            message = (
+                f"{why}, and {self.matcher.path.parent} has no range-only model beside it ({reflectance.RANGE_ONLY_DIR}/): "
+                "it runs on zero reflectance, so these poses cannot be trusted. Set reflectance in the config if the "
+                "scans have one on another scale, or train and export a range-only model (dmlo train --no-reflectance; "
+                f"dmlo export RUN --out MODEL/{reflectance.RANGE_ONLY_DIR})"
+            )
+        else:
+            graph = self._range_only_graph
+            self._open_range_only(graph)
+            message = f"{why}: the range-only model runs ({graph.parent})"
+        warnings.warn(message, ReflectanceNotice, stacklevel=4)
+
+    def _open_range_only(self, graph: Path) -> None:
+        matcher = OnnxMatcher(
+            graph, threads=self.config.threads, match_graph=self.config.matching.symmetric,
+            matching_stage=self.config.matching_stage,
+        )
+        if (matcher.cylinder.height, matcher.cylinder.width) != (self.cylinder.height, self.cylinder.width):
+            raise ModelError(f"{graph}: its cylinder image differs from {self.matcher.path}'s")
+        self.matcher, self._wide, self._range_only_graph = matcher, None, None
+        self._model_is_range_only = True
+        self._rematch_gap = self._available_rematch_gap()
+        self._wide_graph_beside = self.matcher.path.with_name(WIDE_FRAME_GRAPH).is_file()
+        if self._reference is not None:  # features of the other model: encoded again by this one
+            image, _, _ = self._project(self._reference.cloud)
+            self._reference.features = self._encode(image)
 
     def _register_far(
         self,
@@ -391,7 +482,7 @@ class Odometry:
 
     def project(self, points: npt.ArrayLike) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """The network input `[2, H, W]` (range, reflectance) of a scan and its range image `[H, W]` (Eq. 1)."""
-        image, ranges, _ = self._project(_as_scan(points, "points"))
+        image, ranges, _ = self._project(self._scan_in(points, "points", decide=False))
         return image, ranges
 
     def pose_from_flow(
