@@ -125,6 +125,9 @@ def test_symmetric_pair_leaves_out_the_cells_the_backward_flow_does_not_lead_bac
         m = dmlo_rs.decode_matches(a, b, flow, weighted, odometry.cylinder, mask=leave_out, top_n=1000, nms_radius=1)
         r = odometry.config.ransac
         votes = dmlo_rs.horizontal_votes(points, m.cells[:, 0], m.cells[:, 1], odometry.cylinder, floor=r.min_vote)
+        cubes = np.floor(m.source / r.vote_voxel).astype(np.int64)  # matches sharing a 2 m cube vote less
+        _, which, crowding = np.unique(cubes, axis=0, return_inverse=True, return_counts=True)
+        votes = votes / np.sqrt(crowding[which.ravel()])
         return dmlo_rs.ransac_rigid(
             m.source, m.target, threshold=0.1, seed=0, refit=r.refit, range_ratio=r.ray_range_ratio,
             bearing_threshold_deg=r.ray_bearing_threshold_deg, votes=votes,

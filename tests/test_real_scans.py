@@ -57,7 +57,7 @@ def test_counted_one_vote_each_the_road_rings_report_the_car_standing_still(
     """The failure the votes remove, so that the test above can fail."""
     scans, reference = highway
     config = OdometryConfig()
-    config.ransac.vote_by_tilt = False
+    config.ransac.vote_by_tilt, config.ransac.vote_voxel = False, None
     moved, _ = _pair_errors(config, scans[:4], reference[:3])
     assert moved.max() < 0.2
 
