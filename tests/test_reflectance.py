@@ -193,6 +193,16 @@ def test_a_later_scan_without_reflectance_moves_to_the_range_only_model(drive: l
     np.testing.assert_allclose(pair_motions(poses)[1:], pair_motions(absent)[1:], atol=1e-9)
 
 
+def test_scans_too_poor_to_match_decide_nothing(drive: list[np.ndarray]) -> None:
+    # Bridged by the motion model, not matched: an empty, an all-NaN or a ten-point scan keeps the scale.
+    nan_scan = np.full((5000, 4), np.nan, np.float32)
+    ten = np.ones((10, 4), np.float32)
+    _, notices, odometry = register_all([nan_scan, drive[0], ten, np.zeros((0, 4), np.float32), drive[1], drive[2]])
+    assert notices == [] and odometry.reflectance_choice.mode == "unit"
+    assert odometry.matcher.path.parent == default_model_path()
+    assert [d.fallback for d in odometry.diagnostics[:4]] == ["too_few_points", None, "too_few_points", "too_few_points"]
+
+
 def test_register_pair_follows_the_scan_without_reflectance(drive: list[np.ndarray]) -> None:
     odometry = Odometry.from_default()
     with pytest.warns(ReflectanceNotice, match="range-only model runs"):

@@ -385,9 +385,16 @@ class Odometry:
     def _scan_in(self, points: npt.ArrayLike, name: str, decide: bool = True) -> npt.NDArray[np.float32]:
         """A scan as the model takes it: N×4 float32 with the reflectance on its [0, 1] scale. The first scan
         decides the scale (`config.reflectance`) or the range-only model, with a `ReflectanceNotice`; a later
-        scan without usable reflectance moves to the range-only model. `decide=False`: no decision kept."""
+        scan without usable reflectance moves to the range-only model. Only scans with `min_points` finite
+        points decide (the others are not matched); `decide=False`: none does."""
         cloud = _as_scan(points, name)
         given = cloud[:, 3] if np.shape(points)[1] == 4 else None  # N×3: no reflectance at all
+        keep = _finite_rows(cloud)
+        if keep is not None:
+            decide = decide and int(np.count_nonzero(keep)) >= self.config.min_points
+            given = None if given is None else given[keep]
+        else:
+            decide = decide and len(cloud) >= self.config.min_points
         choice = self._reflectance
         if choice is None:
             choice = self._choose_reflectance(given)
