@@ -105,7 +105,9 @@ fn plane_normal(
         (p.iter().all(|v| v.is_finite())).then_some(p)
     };
     let centre = at(row, col)?;
-    let radius = around.min_radius.max(around.radius_per_range * centre.norm());
+    let radius = around
+        .min_radius
+        .max(around.radius_per_range * centre.norm());
     let column_width = centre.norm() * config.horizontal_resolution_deg.to_radians();
     let columns = ((radius / column_width).ceil() as usize).clamp(1, MAX_COLUMNS_AROUND) as isize;
     let period = config.column_period();
@@ -231,28 +233,27 @@ mod tests {
         cells
     }
 
+    /// The votes of the cells of `image` whose normal can be told.
+    fn votes_where_told(image: &[[f32; 3]], config: &CylinderConfig, floor: f64) -> Vec<f64> {
+        horizontal_votes(
+            &flat(image),
+            config,
+            &cells_with_normals(image, config),
+            floor,
+        )
+        .unwrap()
+    }
+
     #[test]
     fn the_road_has_no_horizontal_vote_and_a_wall_a_full_one() {
         let config = CylinderConfig::kitti();
         let road = plane_image(&config, Vector3::z(), -1.73);
-        let votes = horizontal_votes(
-            &flat(&road),
-            &config,
-            &cells_with_normals(&road, &config),
-            0.0,
-        )
-        .unwrap();
+        let votes = votes_where_told(&road, &config, 0.0);
         assert!(!votes.is_empty());
         assert!(votes.iter().all(|&v| v < 1e-3));
 
         let wall = plane_image(&config, Vector3::new(0.6, 0.8, 0.0), 12.0);
-        let votes = horizontal_votes(
-            &flat(&wall),
-            &config,
-            &cells_with_normals(&wall, &config),
-            0.0,
-        )
-        .unwrap();
+        let votes = votes_where_told(&wall, &config, 0.0);
         assert!(!votes.is_empty());
         assert!(votes.iter().all(|&v| (v - 1.0).abs() < 1e-6));
     }
@@ -275,13 +276,7 @@ mod tests {
                 }
             }
         }
-        let votes = horizontal_votes(
-            &flat(&road),
-            &config,
-            &cells_with_normals(&road, &config),
-            0.0,
-        )
-        .unwrap();
+        let votes = votes_where_told(&road, &config, 0.0);
         assert!(!votes.is_empty());
         assert!(votes.iter().all(|&v| v < 1e-3));
     }
@@ -291,13 +286,7 @@ mod tests {
         let config = CylinderConfig::kitti();
         let tilt = 30f64.to_radians();
         let ramp = plane_image(&config, Vector3::new(tilt.sin(), 0.0, tilt.cos()), -3.0);
-        let votes = horizontal_votes(
-            &flat(&ramp),
-            &config,
-            &cells_with_normals(&ramp, &config),
-            0.0,
-        )
-        .unwrap();
+        let votes = votes_where_told(&ramp, &config, 0.0);
         let worst = votes
             .iter()
             .map(|v| (v - tilt.sin()).abs())
@@ -343,13 +332,7 @@ mod tests {
         let votes = horizontal_votes(&flat(&lone), &config, &[[10, 100]], 0.0).unwrap();
         assert_eq!(votes, vec![1.0]);
         let road = plane_image(&config, Vector3::z(), -1.73);
-        let votes = horizontal_votes(
-            &flat(&road),
-            &config,
-            &cells_with_normals(&road, &config),
-            0.05,
-        )
-        .unwrap();
+        let votes = votes_where_told(&road, &config, 0.05);
         assert!(votes.iter().all(|&v| (v - 0.05).abs() < 1e-3));
     }
 
