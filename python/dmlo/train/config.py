@@ -31,6 +31,10 @@ class TrainConfig:
     yaw_roll: bool = True
     mirror: bool = False
     """Also train on the mirror world (half of the samples flipped left–right)."""
+    laser_gain_spread: float = 0.0
+    """Per-row reflectance gains of up to ± this, the same in both scans (`Augmentation`); 0: off."""
+    row_dropout: float = 0.0
+    """Rows losing up to this share of their cells (`Augmentation`); 0: off."""
     max_gap: int = 2
     """Pairs 1 … max_gap frames apart (2: the paper's triplets)."""
     val_max_pairs: int = 64

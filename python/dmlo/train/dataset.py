@@ -15,6 +15,12 @@ Augmentations keep the geometry honest:
 - *mirror* (optional): both images flipped left–right — the scans of the mirror world (y → −y), whose
   flow is the column-negated flow. Every drive then also turns the other way, so the network cannot learn
   a preferred turning direction (a yaw bias that drifts the odometry).
+- *laser gains* (optional): each row's reflectance scaled by its own gain, the same in both scans — a real
+  sensor's lasers differ in their intensity calibration, so the rings of the road are stripes that stay in
+  their rows from scan to scan; a matcher that never saw them follows them and shortens the vertical flow.
+- *row dropout* (optional): each row loses its own share of cells, independently in the two scans — a real
+  sensor's lasers sit off the image's even row grid, so its rows are partly empty where the simulator's are
+  full. Reference cells that lose their point lose their ground truth; the flow is unchanged.
 
 With ``pose_jacobian=True`` a sample also holds ``pose_jacobian`` float32 (6, 2, H, W): how the ground-truth
 flow of every cell moves when the pose changes (see :func:`flow_pose_jacobian`), NaN where a perturbed pose
@@ -86,8 +92,17 @@ class Augmentation:
     """False: no roll, no mirror and a centred crop (validation)."""
     mirror: bool = False
     """Flip half of the samples left–right (drawn after the roll, so runs without it are unchanged)."""
+    laser_gain_spread: float = 0.0
+    """Largest per-row gain spread S: a sample draws s in [0, S] and each row a gain in [1 − s, 1 + s]; 0: off.
+    Drawn after the crop, as is the row dropout, so runs without them are unchanged."""
+    row_dropout: float = 0.0
+    """Largest share of a row's cells dropped: half the samples draw each row's share in [0, row_dropout]."""
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.laser_gain_spread < 1.0:
+            raise ValueError(f"laser_gain_spread must be in [0, 1), got {self.laser_gain_spread}")
+        if not 0.0 <= self.row_dropout < 1.0:
+            raise ValueError(f"row_dropout must be in [0, 1), got {self.row_dropout}")
         if self.crop_height is not None and (self.crop_height <= 0 or self.crop_height % 4):
             raise ValueError(f"crop_height must be a positive multiple of 4, got {self.crop_height}")
         if self.crop_width is not None and (self.crop_width <= 0 or self.crop_width % 8):
@@ -103,14 +118,44 @@ class Augmentation:
         crop_width = self.crop_width or width
         if crop_height > height or crop_width > width:
             raise ValueError(f"crop {crop_height}×{crop_width} is larger than the scans ({height}×{width})")
-        if (crop_height, crop_width) == (height, width):
-            return sample
-        if self.random:
-            top = int(rng.integers(0, height - crop_height + 1))
-            left = int(rng.integers(0, width - crop_width + 1))
-        else:
-            top, left = (height - crop_height) // 2, (width - crop_width) // 2
-        return crop(sample, top, left, crop_height, crop_width)
+        if (crop_height, crop_width) != (height, width):
+            if self.random:
+                top = int(rng.integers(0, height - crop_height + 1))
+                left = int(rng.integers(0, width - crop_width + 1))
+            else:
+                top, left = (height - crop_height) // 2, (width - crop_width) // 2
+            sample = crop(sample, top, left, crop_height, crop_width)
+        if self.random and self.laser_gain_spread > 0:
+            sample = scale_row_reflectance(sample, rng.uniform(0.0, self.laser_gain_spread), rng)
+        if self.random and self.row_dropout > 0 and rng.random() < 0.5:
+            sample = drop_row_cells(sample, self.row_dropout, rng)
+        return sample
+
+
+def scale_row_reflectance(sample: Sample, spread: float, rng: np.random.Generator) -> Sample:
+    """Each row's reflectance times its own gain in [1 − spread, 1 + spread], the same in both scans, in [0, 1]."""
+    height = sample["valid"].shape[0]
+    gains = rng.uniform(1.0 - spread, 1.0 + spread, size=(height, 1)).astype(np.float32)
+    scaled = dict(sample)
+    for key in ("ref", "tgt"):
+        image = sample[key].copy()
+        image[1] = np.clip(image[1] * gains, 0.0, 1.0)
+        scaled[key] = image
+    return scaled
+
+
+def drop_row_cells(sample: Sample, largest_share: float, rng: np.random.Generator) -> Sample:
+    """Each row loses a share in [0, largest_share] of its cells, drawn apart in the two scans (range and
+    reflectance 0, as empty cells are); a reference cell that loses its point loses its ground truth."""
+    height, width = sample["valid"].shape
+    shares = rng.uniform(0.0, largest_share, size=(height, 1))
+    dropped = dict(sample)
+    for key in ("ref", "tgt"):
+        keep = rng.random((height, width)) >= shares
+        dropped[key] = sample[key] * keep.astype(np.float32)
+        if key == "ref":
+            dropped["valid"] = sample["valid"] & keep
+    return dropped
 
 
 class Geometry(Protocol):

@@ -1,6 +1,7 @@
 """The recipe of the bundled default model: its simulated drives and its training command, in one place.
 
-    python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR] [--finetune | --range-only]
+    python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR]
+        [--finetune | --range-only | --sensor-variety]
 
 simulates the drives (skipping those already written; deterministic per seed) and then trains, resuming
 from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. `--finetune` runs
@@ -15,6 +16,12 @@ with the reflectance channel zeroed in every sample (`--no-reflectance`), into `
 resumable like the other stages; two epochs on 448-column crops, sized to finish within 10 minutes on one
 GPU (about an hour on 2 CPU cores; `best.pt` from the first epoch's validation on). Then `dmlo export
 RUN_DIR/range_only --out python/dmlo/models/default/range_only --wide-window 41 --refine-window 7`.
+
+`--sensor-variety` fine-tunes the same final weights (or `--init CKPT`) on pairs with a real sensor's row
+artefacts — per-laser reflectance gains and partly empty rows (`Augmentation`) — into
+`RUN_DIR/sensor_variety`: the simulator's even, equally bright lasers taught the matcher to follow the
+stripes of a real sensor's rings, which stay in their rows and pull the vertical flow towards zero. Sized
+like the range-only stage; export it as the bundled model with the same `dmlo export` options.
 """
 
 from __future__ import annotations
@@ -54,6 +61,11 @@ RANGE_ONLY_ARGUMENTS = (
     "--no-reflectance --optimizer adam --lr 5e-4 --lr-step 1 --epochs 2 --batch-size 4 --crop-width 448 "
     "--val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume --mirror"
 ).split()
+# The sensor-variety stage: the flow loss on 448-column crops with per-row gains and row dropout.
+SENSOR_VARIETY_ARGUMENTS = (
+    "--laser-gain-spread 0.6 --row-dropout 0.4 --optimizer adam --lr 1e-4 --lr-step 1 --epochs 2 --batch-size 4 "
+    "--crop-width 448 --val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume --mirror"
+).split()
 BUNDLED_FINAL = Path(__file__).resolve().parents[1] / "models" / "default" / "training" / "finetune" / "best.pt"
 
 
@@ -83,20 +95,24 @@ def main(argv: list[str] | None = None) -> int:
                         help="the second stage: fine-tune OUT/best.pt with the pose loss into OUT/finetune")
     parser.add_argument("--range-only", action="store_true",
                         help="fine-tune the range-only model (reflectance zeroed) from --init into OUT/range_only")
+    parser.add_argument("--sensor-variety", action="store_true",
+                        help="fine-tune --init on pairs with per-laser gains and partly empty rows into OUT/sensor_variety")
     parser.add_argument("--init", type=Path, default=BUNDLED_FINAL,
-                        help="with --range-only: the weights to start from (default: the bundled model's final ones)")
+                        help="with --range-only or --sensor-variety: the weights to start from (default: the bundled "
+                        "model's final ones)")
     args = parser.parse_args(argv)
-    if args.finetune and args.range_only:
-        parser.error("--finetune and --range-only are separate stages: choose one")
+    if args.finetune + args.range_only + args.sensor_variety > 1:
+        parser.error("--finetune, --range-only and --sensor-variety are separate stages: choose one")
     train, val = simulate_drives(args.data, args.poses if args.poses.is_dir() else None)
 
     from dmlo.train.__main__ import main as train_main
 
     data = ["--data", *map(str, train), "--val", *map(str, val)]
-    if args.range_only:
+    if args.range_only or args.sensor_variety:
+        stage, arguments = ("range_only", RANGE_ONLY_ARGUMENTS) if args.range_only else ("sensor_variety", SENSOR_VARIETY_ARGUMENTS)
         if not args.init.is_file():
-            parser.error(f"--range-only starts from {args.init}, which does not exist")
-        return train_main([*data, "--out", str(args.out / "range_only"), "--init", str(args.init), *RANGE_ONLY_ARGUMENTS])
+            parser.error(f"--{stage.replace('_', '-')} starts from {args.init}, which does not exist")
+        return train_main([*data, "--out", str(args.out / stage), "--init", str(args.init), *arguments])
     if args.finetune:
         start = args.out / "best.pt"
         if not start.is_file():
