@@ -207,7 +207,7 @@ def test_a_bad_refit_setting_is_refused_up_front(refit: str, ratio: object, mess
 @pytest.mark.parametrize(
     ("angle", "message"),
     [(-1.0, r"ransac.ray_bearing_threshold_deg: must be a number >= 0"),
-     (90.0, r"ransac.ray_bearing_threshold_deg: must be below 90")],
+     (90.0, r"ransac.ray_bearing_threshold_deg: must be a number >= 0 and < 90, got 90.0")],
 )
 def test_a_bad_bearing_threshold_is_refused_up_front(angle: float, message: str) -> None:
     from dmlo.odometry import Odometry, OdometryConfig

@@ -21,10 +21,10 @@ import dmlo_rs
 from dmlo.metrics.trajectory import pose_difference
 from dmlo.poses import midpoint_motion
 from dmlo.odometry.clock import FrameClock
-from dmlo.odometry.config import REFITS, OdometryConfig
+from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
 from dmlo.odometry import reflectance
-from dmlo.odometry.reflectance import ReflectanceNotice, check_mode as check_reflectance_mode
+from dmlo.odometry.reflectance import ReflectanceNotice
 from dmlo.odometry.matcher import (
     ENCODER_GRAPH,
     MATCH_GRAPH,
@@ -168,8 +168,7 @@ class Odometry:
 
     def __init__(self, model_path: str | Path, config: OdometryConfig | None = None) -> None:
         self.config = config or OdometryConfig()
-        _check_limits(self.config)
-        check_reflectance_mode(self.config.reflectance)  # again: a config's fields may change after loading
+        self.config.validate()  # the whole schema again: a config's fields may change after loading
         self.matcher: Matcher = OnnxMatcher(
             Path(model_path),
             threads=self.config.threads,
@@ -882,70 +881,6 @@ class Odometry:
             degeneracy_threshold=c.degeneracy_threshold,
             rotation_degeneracy_threshold=c.rotation_degeneracy_threshold,
         )
-
-
-# Limits that None turns off, and limits that must be > 0 rather than >= 0 (a scale divides by them).
-_OPTIONAL_LIMITS = {("matching", "consistency_px"), ("matching", "coherence_px"), ("ransac", "vote_voxel")}
-_POSITIVE_LIMITS = {
-    ("matching", "coherence_px"), ("ransac", "ray_range_ratio"), ("ransac", "min_vote"), ("ransac", "vote_voxel")
-}
-
-
-def _check_limits(config: OdometryConfig) -> None:
-    """The distance and angle limits only Python reads (Rust checks its own settings)."""
-    limits = {
-        "matching": ("consistency_px", "coherence_px"),
-        "motion_model": ("max_deviation", "max_deviation_deg", "guided_fraction", "min_inlier_votes"),
-        "large_motion": ("min_step", "min_step_deg"),
-        "ransac": ("ray_range_ratio", "ray_bearing_threshold_deg", "min_vote", "vote_voxel"),
-        "mapping": (
-            "keyframe_distance",
-            "keyframe_angle_deg",
-            "motion_model_start_distance",
-            "motion_model_start_angle_deg",
-        ),
-    }
-    for section, names in limits.items():
-        for name in names:
-            value = getattr(getattr(config, section), name)
-            if value is None and (section, name) in _OPTIONAL_LIMITS:
-                continue
-            positive = (section, name) in _POSITIVE_LIMITS
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value > 0 if positive else value >= 0):
-                raise ValueError(f"{section}.{name}: must be a number {'>' if positive else '>='} 0, got {value!r}")
-    if config.ransac.refit not in REFITS:
-        raise ValueError(f"ransac.refit: must be one of {', '.join(REFITS)}, got {config.ransac.refit!r}")
-    if config.ransac.min_vote > 1:
-        raise ValueError(f"ransac.min_vote: must be at most 1 (a wall's vote), got {config.ransac.min_vote!r}")
-    if not isinstance(config.ransac.vote_by_tilt, bool):
-        raise ValueError(f"ransac.vote_by_tilt: must be true or false, got {config.ransac.vote_by_tilt!r}")
-    if config.ransac.ray_bearing_threshold_deg >= 90:
-        raise ValueError(f"ransac.ray_bearing_threshold_deg: must be below 90, got {config.ransac.ray_bearing_threshold_deg!r}")
-    for name in ("search_ahead_m", "search_yaw_deg"):
-        starts = getattr(config.large_motion, name)
-        if isinstance(starts, (str, bytes)) or not hasattr(starts, "__len__") or len(starts) == 0 or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in starts
-        ):
-            raise ValueError(f"large_motion.{name}: must be a non-empty list of finite numbers, got {starts!r}")
-    gap = config.motion_model.rematch_gap
-    if gap is not None and (isinstance(gap, bool) or not isinstance(gap, int) or gap < 1):
-        raise ValueError(f"motion_model.rematch_gap: must be an integer >= 1 (frames) or None, got {gap!r}")
-    horizon = config.motion_model.prediction_horizon
-    if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
-        raise ValueError(f"motion_model.prediction_horizon: must be an integer >= 1 (frames), got {horizon!r}")
-    rounds = config.large_motion.max_rounds
-    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
-        raise ValueError(f"large_motion.max_rounds: must be an integer >= 1, got {rounds!r}")
-    for name in ("enabled", "clockwise"):
-        if not isinstance(getattr(config.deskew, name), bool):
-            raise ValueError(f"deskew.{name}: must be true or false, got {getattr(config.deskew, name)!r}")
-    azimuth = config.deskew.reference_azimuth_deg
-    if isinstance(azimuth, bool) or not isinstance(azimuth, (int, float)) or not np.isfinite(azimuth):
-        raise ValueError(f"deskew.reference_azimuth_deg: must be a finite number (degrees), got {azimuth!r}")
-    # Checked here too, not only by dmlo_rs at the first pair, so that a bad config fails when it is loaded.
-    radius, largest = config.matching.coherence_radius, dmlo_rs.MAX_COHERENCE_RADIUS
-    if isinstance(radius, bool) or not isinstance(radius, int) or not 0 <= radius <= largest:
-        raise ValueError(f"matching.coherence_radius: must be an integer from 0 to {largest}, got {radius!r}")
 
 
 def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> PairResult:

@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-# Reflectance settings (`OdometryConfig.reflectance`): the divisor of each scale, and the two others.
+# Reflectance settings (`OdometryConfig.reflectance`, whose schema lists the same): the divisor of each scale,
+# and the two others.
 SCALES: dict[str, float] = {"unit": 1.0, "0-255": 255.0, "0-65535": 65535.0}
 NONE = "none"
 MODES: tuple[str, ...] = ("auto", *SCALES, NONE)
@@ -33,12 +34,6 @@ class ReflectanceNotice(UserWarning):
     """What the odometry does with the scans' reflectance when they are not already on the model's [0, 1]
     scale: the scale it chose or the range-only model, once per `Odometry` (again only when a later scan
     moves it to the range-only model, or first exceeds the chosen scale)."""
-
-
-def check_mode(value: object) -> None:
-    """Refuses a reflectance setting that is not one of `MODES`, naming the setting."""
-    if not isinstance(value, str) or value not in MODES:
-        raise ValueError(f"reflectance: must be one of {', '.join(MODES)}, got {value!r}")
 
 
 @dataclass(frozen=True)
