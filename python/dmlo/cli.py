@@ -93,3 +93,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"dmlo {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as err:  # a full disk, a file in the way, no permission: what and where, in one line
+        from dmlo.outputs import describe_os_error
+
+        where = f"{err.filename}: " if getattr(err, "filename", None) else ""
+        print(f"dmlo {args.command}: error: {where}{describe_os_error(err)}", file=sys.stderr)
+        return 1

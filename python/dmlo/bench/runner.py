@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from dmlo.bench.peers import PEERS, FrameOdometry
 from dmlo.datasets import ScanSequence
+from dmlo.outputs import BENCH_FILES, RUN_FILES, atomic_output, check_output_folder, prepare_output_folder
 from dmlo.poses import write_kitti_poses
 
 REFERENCE_PEER = "KISS-ICP"
@@ -40,10 +41,13 @@ def benchmark_sequence(
     out_dir: Path,
     peers: list[str] | None = None,
     max_frames: int | None = None,
+    overwrite: bool = False,
 ) -> list[BenchRow]:
     """Every method sees the same scans (read once, before any timing) and starts from identity.
 
     `dmlo_variants` maps a row name to a factory of a DMLO odometry (e.g. with and without mapping).
+    `out_dir` gets `ground_truth.txt` and one KITTI pose file per method; a folder with an earlier run's
+    files raises `dmlo.outputs.OutputError` unless `overwrite` (which deletes them first).
     """
     from dmlo.metrics import evaluate_trajectory
 
@@ -60,13 +64,15 @@ def benchmark_sequence(
         elif peers is not None:  # asked for by name: say why its row is missing
             warnings.warn(f"skipping {peer.name}: {peer.unavailable_reason}", PeerUnavailableWarning, stacklevel=2)
 
+    check_output_folder(out_dir, BENCH_FILES, overwrite=overwrite, also_refuse=RUN_FILES)
     total = len(sequence) if max_frames is None else min(max_frames, len(sequence))
     scans = [sequence[i].points for i in tqdm(range(total), desc="reading", unit="scan")]
     ground_truth = sequence.poses
     assert ground_truth is not None
     ground_truth = np.linalg.inv(ground_truth[0]) @ ground_truth[:total]
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_kitti_poses(out_dir / "ground_truth.txt", ground_truth)
+    prepare_output_folder(out_dir, BENCH_FILES, overwrite=overwrite, also_refuse=RUN_FILES)
+    with atomic_output(out_dir / "ground_truth.txt") as temporary:
+        write_kitti_poses(temporary, ground_truth)
 
     rows = []
     for name, make in methods:
@@ -77,7 +83,8 @@ def benchmark_sequence(
             poses.append(odometry.register(points))
         seconds = time.perf_counter() - start
         estimate = np.stack(poses)
-        write_kitti_poses(out_dir / f"{name.replace(' ', '_')}.txt", estimate)
+        with atomic_output(out_dir / f"{name.replace(' ', '_')}.txt") as temporary:
+            write_kitti_poses(temporary, estimate)
         rows.append(BenchRow(name, total / seconds, evaluate_trajectory(ground_truth, estimate)))
     return rows
 

@@ -78,7 +78,9 @@ def main() -> None:
         if args.motion_distortion:
             variants["DMLO deskewed"] = lambda: _dmlo(args.model, False, deskew=True)
             variants["DMLO + mapping, deskewed"] = lambda: _dmlo(args.model, True, deskew=True)
-        rows = benchmark_sequence(sequence, variants, args.out / drive.name, peers=args.peers, max_frames=args.frames)
+        # The drive is kept and reused by the next run; its results are replaced.
+        rows = benchmark_sequence(sequence, variants, args.out / drive.name, peers=args.peers, max_frames=args.frames,
+                                  overwrite=True)
         source = f"KITTI {trajectory.stem}" if trajectory.is_file() else "generated"
         print(f"\n### {drive.name} ({source} trajectory, {len(sequence)} frames)\n")
         print(format_table(rows))

@@ -29,6 +29,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="peer names to run (default: every installed peer except FPFH+RANSAC and "
                         "KISS-ICP deskewed; with --deskew, KISS-ICP deskewed too)")
     parser.add_argument("--out", type=Path, default=Path("runs/bench"))
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the files of an earlier run in --out (refused otherwise)")
     add_odometry_arguments(parser)
     parser.set_defaults(run=run)
 
@@ -38,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from dmlo.cli import UserError
     from dmlo.commands.run import build_odometry
     from dmlo.datasets import DatasetError, open_sequence
+    from dmlo.outputs import OutputError
 
     try:
         sequence = open_sequence(args.path, format=args.format, sequence=args.sequence)
@@ -62,8 +65,9 @@ def run(args: argparse.Namespace) -> int:
     if args.mapping:
         variants[f"{name} + mapping"] = lambda: build_odometry(args, mapping=True)
     try:
-        rows = benchmark_sequence(sequence, variants, args.out, peers=peers, max_frames=args.max_frames)
-    except UnknownPeerError as err:
+        rows = benchmark_sequence(sequence, variants, args.out, peers=peers, max_frames=args.max_frames,
+                                  overwrite=args.overwrite)
+    except (UnknownPeerError, OutputError) as err:
         raise UserError(str(err)) from err
     print(format_table(rows))
     return 0

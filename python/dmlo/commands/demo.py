@@ -27,7 +27,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--frames", type=int, default=100, help="scans to simulate (default: 100)")
     parser.add_argument("--seed", type=non_negative_int, default=1, help="scene and drive seed (default: 1)")
-    parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (default: runs/demo)")
+    parser.add_argument("--out", type=Path, default=Path("runs/demo"),
+                        help="output folder, a previous demo's there replaced (default: runs/demo)")
     parser.add_argument("--motion-distortion", action="store_true",
                         help="simulate skewed sweeps (each column cast from the pose of its own moment)")
     add_odometry_arguments(parser)
@@ -39,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from dmlo.commands.run import build_odometry, format_summary
     from dmlo.datasets import open_sequence
     from dmlo.odometry.run import run_sequence
+    from dmlo.outputs import OutputError, describe_os_error, make_folder
     from dmlo.simulator import simulate_sequence
 
     if args.frames < 2:
@@ -46,8 +48,17 @@ def run(args: argparse.Namespace) -> int:
     drive = args.out / "drive"
     skew = ", skewed sweeps" if args.motion_distortion else ""
     print(f"simulating {args.frames} scans (seed {args.seed}{skew}) into {drive}/")
-    simulate_sequence(drive, frames=args.frames, seed=args.seed, motion_distortion=args.motion_distortion)
+    try:
+        make_folder(drive)
+        simulate_sequence(drive, frames=args.frames, seed=args.seed, motion_distortion=args.motion_distortion)
+    except (ValueError, OutputError) as err:  # a file in the way, scans there that a simulation did not write
+        raise UserError(str(err)) from None
+    except OSError as err:
+        raise UserError(f"cannot write the drive into {drive}: {describe_os_error(err)}") from None
     odometry = build_odometry(args)
-    summary = run_sequence(open_sequence(drive), odometry, args.out / "odometry")
+    try:  # the demo's own folder: an earlier demo's results there are replaced
+        summary = run_sequence(open_sequence(drive), odometry, args.out / "odometry", overwrite=True)
+    except OutputError as err:
+        raise UserError(str(err)) from None
     print(format_summary(summary))
     return 0

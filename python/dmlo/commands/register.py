@@ -76,8 +76,14 @@ def run(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - start
     transform = np.asarray(result.T_tgt_ref, dtype=np.float64)
     if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        np.savetxt(args.out, transform, fmt="%.9f")
+        from dmlo.outputs import OutputError, atomic_output, make_folder
+
+        try:
+            make_folder(args.out.parent, "folder of --out")
+            with atomic_output(args.out) as temporary:
+                np.savetxt(temporary, transform, fmt="%.9f")
+        except OutputError as err:
+            raise UserError(str(err)) from None
     if args.json:
         print(json.dumps({
             "T_b_a": transform.tolist(),

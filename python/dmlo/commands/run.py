@@ -30,6 +30,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_odometry_arguments(parser)
     add_dataset_arguments(parser)
     parser.add_argument("--out", type=Path, default=Path("runs/dmlo"), help="output folder (default: runs/dmlo)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the files of an earlier run in --out (refused otherwise)")
     parser.add_argument("--keep-moving", action="store_true",
                         help="keep points labelled as moving objects (default: removed when labels exist)")
     parser.set_defaults(run=run)
@@ -105,6 +107,7 @@ def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # ty
 def run(args: argparse.Namespace) -> int:
     from dmlo.datasets import DatasetError, open_sequence
     from dmlo.odometry.run import run_sequence
+    from dmlo.outputs import BENCH_FILES, RUN_FILES, OutputError, check_output_folder
 
     if not args.path.exists():
         raise UserError(f"no such dataset folder: {args.path}")
@@ -112,9 +115,16 @@ def run(args: argparse.Namespace) -> int:
         sequence = open_sequence(args.path, format=args.format, sequence=args.sequence)
     except DatasetError as err:
         raise UserError(str(err)) from err
+    try:
+        check_output_folder(args.out, RUN_FILES, overwrite=args.overwrite, also_refuse=BENCH_FILES)
+    except OutputError as err:  # before the model loads: a refusal is instant
+        raise UserError(str(err)) from None
     odometry = build_odometry(args)
-    summary = run_sequence(sequence, odometry, args.out, remove_moving=not args.keep_moving,
-                           max_frames=args.max_frames)
+    try:
+        summary = run_sequence(sequence, odometry, args.out, remove_moving=not args.keep_moving,
+                               max_frames=args.max_frames, overwrite=args.overwrite)
+    except OutputError as err:
+        raise UserError(str(err)) from None
     print(format_summary(summary))
     return 0
 

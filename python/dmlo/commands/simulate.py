@@ -116,6 +116,11 @@ def run(args: argparse.Namespace) -> int:
         )
     except (ValueError, FileNotFoundError) as err:
         raise UserError(str(err)) from None
+    except OSError as err:  # a file in the way of --out, a full disk
+        from dmlo.outputs import describe_os_error
+
+        where = f" {err.filename}" if err.filename else ""
+        raise UserError(f"cannot write{where}: {describe_os_error(err)}") from None
     if not args.quiet:
         frames = len(result.points_per_frame)
         mean_points = sum(result.points_per_frame) / frames

@@ -1,8 +1,9 @@
 """Runs the odometry over a whole sequence and writes everything a user asked for as it goes.
 
-Poses are appended line by line (KITTI and TUM) and diagnostics one JSON line per frame, so an
-interrupted run leaves valid files for every frame done; metrics and the plot are written at the end
-when the sequence has ground truth.
+Poses are appended line by line (KITTI and TUM) and diagnostics one JSON line per frame, all three
+together (`dmlo.outputs.FrameFiles`), so an interrupted run or a full disk leaves valid files that hold
+the same frames, every frame done; metrics and the plot are written at the end when the sequence has
+ground truth. A folder that holds an earlier run's files is refused unless `overwrite`.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ from tqdm import tqdm
 
 from dmlo.datasets import DatasetError, ScanSequence, moving_mask
 from dmlo.odometry.pipeline import Odometry
-from dmlo.poses import PoseWriter, write_kitti_poses
+from dmlo.outputs import BENCH_FILES, RUN_FILES, FrameFiles, atomic_output, prepare_output_folder
+from dmlo.poses import _as_transform, _format_kitti, _format_tum, write_kitti_poses
 
 
 @dataclass
@@ -46,26 +48,26 @@ def run_sequence(
     max_frames: int | None = None,
     progress: bool = True,
     on_frame: Callable[[int, np.ndarray], None] | None = None,
+    overwrite: bool = False,
 ) -> RunSummary:
     """Registers every scan of `sequence`, writing into `out_dir`:
 
     `poses_kitti.txt` / `poses_tum.txt` (T_world_lidar, world = the first scan, readable by evo),
     `diagnostics.jsonl`, `config.json`, and with ground truth `ground_truth_kitti.txt`,
-    `metrics.json` and `trajectory.png`. `max_frames` (≥ 1) stops after that many scans.
+    `metrics.json` and `trajectory.png`. `max_frames` (≥ 1) stops after that many scans. A folder with an
+    earlier run's files raises `OutputError` unless `overwrite` (which deletes them first); so does any
+    failure to write, naming the file.
     """
     if max_frames is not None and max_frames < 1:
         raise ValueError(f"max_frames: must be at least 1, got {max_frames}")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    odometry.config.save(out_dir / "config.json")
+    out_dir = prepare_output_folder(out_dir, RUN_FILES, overwrite=overwrite, also_refuse=BENCH_FILES)
+    with atomic_output(out_dir / "config.json") as temporary:
+        odometry.config.save(temporary)
     total = len(sequence) if max_frames is None else min(max_frames, len(sequence))
     timestamps: list[float] = []
     skipped: list[int] = []
     start = time.perf_counter()
-    with (
-        PoseWriter(out_dir / "poses_kitti.txt", "kitti") as kitti,
-        PoseWriter(out_dir / "poses_tum.txt", "tum") as tum,
-        (out_dir / "diagnostics.jsonl").open("w", encoding="utf-8") as diagnostics,
-    ):
+    with FrameFiles([out_dir / "poses_kitti.txt", out_dir / "poses_tum.txt", out_dir / "diagnostics.jsonl"]) as files:
         bar = tqdm(range(total), desc=sequence.name, unit="scan", disable=not progress)
         for index in bar:
             try:
@@ -84,10 +86,8 @@ def run_sequence(
                 record = odometry.diagnostics[-1].to_dict()
                 timestamp = float(frame.timestamp) if frame.timestamp is not None else float(index)
             timestamps.append(timestamp)
-            kitti.append(pose)
-            tum.append(pose, timestamp)
-            diagnostics.write(json.dumps(record) + "\n")
-            diagnostics.flush()
+            matrix = _as_transform(pose, "pose")
+            files.append([_format_kitti(matrix), _format_tum(timestamp, matrix), json.dumps(record) + "\n"])
             if on_frame:
                 on_frame(index, pose)
             elapsed = time.perf_counter() - start
@@ -108,9 +108,12 @@ def _evaluate(ground_truth: np.ndarray, estimate: np.ndarray, out_dir: Path, nam
 
     # Both trajectories start at the identity, so they compare without any alignment.
     ground_truth = np.linalg.inv(ground_truth[0]) @ ground_truth
-    write_kitti_poses(out_dir / "ground_truth_kitti.txt", ground_truth)
+    with atomic_output(out_dir / "ground_truth_kitti.txt") as temporary:
+        write_kitti_poses(temporary, ground_truth)
     metrics = evaluate_trajectory(ground_truth, estimate)
-    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
-    # LiDAR frame, z up: the top view is the x–y plane.
-    plot_trajectories(ground_truth, estimate, out_dir / "trajectory.png", title=name, axes=(0, 1))
+    with atomic_output(out_dir / "metrics.json") as temporary:
+        temporary.write_text(json.dumps(metrics, indent=2) + "\n")
+    with atomic_output(out_dir / "trajectory.png") as temporary:
+        # LiDAR frame, z up: the top view is the x–y plane.
+        plot_trajectories(ground_truth, estimate, temporary, title=name, axes=(0, 1))
     return metrics
