@@ -3,22 +3,27 @@ stage in the crate.
 
 The odometry calls the matcher once per scan: it encodes the new scan and matches the previous scan's
 cached features against it, so each scan is encoded once. Where the matching stage (correlation and
-window decoding, three quarters of the exported `frame` graph's time on a CPU) runs is a choice:
+window decoding, most of the exported `frame` graph's time on a CPU) runs is a choice:
 
 - ``graph``: the `frame` graph does both in one onnxruntime session (ONNX-NOTES item 10) — on a GPU, all
   of it runs there;
 - ``crate``: `encoder.onnx` encodes the scan and `dmlo_rs.match_features` matches the cached features on
-  the CPU (the same computation, 2.6–4.4× faster there; it needs the graphs' ``dmlo.similarity_scales``);
+  the CPU (the same computation, faster there: it computes each window's correlation directly instead of
+  through the tensors the graph gathers for it; it needs the graphs' ``dmlo.similarity_scales``);
 - ``auto`` (the default): ``crate`` when onnxruntime runs on the CPU and the model allows it, else ``graph``.
 
 The graph's metadata carries the cylinder configuration it was trained for; the projection is built
-from it, so a model and its input geometry cannot drift apart.
+from it, so a model and its input geometry cannot drift apart. All of the metadata that the run reads is
+checked when the model is opened: a missing or malformed key is a `ModelError` naming it, before any scan.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import os
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -34,6 +39,7 @@ MATCH_GRAPH = "match.onnx"  # any pair of cached features, e.g. the new scan bac
 ENCODER_GRAPH = "encoder.onnx"  # a scan's features alone (frame.onnx would also match it against zeros)
 INTERFACE_VERSION = "1"
 MATCHING_STAGES = ("auto", "crate", "graph")
+REFINE_OFFSETS = ("window", "peak_centroid")  # `dmlo.model.MatcherConfig.refine_offset`
 _MATCH_STAGE_KEYS = ("coarse_window", "refine_window", "refine_offset")  # export-time choices, same weights
 _CYLINDER_KEYS = (
     "fov_up_deg",
@@ -78,6 +84,27 @@ class Matcher(Protocol):
     def encode(self, image: npt.NDArray[np.float32]) -> Features: ...
 
 
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the system tells it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def usable_threads(requested: int) -> int:
+    """`threads` as onnxruntime and the crate's matching stage get them: 0 (they choose) or at most the
+    machine's cores. More threads than cores only wait for one another, and onnxruntime sets every one up
+    when a session opens (100000 blocked there, its memory growing), so more are bounded, with a warning."""
+    cores = available_cores()
+    if requested > cores:
+        warnings.warn(
+            f"threads: {requested} is more than the {cores} cores of this machine; using {cores}", stacklevel=3
+        )
+        return cores
+    return requested
+
+
 def default_model_path() -> Path:
     """The bundled default model: a folder with `frame.onnx` inside the installed package."""
     return Path(__file__).resolve().parent.parent / "models" / "default"
@@ -98,11 +125,13 @@ class OnnxMatcher:
     """Runs an exported `frame.onnx` (or a folder holding one) on the CPU, or CUDA when available.
 
     `match_graph` opens what `match` needs at once (a missing graph is an error here rather than on the
-    first `match`); `matching_stage` chooses where the matching stage runs (module docs)."""
+    first `match`); `matching_stage` chooses where the matching stage runs (module docs); `threads` beyond
+    the machine's cores are bounded to them (`usable_threads`)."""
 
     def __init__(self, path: Path, threads: int = 0, match_graph: bool = False, matching_stage: str = "auto") -> None:
         import onnxruntime as ort
 
+        threads = usable_threads(threads)
         if matching_stage not in MATCHING_STAGES:
             raise ValueError(f"matching_stage: expected one of {', '.join(MATCHING_STAGES)}, got {matching_stage!r}")
         graph = path / FRAME_GRAPH if path.is_dir() else path
@@ -119,22 +148,25 @@ class OnnxMatcher:
         if metadata.get("dmlo.interface_version") != INTERFACE_VERSION or metadata.get("dmlo.graph") != "frame":
             raise ModelError(f"{graph}: not a dmlo frame graph (interface {INTERFACE_VERSION} expected)")
         self.path = graph
-        self.model_config = json.loads(metadata["dmlo.model_config"])
-        self.height, self.width = int(metadata["dmlo.height"]), int(metadata["dmlo.width"])
-        self.cylinder = _cylinder_from_metadata(json.loads(metadata["dmlo.cylinder_config"]), graph)
+        self.model_config = _model_config(metadata, graph)
+        self.height, self.width = _size(metadata, graph)
+        self.cylinder = _cylinder_from_metadata(_json_object(metadata, "dmlo.cylinder_config", graph), graph)
         if (self.cylinder.height, self.cylinder.width) != (self.height, self.width):
             raise ModelError(
                 f"{graph}: network input {self.height}×{self.width} does not match its cylinder image "
                 f"{self.cylinder.height}×{self.cylinder.width}"
             )
         shapes = {i.name: i.shape for i in self._session.get_inputs()}
+        missing = [name for name in ("scan", "prev_coarse_features", "prev_refine_features") if name not in shapes]
+        if missing:
+            raise ModelError(f"{graph}: a frame graph without the input(s) {', '.join(missing)}")
         self._zeros = Features(
             coarse=np.zeros(shapes["prev_coarse_features"], np.float32),
             refine=np.zeros(shapes["prev_refine_features"], np.float32),
         )
         self._options, self._providers = options, providers
         self._threads = threads if threads > 0 else None
-        self._scales = json.loads(metadata["dmlo.similarity_scales"]) if "dmlo.similarity_scales" in metadata else None
+        self._scales = _similarity_scales(metadata, graph)
         self._match_session: Any = None  # on the first `match` of the graph stage
         self._encoder_session: Any = None  # on the first `encode`
         self.matching_stage = self._choose_stage(matching_stage)
@@ -248,9 +280,9 @@ class OnnxMatcher:
             )
         session = _open_session(graph, self._options, self._providers)
         metadata = session.get_modelmeta().custom_metadata_map
-        if metadata.get("dmlo.graph") != kind or not self._same_weights(json.loads(metadata.get("dmlo.model_config", "null")), kind):
+        if metadata.get("dmlo.graph") != kind or not self._same_weights(_model_config(metadata, graph), kind):
             raise ModelError(f"{graph}: not the {kind} graph of {self.path.name}'s model")
-        if (int(metadata.get("dmlo.height", -1)), int(metadata.get("dmlo.width", -1))) != (self.height, self.width):
+        if _size(metadata, graph) != (self.height, self.width):
             raise ModelError(f"{graph}: input size differs from {self.path.name}'s {self.height}×{self.width}")
         return session
 
@@ -264,11 +296,69 @@ def _open_session(graph: Path, options: Any, providers: list[str]) -> Any:
         raise ModelError(f"{graph}: not a readable ONNX model ({err})") from err
 
 
+def _json_object(metadata: dict[str, str], key: str, graph: Path) -> dict[str, Any]:
+    """A metadata property holding a JSON object, or a `ModelError` naming it."""
+    if key not in metadata:
+        raise ModelError(f"{graph}: its metadata lacks {key} (export the model again with `dmlo export`)")
+    try:
+        value = json.loads(metadata[key])
+    except ValueError as err:
+        raise ModelError(f"{graph}: metadata {key} is not JSON ({err})") from None
+    if not isinstance(value, dict):
+        raise ModelError(f"{graph}: metadata {key} must be a JSON object, got {metadata[key][:60]!r}")
+    return value
+
+
+def _size(metadata: dict[str, str], graph: Path) -> tuple[int, int]:
+    """The network input's `dmlo.height` and `dmlo.width`."""
+    size = []
+    for key in ("dmlo.height", "dmlo.width"):
+        text = metadata.get(key)
+        if text is None:
+            raise ModelError(f"{graph}: its metadata lacks {key} (export the model again with `dmlo export`)")
+        if not text.strip().isdigit() or int(text) < 1:
+            raise ModelError(f"{graph}: metadata {key} must be a positive integer, got {text[:60]!r}")
+        size.append(int(text))
+    return size[0], size[1]
+
+
+def _model_config(metadata: dict[str, str], graph: Path) -> dict[str, Any]:
+    """`dmlo.model_config`, with the settings the run reads checked: the matching stage's windows and
+    offset, and whether the model reads reflectance (absent: it does, as models exported before it)."""
+    config = _json_object(metadata, "dmlo.model_config", graph)
+    for name in ("coarse_window", "refine_window"):
+        if name not in config:
+            raise ModelError(f"{graph}: metadata dmlo.model_config lacks {name}")
+        value = config[name]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 3 or value % 2 == 0:
+            raise ModelError(f"{graph}: dmlo.model_config.{name} must be an odd integer >= 3, got {value!r}")
+    if config.get("refine_offset") not in REFINE_OFFSETS:
+        got = f"got {config['refine_offset']!r}" if "refine_offset" in config else "it lacks it"
+        raise ModelError(f"{graph}: dmlo.model_config.refine_offset must be one of {', '.join(REFINE_OFFSETS)}; {got}")
+    if not isinstance(config.get("use_reflectance", True), bool):
+        raise ModelError(f"{graph}: dmlo.model_config.use_reflectance must be true or false, got {config['use_reflectance']!r}")
+    return config
+
+
+def _similarity_scales(metadata: dict[str, str], graph: Path) -> dict[str, float] | None:
+    """`dmlo.similarity_scales` (the learned softmax temperatures the crate's matching stage needs), None for
+    models exported before it: they match in the graph."""
+    if "dmlo.similarity_scales" not in metadata:
+        return None
+    scales = _json_object(metadata, "dmlo.similarity_scales", graph)
+    for name in ("coarse", "refine"):
+        value = scales.get(name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+            got = f"got {value!r}" if name in scales else "it lacks it"
+            raise ModelError(f"{graph}: dmlo.similarity_scales.{name} must be a finite number > 0; {got}")
+    return {"coarse": float(scales["coarse"]), "refine": float(scales["refine"])}
+
+
 def _cylinder_from_metadata(values: dict[str, object], graph: Path) -> dmlo_rs.CylinderConfig:
     missing = [k for k in _CYLINDER_KEYS if k not in values]
     if missing:
         raise ModelError(f"{graph}: cylinder configuration lacks {', '.join(missing)}")
     try:
         return dmlo_rs.CylinderConfig(**{k: values[k] for k in _CYLINDER_KEYS})  # type: ignore[arg-type]
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError, OverflowError) as err:
         raise ModelError(f"{graph}: invalid cylinder configuration: {err}") from err

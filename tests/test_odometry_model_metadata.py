@@ -1,0 +1,178 @@
+"""What the odometry reads from a model file, checked when the model opens: corrupt `dmlo.*` metadata is a
+`ModelError` naming the key, before any scan (issue 25, item 10); and `threads` is bounded to the
+machine's cores (issue 25, item 2)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+onnx = pytest.importorskip("onnx")
+
+from dmlo.cli import main as dmlo_main  # noqa: E402
+from dmlo.odometry import Odometry, OdometryConfig  # noqa: E402
+from dmlo.odometry import matcher as matcher_module  # noqa: E402
+from dmlo.odometry.matcher import ModelError, OnnxMatcher, default_model_path, usable_threads  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def bundled(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The bundled model's graphs (not its training state nor its range-only model)."""
+    folder = tmp_path_factory.mktemp("bundled")
+    for graph in default_model_path().glob("*.onnx"):
+        shutil.copy(graph, folder)
+    return folder
+
+
+def corrupt(bundled: Path, into: Path, change: dict[str, str | None], graph: str = "frame.onnx") -> Path:
+    """A copy of the bundled model with `graph`'s metadata changed: a key set to a value, or removed (None)."""
+    into.mkdir()
+    for path in bundled.glob("*.onnx"):
+        shutil.copy(path, into)
+    proto = onnx.load(str(into / graph))
+    kept = {p.key: p.value for p in proto.metadata_props}
+    for key, value in change.items():
+        if value is None:
+            kept.pop(key, None)
+        else:
+            kept[key] = value
+    del proto.metadata_props[:]
+    for key, value in kept.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(proto, str(into / graph))
+    return into
+
+
+def _model_config(drop: str | None = None, **changes: object) -> str:
+    proto = onnx.load(str(default_model_path() / "frame.onnx"))
+    config = json.loads(next(p.value for p in proto.metadata_props if p.key == "dmlo.model_config"))
+    if drop:
+        del config[drop]
+    config.update(changes)
+    return json.dumps(config)
+
+
+CORRUPT = [
+    ({"dmlo.model_config": None}, r"frame\.onnx: its metadata lacks dmlo\.model_config"),
+    ({"dmlo.model_config": "{\"coarse_window\": 15"}, r"frame\.onnx: metadata dmlo\.model_config is not JSON"),
+    ({"dmlo.model_config": "[15, 7]"}, r"frame\.onnx: metadata dmlo\.model_config must be a JSON object"),
+    ({"dmlo.model_config": "drop coarse_window"}, r"frame\.onnx: metadata dmlo\.model_config lacks coarse_window"),
+    ({"dmlo.model_config": "drop refine_window"}, r"frame\.onnx: metadata dmlo\.model_config lacks refine_window"),
+    ({"dmlo.model_config": "drop refine_offset"}, r"dmlo\.model_config\.refine_offset must be one of window, peak_centroid; it lacks it"),
+    ({"dmlo.model_config": "refine_window=6"}, r"dmlo\.model_config\.refine_window must be an odd integer >= 3, got 6"),
+    ({"dmlo.model_config": "coarse_window=\"15\""}, r"dmlo\.model_config\.coarse_window must be an odd integer >= 3, got '15'"),
+    ({"dmlo.model_config": "use_reflectance=\"no\""}, r"dmlo\.model_config\.use_reflectance must be true or false, got 'no'"),
+    ({"dmlo.similarity_scales": "{\"coarse\": 13.2}"}, r"dmlo\.similarity_scales\.refine must be a finite number > 0; it lacks it"),
+    ({"dmlo.similarity_scales": "{\"coarse\": -1, \"refine\": 11}"}, r"dmlo\.similarity_scales\.coarse must be a finite number > 0; got -1"),
+    ({"dmlo.similarity_scales": "{\"coarse\": \"13\", \"refine\": 11}"}, r"dmlo\.similarity_scales\.coarse must be a finite number > 0; got '13'"),
+    ({"dmlo.similarity_scales": "NaN"}, r"metadata dmlo\.similarity_scales must be a JSON object"),
+    ({"dmlo.similarity_scales": "13.2, 11.1"}, r"metadata dmlo\.similarity_scales is not JSON"),
+    ({"dmlo.cylinder_config": None}, r"frame\.onnx: its metadata lacks dmlo\.cylinder_config"),
+    ({"dmlo.cylinder_config": "{}"}, r"frame\.onnx: cylinder configuration lacks fov_up_deg"),
+    ({"dmlo.height": None}, r"frame\.onnx: its metadata lacks dmlo\.height"),
+    ({"dmlo.width": "1792.5"}, r"frame\.onnx: metadata dmlo\.width must be a positive integer, got '1792\.5'"),
+]
+
+
+def _resolved(change: dict[str, str | None]) -> dict[str, str | None]:
+    """Shorthands of `CORRUPT` for the model config: "drop KEY" and "KEY=JSON" edit the bundled one."""
+    value = change.get("dmlo.model_config")
+    if value is not None and value.startswith("drop "):
+        return {"dmlo.model_config": _model_config(drop=value.split()[1])}
+    if value is not None and "=" in value and not value.startswith(("{", "[")):
+        key, literal = value.split("=", 1)
+        return {"dmlo.model_config": _model_config(**{key: json.loads(literal)})}
+    return change
+
+
+@pytest.mark.parametrize(("change", "message"), CORRUPT, ids=[str(c) for c, _ in CORRUPT])
+def test_corrupt_metadata_is_a_model_error_naming_the_key(
+    change: dict[str, str | None], message: str, bundled: Path, tmp_path: Path
+) -> None:
+    model = corrupt(bundled, tmp_path / "model", _resolved(change))
+    with pytest.raises(ModelError, match=message):
+        Odometry(model, OdometryConfig())
+
+
+@pytest.mark.parametrize("stage", ["crate", "graph"])
+def test_corrupt_metadata_fails_when_the_model_opens_whichever_stage_matches(stage: str, bundled: Path, tmp_path: Path) -> None:
+    # Before, the crate's stage read the model config's windows only at the first pair (a KeyError after frame 0).
+    model = corrupt(bundled, tmp_path / "model", {"dmlo.model_config": _model_config(drop="coarse_window")})
+    with pytest.raises(ModelError, match="lacks coarse_window"):
+        OnnxMatcher(model, matching_stage=stage)
+
+
+def test_a_corrupt_encoder_graph_is_named(bundled: Path, tmp_path: Path) -> None:
+    model = corrupt(bundled, tmp_path / "model", {"dmlo.model_config": "{"}, graph="encoder.onnx")
+    with pytest.raises(ModelError, match=r"encoder\.onnx: metadata dmlo\.model_config is not JSON"):
+        OnnxMatcher(model, matching_stage="crate")
+    model = corrupt(bundled, tmp_path / "sized", {"dmlo.height": "sixty-four"}, graph="encoder.onnx")
+    with pytest.raises(ModelError, match=r"encoder\.onnx: metadata dmlo\.height must be a positive integer"):
+        OnnxMatcher(model, matching_stage="crate")
+
+
+def test_the_bundled_models_metadata_passes(bundled: Path) -> None:
+    matcher = OnnxMatcher(bundled)
+    assert matcher.model_config["coarse_window"] % 2 == 1
+    assert matcher._scales is not None and set(matcher._scales) == {"coarse", "refine"}
+
+
+@pytest.fixture()
+def scans(tmp_path: Path) -> Path:
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for index in range(2):
+        points = np.concatenate([rng.uniform(-20, 20, (3000, 3)), rng.uniform(0, 1, (3000, 1))], axis=1)
+        points.astype(np.float32).tofile(folder / f"{index:06d}.bin")
+    return folder
+
+
+@pytest.mark.parametrize("command", ["run", "register"])
+def test_the_cli_reports_corrupt_metadata_in_one_line_before_the_first_scan(
+    command: str, bundled: Path, scans: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    model = corrupt(bundled, tmp_path / "model", {"dmlo.similarity_scales": "{\"coarse\": 13.2}"})
+    out = tmp_path / "out"
+    if command == "run":
+        argv = ["run", str(scans), "--format", "folder", "--model", str(model), "--out", str(out)]
+    else:
+        argv = ["register", str(scans / "000000.bin"), str(scans / "000001.bin"), "--model", str(model)]
+    assert dmlo_main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"dmlo {command}: error: {model / 'frame.onnx'}: dmlo.similarity_scales.refine must be")
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert not (out / "poses_kitti.txt").exists()
+
+
+# -- threads (issue 25, item 2) ------------------------------------------------------------------------------
+
+
+def test_threads_within_the_cores_are_kept(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(matcher_module, "available_cores", lambda: 4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert [usable_threads(n) for n in (0, 1, 4)] == [0, 1, 4]
+
+
+def test_more_threads_than_cores_are_bounded_with_a_warning(monkeypatch: pytest.MonkeyPatch, bundled: Path) -> None:
+    # 100000 threads blocked in onnxruntime's session creation, memory growing: none is created here, since
+    # the machine is said to have 2 cores and the sessions get 2.
+    monkeypatch.setattr(matcher_module, "available_cores", lambda: 2)
+    config = OdometryConfig.from_dict({"threads": 100000})
+    with pytest.warns(UserWarning, match=r"^threads: 100000 is more than the 2 cores of this machine; using 2$"):
+        odometry = Odometry(bundled, config)
+    matcher = odometry.matcher
+    assert isinstance(matcher, OnnxMatcher)
+    assert matcher._options.intra_op_num_threads == 2 and matcher._threads == 2
+    assert odometry.config.threads == 100000  # the config says what was asked for
+
+
+def test_the_cores_are_counted_as_this_process_may_use_them() -> None:
+    assert 1 <= matcher_module.available_cores()
