@@ -288,3 +288,18 @@ def test_prepare_names_the_file_in_the_way(tmp_path: Path) -> None:
     blocker.write_text("")
     with pytest.raises(OutputError, match=f"output folder {blocker}/a/b is under {blocker}, a file"):
         prepare_output_folder(blocker / "a" / "b", RUN_FILES)
+
+
+def test_a_fresh_training_run_refuses_an_earlier_one(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    for name in ("best.pt", "log.jsonl"):
+        (run_dir / name).write_text("an earlier run's")
+    data = ["train", "--data", str(tmp_path / "missing"), "--out", str(run_dir)]
+    assert main(data) == 2
+    assert_one_line(capsys.readouterr().err, "dmlo train: error:", "holds the files of an earlier run (best.pt, log.jsonl)")
+    assert main([*data, "--overwrite", "--init", str(run_dir / "best.pt")]) == 2
+    assert_one_line(capsys.readouterr().err, "--init", "would delete")
+    assert main([*data, "--resume"]) == 2  # past the folder check: the data are missing
+    assert "sequence folder not found" in capsys.readouterr().err
+    assert sorted(p.name for p in run_dir.iterdir()) == ["best.pt", "log.jsonl"]

@@ -16,6 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--data", nargs="+", required=True, metavar="DIR", help="training sequences (KITTI layout, simulator output, ...)")
     data.add_argument("--val", nargs="+", default=[], metavar="DIR", help="held-out sequences for validation after each epoch")
     data.add_argument("--out", required=True, metavar="RUNDIR", help="run folder: checkpoints, model.json, train.json, log.jsonl")
+    data.add_argument("--overwrite", action="store_true",
+                      help="start afresh in a RUNDIR that holds an earlier run, deleting its files (refused otherwise; "
+                      "--resume continues it)")
     data.add_argument("--crop-width", type=int, default=448, help="random azimuth crop in columns, multiple of 8; 0 = full width (default 448)")
     data.add_argument("--crop-height", type=int, default=0, help="random row crop, multiple of 4; 0 = full height")
     data.add_argument("--no-yaw-roll", action="store_true", help="do not roll both scans by a random yaw")
@@ -107,6 +110,7 @@ def model_config_from_args(args: argparse.Namespace) -> Any:
 def run(args: argparse.Namespace) -> int:
     from dmlo.cli import UserError
 
+    _check_run_folder(args, prepare=False)
     for path in [*args.data, *args.val]:
         if not Path(path).is_dir():
             raise UserError(f"sequence folder not found: {path}")
@@ -145,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
             )
     except (ValueError, FileNotFoundError) as err:
         raise UserError(str(err)) from err
+    _check_run_folder(args, prepare=True)
     context = init_distributed(resolve_device(config.device))
     trainer = Trainer(model_config, config, train_set, val_set, context, resume=args.resume, progress=not args.no_progress)
     trainer.run()
@@ -153,3 +158,28 @@ def run(args: argparse.Namespace) -> int:
 
         dist.destroy_process_group()
     return 0
+
+
+# What a training run writes into RUNDIR (and the temporary files of its checkpoints).
+TRAIN_FILES = ("last.pt", "best.pt", "log.jsonl", "train.json", "model.json", ".last.pt.tmp-*", ".best.pt.tmp-*")
+
+
+def _check_run_folder(args: argparse.Namespace, prepare: bool) -> None:
+    """A fresh run (no --resume) refuses a RUNDIR with an earlier run's files unless --overwrite: a new
+    log.jsonl appended to the old one, or the old best.pt left beside the new last.pt, would mix two runs.
+    Only the main process (RANK 0 under torchrun) looks, and with `prepare` clears them."""
+    import os
+
+    from dmlo.cli import UserError
+    from dmlo.outputs import OutputError, check_output_folder, prepare_output_folder
+
+    if args.resume or os.environ.get("RANK", "0") != "0":
+        return
+    try:
+        earlier = check_output_folder(args.out, TRAIN_FILES, overwrite=args.overwrite)
+        if args.init and Path(args.init).resolve() in {path.resolve() for path in earlier}:
+            raise UserError(f"--init {args.init} is a file of the earlier run that --overwrite would delete")
+        if prepare:
+            prepare_output_folder(args.out, TRAIN_FILES, overwrite=args.overwrite)
+    except OutputError as err:
+        raise UserError(str(err)) from None
