@@ -294,7 +294,8 @@ pub struct Projection {
     pub index: Vec<i64>,
     /// Points dropped because a coordinate (or the reflectance) is NaN or infinite.
     pub num_non_finite: usize,
-    /// Finite points dropped because they fall outside the cropped image or sit at the origin.
+    /// Finite points dropped because they fall outside the cropped image, sit at the origin, or lie
+    /// farther than a float32 range can hold (coordinates near `f32::MAX`).
     pub num_out_of_view: usize,
 }
 
@@ -634,7 +635,9 @@ impl CellLocator {
     #[inline(never)]
     fn exact(&self, x: f64, y: f64, z: f64) -> (u32, f32) {
         let range = (x * x + y * y + z * z).sqrt();
-        if range == 0.0 {
+        // At the origin, or farther than a float32 range can say (finite coordinates near f32::MAX):
+        // out of view rather than an infinite range in the image.
+        if range == 0.0 || !(range as f32).is_finite() {
             return (NO_CELL, 0.0);
         }
         let row = exact_cell(self.row0, z, (x * x + y * y).sqrt(), self.rows_per_radian);
@@ -1165,7 +1168,8 @@ mod reference {
             let (x, y, z) = (p[0] as f64, p[1] as f64, p[2] as f64);
             let horizontal_sq = x * x + y * y;
             let range = (horizontal_sq + z * z).sqrt();
-            if range == 0.0 {
+            // Unlike the previous version: beyond a float32 range is out of view, not an infinite range.
+            if range == 0.0 || !(range as f32).is_finite() {
                 return (NO_CELL, 0.0);
             }
             let row = cell_index(row0, elevation, z, horizontal_sq.sqrt(), rows_per_radian);
