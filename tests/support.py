@@ -6,12 +6,16 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from dmlo.metrics import registration_errors
+
+if TYPE_CHECKING:
+    from dmlo.odometry import OdometryConfig
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -65,3 +69,15 @@ def gicp_departure_from_truth(target: FloatArray, source: FloatArray, truth: Flo
     )
     errors = registration_errors(result.T_target_source[None], truth[None])
     return errors.translation_max, errors.angular_max
+
+
+def frame_to_frame(**settings: object) -> OdometryConfig:
+    """The paper's frame-to-frame DMLO (`mapping.enabled = False`, the default before DMLO + mapping became
+    it), with top-level `settings`: for the tests of what DMLO's matches and motion model do on their own."""
+    from dmlo.odometry import OdometryConfig
+
+    config = OdometryConfig()
+    config.mapping.enabled = False
+    for name, value in settings.items():
+        setattr(config, name, value)
+    return config

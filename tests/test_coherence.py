@@ -12,6 +12,7 @@ import dmlo_rs
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
 from dmlo.simulator import simulate_sequence
+from support import frame_to_frame
 
 
 def reference(flow, confidence, ref_range, radius, scale_px, wraps):
@@ -102,7 +103,7 @@ def pair(tmp_path_factory: pytest.TempPathFactory) -> dict[str, np.ndarray]:
     sequence = open_sequence(Path(out))
     ref, tgt = sequence[0], sequence[1]
     assert ref.pose is not None and tgt.pose is not None
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     _, ref_range = odometry.project(ref.points)
     _, tgt_range = odometry.project(tgt.points)
     motion = np.linalg.inv(tgt.pose) @ ref.pose
@@ -125,7 +126,7 @@ def test_the_odometry_keeps_coherent_matches_over_confident_jumps(pair: dict[str
     is_wrong[rows, cols] = True
 
     def wrong_share(coherence_px: float | None) -> float:
-        config = OdometryConfig()
+        config = frame_to_frame()
         config.matching.coherence_px = coherence_px
         odometry = Odometry.from_default(config)
         weighted = confidence if coherence_px is None else dmlo_rs.coherent_confidence(
@@ -144,7 +145,7 @@ def test_the_odometry_keeps_coherent_matches_over_confident_jumps(pair: dict[str
 
 def test_settings_are_checked() -> None:
     for name, value in (("coherence_px", 0.0), ("coherence_px", -1.0), ("coherence_radius", -1), ("coherence_radius", 16), ("coherence_radius", 1.5)):
-        config = OdometryConfig()
+        config = frame_to_frame()
         setattr(config.matching, name, value)
         with pytest.raises(ValueError, match=f"matching.{name}"):
             Odometry.from_default(config)

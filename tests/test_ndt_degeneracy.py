@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 import dmlo_rs
 from dmlo.datasets import open_sequence
 from dmlo.simulator import simulate_sequence
-from support import rigid, transform_points
+from support import frame_to_frame, rigid, transform_points
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -131,13 +131,13 @@ def test_straight_drive_along_track_bias_goes_when_the_direction_is_held(straigh
 
 
 def test_mapping_thresholds_reach_the_alignment_and_the_diagnostics(straight_drive: Path) -> None:
-    from dmlo.odometry import Odometry, OdometryConfig
+    from dmlo.odometry import Odometry
 
     sequence = open_sequence(straight_drive)
     scans = [sequence[i].points for i in range(4)]
     counts = {}
     for threshold in (0.05, 0.99):
-        config = OdometryConfig()
+        config = frame_to_frame()
         config.mapping.enabled = True
         config.mapping.degeneracy_threshold = threshold
         config.mapping.rotation_degeneracy_threshold = threshold
@@ -155,11 +155,11 @@ def test_mapping_thresholds_reach_the_alignment_and_the_diagnostics(straight_dri
 
 @pytest.mark.parametrize("name", ["degeneracy_threshold", "rotation_degeneracy_threshold"])
 def test_bad_mapping_threshold_stops_the_run_instead_of_silently_skipping_ndt(name: str) -> None:
-    from dmlo.odometry import Odometry, OdometryConfig
+    from dmlo.odometry import Odometry
 
     # Refused with the config, before any scan (the crate refuses it too, as a ValueError rather than a
     # RegistrationError that the odometry would take for a failed alignment: the bindings' test above).
-    config = OdometryConfig()
+    config = frame_to_frame()
     setattr(config.mapping, name, 1.5)
     with pytest.raises(ValueError, match=rf"^mapping\.{name}: must be a number >= 0 and < 1, got 1.5$") as refused:
         Odometry.from_default(config)
@@ -177,7 +177,7 @@ def test_map_keyframes_spaced_in_distance_take_away_the_slow_drive_pull(straight
     spaced = OdometryConfig().mapping.keyframe_distance
     # Measured: ATE 6.7 mm with every scan in the map, 1.6 mm with a keyframe every 2 m (7 of 30 scans).
     for distance in (0.0, spaced):
-        config = OdometryConfig()
+        config = frame_to_frame()
         config.mapping.enabled = True
         config.mapping.keyframe_distance = distance
         odometry = Odometry.from_default(config)
@@ -191,9 +191,9 @@ def test_map_keyframes_spaced_in_distance_take_away_the_slow_drive_pull(straight
 
 
 def test_a_standing_car_adds_no_keyframes(straight_drive: Path) -> None:
-    from dmlo.odometry import Odometry, OdometryConfig
+    from dmlo.odometry import Odometry
 
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.mapping.enabled = True
     odometry = Odometry.from_default(config)
     scan = open_sequence(straight_drive)[0].points
@@ -216,16 +216,16 @@ def test_a_standing_car_adds_no_keyframes(straight_drive: Path) -> None:
     ],
 )
 def test_bad_distance_and_angle_limits_are_refused_up_front(section: str, name: str) -> None:
-    from dmlo.odometry import Odometry, OdometryConfig
+    from dmlo.odometry import Odometry
 
-    config = OdometryConfig()
+    config = frame_to_frame()
     setattr(getattr(config, section), name, -1.0)
     with pytest.raises(ValueError, match=rf"{section}\.{name}: must be a number >= 0\b.*, got -1.0"):
         Odometry.from_default(config)
 
 
 def test_a_wrong_dmlo_pose_is_caught_by_aligning_from_the_motion_model_too(straight_drive: Path) -> None:
-    from dmlo.odometry import Odometry, OdometryConfig
+    from dmlo.odometry import Odometry
 
     class OneWrongPair(Odometry):
         """Fault injection: the DMLO motion of frame 15 is 1.2 m off, like a wrong RANSAC consensus."""
@@ -240,7 +240,7 @@ def test_a_wrong_dmlo_pose_is_caught_by_aligning_from_the_motion_model_too(strai
     frames = [sequence[i] for i in range(20)]
     step_errors = {}
     for distance in (0.3, np.inf):  # the default, and never a second start
-        config = OdometryConfig()
+        config = frame_to_frame()
         config.motion_model.max_deviation = np.inf  # the pure-DMLO gate would catch it first
         config.mapping.enabled = True
         config.mapping.motion_model_start_distance = distance

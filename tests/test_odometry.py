@@ -14,6 +14,7 @@ from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
 from dmlo.odometry.matcher import ModelError, default_model_path
 from dmlo.simulator import simulate_sequence
+from support import frame_to_frame
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +33,7 @@ def scans(drive: Path) -> list[np.ndarray]:
 def test_a_caller_refilling_one_buffer_gets_the_poses_of_separate_scans(scans: list[np.ndarray]) -> None:
     # A sensor driver streams into one buffer; the odometry keeps the previous scan (its reference, its
     # map keyframe), so it must not keep the caller's memory.
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.mapping.enabled = True
     config.deskew.enabled = True  # the first deskewed scan deskews its kept reference again
     separate, streamed = Odometry.from_default(config), Odometry.from_default(config)
@@ -46,7 +47,7 @@ def test_a_caller_refilling_one_buffer_gets_the_poses_of_separate_scans(scans: l
 
 
 def test_first_pose_is_the_world_and_every_scan_gets_a_pose(scans: list[np.ndarray]) -> None:
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     poses = [odometry.register(points) for points in scans]
     assert np.array_equal(poses[0], np.eye(4))
     assert len(odometry.poses) == len(scans) == len(odometry.diagnostics)
@@ -54,20 +55,20 @@ def test_first_pose_is_the_world_and_every_scan_gets_a_pose(scans: list[np.ndarr
         assert pose.shape == (4, 4) and np.isfinite(pose).all()
         assert np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-6)
     later = odometry.diagnostics[1]
-    assert 0 < later.num_matches <= OdometryConfig().matching.max_matches
+    assert 0 < later.num_matches <= frame_to_frame().matching.max_matches
     assert {"network", "coherence", "decode_nms", "ransac"} <= set(later.timings_ms)
 
 
 def test_same_scans_give_identical_poses(scans: list[np.ndarray]) -> None:
     runs = []
     for _ in range(2):
-        odometry = Odometry.from_default()
+        odometry = Odometry.from_default(frame_to_frame())
         runs.append([odometry.register(p) for p in scans[:3]])
     assert all(np.array_equal(a, b) for a, b in zip(*runs))
 
 
 def test_too_few_inliers_fall_back_to_constant_velocity(scans: list[np.ndarray]) -> None:
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.motion_model.min_inliers = 10**9  # no pair can satisfy it
     odometry = Odometry.from_default(config)
     poses = [odometry.register(p) for p in scans[:3]]
@@ -104,11 +105,11 @@ def steps_of(poses: list[np.ndarray]) -> list[np.ndarray]:
 
 
 def test_a_wrong_consensus_is_replaced_by_the_matches_that_agree_with_the_prediction(scans: list[np.ndarray]) -> None:
-    reference = Odometry.from_default()
+    reference = Odometry.from_default(frame_to_frame())
     honest = steps_of([reference.register(p) for p in scans])
     steps, fallbacks = {}, {}
     for limit in (0.3, np.inf):
-        config = OdometryConfig()
+        config = frame_to_frame()
         config.motion_model.max_deviation = limit
         odometry = CorruptedPair.from_default(config)
         steps[limit] = steps_of([odometry.register(p) for p in scans])
@@ -124,7 +125,7 @@ def test_a_wrong_consensus_is_replaced_by_the_matches_that_agree_with_the_predic
 
 
 def test_a_motion_no_match_supports_is_replaced_by_the_prediction(scans: list[np.ndarray]) -> None:
-    odometry = CorruptedMatches.from_default()
+    odometry = CorruptedMatches.from_default(frame_to_frame())
     steps = steps_of([odometry.register(p) for p in scans])
     assert [d.fallback for d in odometry.diagnostics] == [None, None, None, "implausible_motion", None]
     # Frame 3 moves exactly as the constant-velocity model predicts from frame 2.
@@ -134,14 +135,14 @@ def test_a_motion_no_match_supports_is_replaced_by_the_prediction(scans: list[np
 def test_a_wrong_motion_before_any_velocity_costs_at_most_one_more_frame(scans: list[np.ndarray]) -> None:
     CorruptedPair.corrupt_frame = 1
     try:
-        odometry = CorruptedPair.from_default()
+        odometry = CorruptedPair.from_default(frame_to_frame())
         poses = [odometry.register(p) for p in scans]
     finally:
         CorruptedPair.corrupt_frame = 3
     # Frame 1 is taken (nothing to compare with) and poisons the prediction for frame 2, which is replaced;
     # frame 3 disagrees with it again, so the prediction is the suspect one and DMLO is trusted again.
     assert [d.fallback for d in odometry.diagnostics] == [None, None, "implausible_motion", None, None]
-    reference = Odometry.from_default()
+    reference = Odometry.from_default(frame_to_frame())
     truth_like = [reference.register(p) for p in scans]
     late_steps = [np.linalg.inv(a) @ b for a, b in zip(poses[2:], poses[3:])]
     expected = [np.linalg.inv(a) @ b for a, b in zip(truth_like[2:], truth_like[3:])]
@@ -149,7 +150,7 @@ def test_a_wrong_motion_before_any_velocity_costs_at_most_one_more_frame(scans: 
 
 
 def test_a_wrong_ransac_setting_stops_instead_of_falling_back_on_every_pair(scans: list[np.ndarray]) -> None:
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.ransac.threshold = -0.1
     with pytest.raises(ValueError, match=r"^ransac\.threshold: must be a number > 0, got -0.1$"):
         Odometry.from_default(config)  # with the config, before the first scan (issue 25, item 3)
@@ -160,7 +161,7 @@ def test_a_wrong_ransac_setting_stops_instead_of_falling_back_on_every_pair(scan
     ids=["empty", "all-nan", "ten-points"],
 )
 def test_unusable_scan_is_bridged_and_recorded(scans: list[np.ndarray], bad_scan: np.ndarray) -> None:
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     odometry.register(scans[0])
     odometry.register(scans[1])
     pose = odometry.register(bad_scan)
@@ -173,7 +174,7 @@ def test_unusable_scan_is_bridged_and_recorded(scans: list[np.ndarray], bad_scan
 
 
 def test_moving_points_are_removed_before_matching(scans: list[np.ndarray]) -> None:
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     everything_moving = np.ones(len(scans[0]), dtype=bool)
     odometry.register(scans[0], moving=everything_moving)
     assert odometry.diagnostics[-1].fallback == "too_few_points"
@@ -183,7 +184,7 @@ def test_points_with_any_non_finite_value_or_marked_moving_are_left_out(scans: l
     # Single bad values in any column, reflectance included, and moving points elsewhere: the poses are
     # those of the scans without those rows, with the scan-to-map refinement too (the map keeps the scans).
     rng = np.random.default_rng(5)
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.mapping.enabled = True
     dirty_run, clean_run = Odometry.from_default(config), Odometry.from_default(config)
     for scan in scans[:3]:
@@ -197,7 +198,7 @@ def test_points_with_any_non_finite_value_or_marked_moving_are_left_out(scans: l
 
 
 def test_bad_arguments_name_what_is_wrong(scans: list[np.ndarray]) -> None:
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     with pytest.raises(ValueError, match="points: expected an N×4"):
         odometry.register(np.zeros((10, 5), np.float32))
     with pytest.raises(TypeError, match="points: expected floating-point"):
@@ -207,15 +208,62 @@ def test_bad_arguments_name_what_is_wrong(scans: list[np.ndarray]) -> None:
 
 
 def test_register_pair_returns_a_rigid_motion(scans: list[np.ndarray]) -> None:
-    result = Odometry.from_default().register_pair(scans[0], scans[1])
+    result = Odometry.from_default(frame_to_frame()).register_pair(scans[0], scans[1])
     assert result.T_tgt_ref.shape == (4, 4)
     assert result.num_matches == len(result.source_points) == len(result.inliers)
     assert result.num_inliers == int(result.inliers.sum())
 
 
+def test_dmlo_plus_mapping_is_the_default_and_frame_to_frame_is_one_setting_away(scans: list[np.ndarray]) -> None:
+    default = Odometry.from_default()
+    assert default.config.mapping.enabled
+    for points in scans[:3]:
+        default.register(points)
+    assert [d.map_keyframe for d in default.diagnostics][:1] == [True]  # the first scan starts the map
+    assert all(d.ndt_converged is not None for d in default.diagnostics[1:])  # every later pose refined by NDT
+    pure = Odometry.from_default(frame_to_frame())
+    for points in scans[:3]:
+        pure.register(points)
+    assert all(d.ndt_converged is None and d.map_keyframe is None for d in pure.diagnostics)
+
+
+def test_a_consecutive_pair_is_refined_against_the_reference_scan_by_default(drive: Path) -> None:
+    from dmlo.metrics import registration_errors
+
+    sequence = open_sequence(drive)
+    refined, pure = Odometry.from_default(), Odometry.from_default(frame_to_frame())
+    errors: dict[str, list[tuple[float, float]]] = {"refined": [], "pure": []}
+    for index in range(len(sequence) - 1):
+        reference, target = sequence[index], sequence[index + 1]
+        assert reference.pose is not None and target.pose is not None
+        truth = np.linalg.inv(target.pose) @ reference.pose
+        with_map, alone = refined.register_pair(reference.points, target.points), pure.register_pair(reference.points, target.points)
+        assert with_map.map_refined is True and alone.map_refined is None
+        # NDT moves the motion only: the matches and the consensus are DMLO's.
+        assert with_map.num_inliers == alone.num_inliers and np.array_equal(with_map.inliers, alone.inliers)
+        for name, pair in (("refined", with_map), ("pure", alone)):
+            error = registration_errors(pair.T_tgt_ref, truth)
+            errors[name].append((error.translation_mean, error.angular_mean))
+    refined_error, pure_error = np.mean(errors["refined"], axis=0), np.mean(errors["pure"], axis=0)
+    # NDT fits every point of both scans where DMLO solves a few hundred matches; large-motion pairs are
+    # not refined.
+    assert refined_error[0] < pure_error[0] and refined_error[1] < pure_error[1], errors
+    assert refined.register_pair(sequence[0].points, sequence[4].points, large_motion=True).map_refined is None
+
+
+def test_a_pair_without_a_consensus_is_not_refined(scans: list[np.ndarray]) -> None:
+    config = OdometryConfig()
+    config.motion_model.min_inliers = 10**9  # no pair has that many inliers: NDT would have no trusted start
+    result = Odometry.from_default(config).register_pair(scans[0], scans[1])
+    assert result.map_refined is None
+    np.testing.assert_array_equal(
+        result.T_tgt_ref, Odometry.from_default(frame_to_frame()).register_pair(scans[0], scans[1]).T_tgt_ref
+    )
+
+
 @pytest.mark.parametrize("large_motion", [False, True])
 def test_register_pair_refuses_a_scan_too_sparse_to_register(scans: list[np.ndarray], large_motion: bool) -> None:
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     nan_rows = scans[0].copy()
     nan_rows[: len(nan_rows) - 500, 0] = np.nan  # 500 finite points left
     for name, reference, target in (
@@ -259,7 +307,7 @@ def test_a_model_whose_input_does_not_fit_its_cylinder_is_refused(tmp_path: Path
 
 
 def test_large_motion_pair_uses_the_wide_window_graph(scans: list[np.ndarray]) -> None:
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     result = odometry.register_pair(scans[0], scans[4], large_motion=True)
     assert result.T_tgt_ref.shape == (4, 4)
     assert odometry._wide is not None
@@ -274,7 +322,7 @@ def test_large_motion_rounds_rematch_the_moved_reference_and_keep_the_scans_fram
     truth = np.linalg.inv(target.pose) @ reference.pose
 
     def register(**settings: object):
-        config = OdometryConfig()
+        config = frame_to_frame()
         for section_and_name, value in settings.items():
             section, name = section_and_name.split("__")
             setattr(getattr(config, section), name, value)
@@ -285,7 +333,7 @@ def test_large_motion_rounds_rematch_the_moved_reference_and_keep_the_scans_fram
     rounds, rounds_errors = register(large_motion__search_ahead_m=(0.0,))
     assert once.rounds == 1 and rounds.rounds > 1
     # The paper's single wide pass, by hand; large-motion registration counts inliers one vote each.
-    counted = OdometryConfig()
+    counted = frame_to_frame()
     counted.ransac.vote_by_tilt, counted.ransac.vote_voxel = False, None
     odometry = Odometry.from_default(counted)
     wide = odometry._wide_matcher()
@@ -296,7 +344,7 @@ def test_large_motion_rounds_rematch_the_moved_reference_and_keep_the_scans_fram
     # Every round's matches are reported in the given scans' frames: the final motion carries the inliers'
     # reference points onto their target points within the refits' inlier bounds (the RANSAC threshold along
     # the target's ray, across it the threshold or the bearing threshold's width at the match's range).
-    settings = OdometryConfig().ransac
+    settings = frame_to_frame().ransac
     for result in (once, rounds):
         moved = result.source_points @ result.T_tgt_ref[:3, :3].T + result.T_tgt_ref[:3, 3]
         error = (moved - result.target_points)[result.inliers]
@@ -329,11 +377,11 @@ def test_large_motion_search_finds_a_target_beyond_the_wide_windows_reach(tmp_pa
         result = Odometry.from_default(config).register_pair(sequence[0].points, sequence[10].points, large_motion=True)
         return result, registration_errors(result.T_tgt_ref, truth)
 
-    from_zero = OdometryConfig()
+    from_zero = frame_to_frame()
     from_zero.large_motion.search_ahead_m = (0.0,)
     _, lost = register(from_zero)
     assert lost.translation_mean > 5  # the paper's single start: out of reach
-    found, errors = register(OdometryConfig())  # starts 0, ±6, ±12 m ahead
+    found, errors = register(frame_to_frame())  # starts 0, ±6, ±12 m ahead
     assert errors.angular_mean < 0.5 and errors.translation_mean < 0.1, errors
     assert found.rounds > 1 and found.num_inliers >= 30
     # A loop closure: scans 2 frames (2.6 m) apart, the reference turned by 150°; a yaw start near it finds it.
@@ -342,12 +390,12 @@ def test_large_motion_search_finds_a_target_beyond_the_wide_windows_reach(tmp_pa
     turn[:2, :2] = [[np.cos(np.radians(150)), -np.sin(np.radians(150))], [np.sin(np.radians(150)), np.cos(np.radians(150))]]
     turned = sequence[0].points.copy()
     turned[:, :3] = turned[:, :3] @ turn[:3, :3].T
-    loop = OdometryConfig()
+    loop = frame_to_frame()
     loop.large_motion.search_yaw_deg = tuple(range(0, 360, 30))
     result = Odometry.from_default(loop).register_pair(turned, sequence[2].points, large_motion=True)
     loop_errors = registration_errors(result.T_tgt_ref, truth @ np.linalg.inv(turn))
     assert loop_errors.angular_mean < 0.5 and loop_errors.translation_mean < 0.1, loop_errors
-    without_yaw_starts = Odometry.from_default().register_pair(turned, sequence[2].points, large_motion=True)
+    without_yaw_starts = Odometry.from_default(frame_to_frame()).register_pair(turned, sequence[2].points, large_motion=True)
     assert registration_errors(without_yaw_starts.T_tgt_ref, truth @ np.linalg.inv(turn)).angular_mean > 90
 
 
@@ -366,7 +414,7 @@ def test_yaw_starts_register_a_real_kitti_loop_closure(shared_data: Path) -> Non
     velo_to_cam = np.vstack([np.array([line.split()[1:] for line in calib if line.startswith("Tr:")][0], float).reshape(3, 4), [0, 0, 0, 1]])
     truth = np.linalg.inv(velo_to_cam) @ np.linalg.inv(cam[1]) @ cam[0] @ velo_to_cam
 
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.large_motion.search_ahead_m = (0.0,)
     config.large_motion.search_yaw_deg = tuple(range(0, 360, 30))
     result = Odometry.from_default(config).register_pair(reference, target, large_motion=True)
@@ -378,7 +426,7 @@ def test_yaw_starts_register_a_real_kitti_loop_closure(shared_data: Path) -> Non
                                max_correspondence_distance=1.0).T_target_source)
     errors = registration_errors(result.T_tgt_ref, refined)
     assert errors.angular_mean < 0.3 and errors.translation_mean < 0.1, errors
-    without_yaw_starts = Odometry.from_default().register_pair(reference, target, large_motion=True)
+    without_yaw_starts = Odometry.from_default(frame_to_frame()).register_pair(reference, target, large_motion=True)
     assert registration_errors(without_yaw_starts.T_tgt_ref, truth).angular_mean > 90
 
 
@@ -387,7 +435,7 @@ def test_large_motion_settings_are_checked() -> None:
         ("max_rounds", 0), ("max_rounds", 1.5), ("max_rounds", True), ("min_step", -0.1), ("min_step_deg", None),
         ("search_ahead_m", ()), ("search_ahead_m", (0.0, float("nan"))), ("search_yaw_deg", "0"), ("search_yaw_deg", 30.0),
     ):
-        config = OdometryConfig()
+        config = frame_to_frame()
         setattr(config.large_motion, name, value)
         with pytest.raises(ValueError, match=f"large_motion.{name}"):
             Odometry.from_default(config)
@@ -399,7 +447,7 @@ def test_encoder_graph_gives_the_frame_graphs_features_and_a_missing_one_is_name
 ) -> None:
     import shutil
 
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     image, _ = odometry.project(scans[0])
     encoded, framed = odometry.matcher.encode(image), odometry.matcher.frame(image, None).features
     for name in ("coarse", "refine"):
@@ -427,7 +475,7 @@ def test_real_scans_of_a_standing_car_give_no_motion(shared_data: Path, deskew: 
     from dmlo.metrics import registration_errors
 
     files = sorted((shared_data / "kitti_raw_static").glob("*.bin"))[:4]
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.deskew.enabled = deskew  # a standing car's sweeps are not skewed: deskewing must not invent motion
     odometry = Odometry.from_default(config)
     poses = np.stack([odometry.register(read_bin(f)) for f in files])
@@ -447,7 +495,7 @@ def test_scans_of_another_sensor_are_flagged(shared_data: Path) -> None:
 
     vertex = PlyData.read(next((shared_data / "argoverse1_layout").glob("real_sweep_*.ply")))["vertex"]
     sweep = np.stack([vertex["x"], vertex["y"], vertex["z"], vertex["intensity"] / 255.0], axis=1).astype(np.float32)
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     with pytest.warns(SensorMismatchWarning, match="fill only 13 %"):
         odometry.register(sweep)
     fill = odometry.diagnostics[0].image_fill
@@ -458,7 +506,7 @@ def test_scans_of_another_sensor_are_flagged(shared_data: Path) -> None:
 
 
 def test_scans_of_the_trained_sensor_are_not_flagged(scans: list[np.ndarray]) -> None:
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         odometry.register(scans[0])

@@ -14,6 +14,7 @@ from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
 from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
+from support import frame_to_frame
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +29,7 @@ def highway(tmp_path_factory: pytest.TempPathFactory, shared_data: Path) -> tupl
 
 
 def _odometry(deskew: bool, mapping: bool = False) -> Odometry:
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.deskew.enabled = deskew
     config.mapping.enabled = mapping
     return Odometry.from_default(config)
@@ -60,7 +61,7 @@ def test_a_model_with_the_frame_graph_alone_deskews_the_same(
 ) -> None:
     # Without encoder.onnx the first deskewed scan's reference is encoded by the frame graph.
     shutil.copy(default_model_path() / "frame.onnx", tmp_path / "frame.onnx")
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.deskew.enabled = True
     with pytest.warns(UserWarning, match="no encoder.onnx"):
         alone = Odometry(tmp_path, config)
@@ -126,7 +127,7 @@ def test_bad_point_times_are_refused(
     ],
 )
 def test_bad_deskew_settings_are_refused(setting: str, value: object, message: str) -> None:
-    config = OdometryConfig()
+    config = frame_to_frame()
     setattr(config.deskew, setting, value)
     with pytest.raises(ValueError, match=message):
         Odometry.from_default(config)

@@ -14,11 +14,12 @@ import pytest
 
 from dmlo.datasets import open_sequence
 from dmlo.metrics import registration_errors
-from dmlo.odometry import Odometry, OdometryConfig, TimestampWarning
+from dmlo.odometry import Odometry, TimestampWarning
 from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.run import run_sequence
 from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
+from support import frame_to_frame
 
 GAP = 7  # frames between the scans before and after the missing ones
 
@@ -46,7 +47,7 @@ def across_the_gap(drive: Path, odometry: Odometry) -> tuple[np.ndarray, np.ndar
 
 
 def test_a_pair_across_missing_scans_is_matched_again_from_the_prediction(highway: Path) -> None:
-    paper = OdometryConfig()
+    paper = frame_to_frame()
     paper.motion_model.rematch_gap = None
     lost = Odometry.from_default(paper)
     lost_motion, truth = across_the_gap(highway, lost)
@@ -57,7 +58,7 @@ def test_a_pair_across_missing_scans_is_matched_again_from_the_prediction(highwa
     assert lost_errors.translation_mean > 0.1, lost_errors
     assert lost.diagnostics[-1].rematch_rounds is None
 
-    found = Odometry.from_default()
+    found = Odometry.from_default(frame_to_frame())
     motion, truth = across_the_gap(highway, found)
     errors = registration_errors(motion, truth)
     last = found.diagnostics[-1]
@@ -75,11 +76,11 @@ def test_a_pair_across_missing_scans_is_matched_again_from_the_prediction(highwa
 def test_the_rematched_motion_is_taken_only_with_more_inliers_than_the_pairs_own(highway: Path) -> None:
     # rematch_gap 1 matches every pair again; a consecutive pair's own motion is good, so which one is taken
     # follows the inlier counts (the re-projected scan usually shares more cells with its target).
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.motion_model.rematch_gap = 1
     odometry = Odometry.from_default(config)
     sequence = open_sequence(highway)
-    plain = Odometry.from_default()
+    plain = Odometry.from_default(frame_to_frame())
     for index in range(4):
         odometry.register(sequence[index].points)
         plain.register(sequence[index].points)
@@ -107,15 +108,15 @@ class WrongFirstPair(Odometry):
 def test_a_consecutive_pair_that_would_give_way_is_matched_again(highway: Path) -> None:
     sequence = open_sequence(highway)
     scans = [sequence[index].points for index in range(5)]
-    honest = Odometry.from_default()
+    honest = Odometry.from_default(frame_to_frame())
     honest_poses = [honest.register(p) for p in scans]
-    paper = OdometryConfig()
+    paper = frame_to_frame()
     paper.motion_model.rematch_gap = None
     gated = WrongFirstPair.from_default(paper)
     for points in scans:
         gated.register(points)
     assert gated.diagnostics[3].fallback == "implausible_motion"  # the prediction, as without re-matching
-    odometry = WrongFirstPair.from_default()
+    odometry = WrongFirstPair.from_default(frame_to_frame())
     poses = [odometry.register(p) for p in scans]
     assert odometry.diagnostics[3].fallback == "rematched_from_prediction"
     step = np.linalg.inv(poses[3]) @ poses[2]
@@ -130,7 +131,7 @@ def test_a_consecutive_pair_that_would_give_way_is_matched_again(highway: Path) 
 def test_a_model_without_the_graphs_to_rematch_warns_and_bridges_gaps_as_the_paper(highway: Path, tmp_path: Path) -> None:
     shutil.copy(default_model_path() / "frame.onnx", tmp_path / "frame.onnx")
     with pytest.warns(UserWarning, match=r"no encoder.onnx or match.onnx: pairs across missing scans are not matched again"):
-        odometry = Odometry(tmp_path)
+        odometry = Odometry(tmp_path, frame_to_frame())
     across_the_gap(highway, odometry)
     assert odometry.diagnostics[-1].rematch_rounds is None
 
@@ -142,7 +143,7 @@ def test_the_wide_window_from_the_prediction_takes_over_when_the_models_own_find
         shutil.copy(default_model_path() / graph, tmp_path / graph)
     results = {}
     for name, model in (("with wide graph", default_model_path()), ("without", tmp_path)):
-        odometry = Odometry(model, OdometryConfig())
+        odometry = Odometry(model, frame_to_frame())
         honest_match = odometry.matcher.match
         calls = []
 
@@ -173,7 +174,7 @@ def test_beyond_the_prediction_horizon_the_prediction_is_only_a_guess(highway: P
     truth = np.linalg.inv(sequence[3].pose) @ sequence[2].pose
     errors = {}
     for horizon in (20, 100):
-        config = OdometryConfig()
+        config = frame_to_frame()
         config.motion_model.prediction_horizon = horizon
         config.mapping.enabled = mapping
         odometry = Odometry.from_default(config)
@@ -189,7 +190,7 @@ def test_beyond_the_prediction_horizon_the_prediction_is_only_a_guess(highway: P
 
 @pytest.mark.parametrize("gap", [0, -2, 1.5, True, "2"])
 def test_a_bad_rematch_gap_is_refused_up_front(gap: object) -> None:
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.motion_model.rematch_gap = gap  # type: ignore[assignment]
     with pytest.raises(ValueError, match=r"motion_model.rematch_gap: must be an integer >= 1"):
         Odometry.from_default(config)
@@ -228,7 +229,7 @@ def test_scans_dropped_in_time_alone_are_bridged_like_missing_files(highway: Pat
     dropped = open_sequence(tmp_path)
     assert len(dropped) == 4 and dropped[3].timestamp == pytest.approx(float(times[2 + GAP]))
 
-    summary = run_sequence(dropped, Odometry.from_default(), tmp_path / "run", progress=False)
+    summary = run_sequence(dropped, Odometry.from_default(frame_to_frame()), tmp_path / "run", progress=False)
     rows = [json.loads(line) for line in (tmp_path / "run" / "diagnostics.jsonl").read_text().splitlines()]
     assert [row["gap"] for row in rows] == [None, 1, 1, GAP]
     assert rows[3]["fallback"] == "rematched_from_prediction" and summary.fallbacks == {"rematched_from_prediction": 1}
@@ -240,7 +241,7 @@ def test_scans_dropped_in_time_alone_are_bridged_like_missing_files(highway: Pat
     assert errors.translation_mean < 0.08 and errors.angular_mean < 0.3, errors
     # Without the timestamps the same scans look consecutive: a 9 m step the prediction of one frame cannot
     # explain, so the pair gives way to it.
-    blind = Odometry.from_default()
+    blind = Odometry.from_default(frame_to_frame())
     for index in range(4):
         blind.register(dropped[index].points)
     assert blind.diagnostics[3].gap == 1 and blind.diagnostics[3].fallback in ("constant_velocity", "implausible_motion")
@@ -248,7 +249,7 @@ def test_scans_dropped_in_time_alone_are_bridged_like_missing_files(highway: Pat
 
 @pytest.mark.parametrize("horizon", [0, 2.5, None])
 def test_a_bad_prediction_horizon_is_refused_up_front(horizon: object) -> None:
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.motion_model.prediction_horizon = horizon  # type: ignore[assignment]
     with pytest.raises(ValueError, match=r"motion_model.prediction_horizon: must be an integer >= 1"):
         Odometry.from_default(config)

@@ -14,6 +14,7 @@ from dmlo.metrics import registration_errors
 from dmlo.odometry import Odometry
 from dmlo.odometry.matcher import Features, FrameOutput
 from dmlo.simulator import simulate_sequence
+from support import frame_to_frame
 
 
 class OracleMatcher:
@@ -44,7 +45,7 @@ def test_ground_truth_flow_recovers_the_motion(drive: Path) -> None:
     sequence = open_sequence(drive)
     assert sequence.poses is not None
     truth = [np.linalg.inv(b) @ a for a, b in zip(sequence.poses[:-1], sequence.poses[1:])]
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     odometry.matcher = OracleMatcher(truth)
     odometry.cylinder = odometry.matcher.cylinder
     for index in range(len(sequence)):
@@ -64,7 +65,7 @@ def test_pose_from_flow_is_the_back_end_alone(drive: Path) -> None:
     ref, tgt = sequence[2], sequence[3]
     assert ref.pose is not None and tgt.pose is not None
     T_tgt_ref = np.linalg.inv(tgt.pose) @ ref.pose
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     ref_image, ref_range = odometry.project(ref.points)
     _, tgt_range = odometry.project(tgt.points)
     assert ref_image.shape == (2, *ref_range.shape) and np.array_equal(ref_image[0], ref_range)

@@ -128,7 +128,7 @@ def test_a_config_with_an_unknown_matching_stage_is_one_line(drive: Path, tmp_pa
     config.write_text(json.dumps({"matching_stage": "gpu"}))
     result = dmlo("run", str(drive), "--out", str(tmp_path / "out"), "--config", str(config))
     assert result.returncode == 2
-    assert "matching_stage: expected one of auto, crate, graph, got 'gpu'" in result.stderr
+    assert f"cannot read config {config}: matching_stage: must be one of auto, crate, graph, got 'gpu'" in result.stderr
     assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
 
@@ -206,7 +206,7 @@ def test_register_command_mistakes_are_one_line(drive: Path, tmp_path: Path) -> 
         ([a, str(tmp_path / "garbage.bin")], "garbage.bin: not a plausible LiDAR scan"),
         ([a, str(tmp_path / "sparse.bin")], "target: 10 finite points, fewer than the 1000 needed"),
         ([a, str(tmp_path / "broken.bin")], "broken.bin"),
-        ([a, a, "--mapping"], "a single pair has none"),
+        ([a, a, "--mapping", "--large-motion"], "--mapping refines consecutive scans"),
     ):
         result = dmlo("register", *args)
         assert result.returncode == 2, args
@@ -219,9 +219,9 @@ def test_bench_command_compares_with_kiss_icp(drive: Path, tmp_path: Path) -> No
     result = dmlo("bench", str(drive), "--peers", "KISS-ICP", "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr
     table = result.stdout.strip().splitlines()
-    assert table[0].startswith("| method |") and len(table) == 4
-    assert table[2].startswith("| DMLO |") and table[3].startswith("| KISS-ICP |")
-    assert table[3].endswith("| 1.00 | 1.00 |")  # the reference's ratios to itself
+    assert table[0].startswith("| method |") and len(table) == 5  # both DMLO rows by default
+    assert table[2].startswith("| DMLO |") and table[3].startswith("| DMLO + mapping |")
+    assert table[4].startswith("| KISS-ICP |") and table[4].endswith("| 1.00 | 1.00 |")  # the reference's ratios to itself
     assert read_kitti_poses(tmp_path / "KISS-ICP.txt").shape == (6, 4, 4)
 
 
@@ -231,9 +231,52 @@ def test_bench_rows_say_which_matching_they_ran(drive: Path, tmp_path: Path) -> 
     assert result.returncode == 0, result.stderr
     rows = [line.split("|")[1].strip() for line in result.stdout.strip().splitlines()[2:]]
     assert rows == ["DMLO (symmetric, no coherence)", "DMLO (symmetric, no coherence) + mapping"]
-    result = dmlo("bench", str(drive), "--peers", "--max-frames", "3", "--matching-stage", "graph", "--out", str(tmp_path / "graph"))
+    result = dmlo("bench", str(drive), "--peers", "--max-frames", "3", "--matching-stage", "graph", "--no-mapping",
+                  "--out", str(tmp_path / "graph"))
     assert result.returncode == 0, result.stderr
-    assert "| DMLO (matching in onnxruntime) |" in result.stdout
+    rows = [line.split("|")[1].strip() for line in result.stdout.strip().splitlines()[2:]]
+    assert rows == ["DMLO (matching in onnxruntime)"]  # --no-mapping: the frame-to-frame row alone
+
+
+@pytest.mark.parametrize(
+    ("flags", "config", "mapping"),
+    [([], None, True), (["--no-mapping"], None, False), (["--mapping"], None, True),
+     ([], False, False), (["--mapping"], False, True), (["--no-mapping"], True, False)],
+    ids=["default", "no-mapping", "mapping", "config-off", "flag-over-config", "no-flag-over-config"],
+)
+def test_mapping_is_the_default_and_no_mapping_is_frame_to_frame(
+    flags: list[str], config: bool | None, mapping: bool, drive: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from dmlo.cli import main as dmlo_main
+
+    extra = []
+    if config is not None:
+        (tmp_path / "config.json").write_text(json.dumps({"mapping": {"enabled": config}}))
+        extra = ["--config", str(tmp_path / "config.json")]
+    out = tmp_path / "out"
+    assert dmlo_main(["run", str(drive), "--out", str(out), "--max-frames", "2", *flags, *extra]) == 0, capsys.readouterr().err
+    assert json.loads((out / "config.json").read_text())["mapping"]["enabled"] is mapping
+    second = json.loads((out / "diagnostics.jsonl").read_text().splitlines()[1])
+    assert (second["ndt_converged"] is not None) is mapping
+
+
+def test_register_refines_a_consecutive_pair_by_ndt_unless_no_mapping(drive: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from dmlo.cli import main as dmlo_main
+    from dmlo.datasets import write_bin
+
+    sequence = open_sequence(drive)
+    write_bin(tmp_path / "a.bin", sequence[0].points)
+    write_bin(tmp_path / "b.bin", sequence[1].points)
+    reports = {}
+    for flags in ([], ["--no-mapping"], ["--large-motion"]):
+        capsys.readouterr()
+        assert dmlo_main(["register", str(tmp_path / "a.bin"), str(tmp_path / "b.bin"), "--json", *flags]) == 0
+        reports[" ".join(flags)] = json.loads(capsys.readouterr().out)
+    assert reports[""]["map_refined"] is True
+    assert reports["--no-mapping"]["map_refined"] is None and reports["--large-motion"]["map_refined"] is None
+    assert reports[""]["inliers"] == reports["--no-mapping"]["inliers"]  # the same matches, the motion refined
+    assert dmlo_main(["register", str(tmp_path / "a.bin"), str(tmp_path / "b.bin")]) == 0
+    assert "refined by NDT against A (mapping)" in capsys.readouterr().out
 
 
 def test_deskew_flag_reaches_the_config_and_the_diagnostics(drive: Path, tmp_path: Path) -> None:
@@ -250,7 +293,7 @@ def test_bench_with_deskew_compares_with_kiss_icp_deskewed(drive: Path, tmp_path
                   "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr
     rows = [line.split("|")[1].strip() for line in result.stdout.strip().splitlines()[2:]]
-    assert rows == ["DMLO (deskewed)", "KISS-ICP deskewed"]
+    assert rows == ["DMLO (deskewed)", "DMLO (deskewed) + mapping", "KISS-ICP deskewed"]
     assert read_kitti_poses(tmp_path / "KISS-ICP_deskewed.txt").shape == (4, 4, 4)
 
 

@@ -15,10 +15,11 @@ from dmlo.odometry.pipeline import _round_trip_error, _symmetric
 from dmlo.poses import midpoint_motion as _midpoint
 
 from test_odometry import drive, scans  # noqa: F401  (the 5-scan simulated drive the odometry tests use)
+from support import frame_to_frame
 
 
 def symmetric_config(consistency_px: float | None = 1.0) -> OdometryConfig:
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.matching.symmetric = True
     config.matching.consistency_px = consistency_px
     return config
@@ -139,7 +140,7 @@ def test_symmetric_pair_leaves_out_the_cells_the_backward_flow_does_not_lead_bac
 
 
 def test_symmetric_pair_is_the_midpoint_of_both_one_way_pairs(scans: list[np.ndarray]) -> None:
-    one_way = Odometry.from_default()
+    one_way = Odometry.from_default(frame_to_frame())
     forward = one_way.register_pair(scans[0], scans[1]).T_tgt_ref
     backward = one_way.register_pair(scans[1], scans[0]).T_tgt_ref  # the frame graph, not match.onnx
     symmetric = Odometry.from_default(symmetric_config(consistency_px=None)).register_pair(scans[0], scans[1])
@@ -163,7 +164,7 @@ def test_symmetric_odometry_records_both_directions(scans: list[np.ndarray]) -> 
         assert {"network", "network_backward", "decode_nms", "ransac", "backward"} <= set(diagnostics.timings_ms)
         assert diagnostics.to_dict()["backward_inliers"] == diagnostics.backward_inliers
     # The one-way odometry on the same scans records no backward pass.
-    one_way = Odometry.from_default()
+    one_way = Odometry.from_default(frame_to_frame())
     for points in scans:
         one_way.register(points)
     assert all(d.backward_inliers is None and "backward" not in d.timings_ms for d in one_way.diagnostics)
@@ -197,7 +198,7 @@ def test_real_scans_of_a_standing_car_stay_closer_to_the_start_when_matched_both
     ends = {}
     for symmetric in (False, True):
         for refit in ("point_to_point", "ray_noise"):
-            config = symmetric_config() if symmetric else OdometryConfig()
+            config = symmetric_config() if symmetric else frame_to_frame()
             config.ransac.refit = refit  # type: ignore[assignment]
             odometry = Odometry.from_default(config)
             poses = [odometry.register(points) for points in scans]

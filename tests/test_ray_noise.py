@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 import dmlo_rs
 
-from support import rigid, transform_points
+from support import frame_to_frame, rigid, transform_points
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -173,9 +173,9 @@ def pair_scans(tmp_path_factory: pytest.TempPathFactory) -> list[np.ndarray]:
 
 
 def test_the_odometry_solves_its_pairs_as_configured(pair_scans: list[np.ndarray]) -> None:
-    from dmlo.odometry import Odometry, OdometryConfig
+    from dmlo.odometry import Odometry
 
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.ransac.refit, config.ransac.ray_range_ratio = "ray_noise", 4.0
     pair = Odometry.from_default(config).register_pair(*pair_scans)
     src, dst = pair.source_points[pair.inliers], pair.target_points[pair.inliers]
@@ -196,9 +196,9 @@ def test_the_odometry_solves_its_pairs_as_configured(pair_scans: list[np.ndarray
      ("ray_noise", "3", r"ransac.ray_range_ratio: must be a number > 0")],
 )
 def test_a_bad_refit_setting_is_refused_up_front(refit: str, ratio: object, message: str) -> None:
-    from dmlo.odometry import Odometry, OdometryConfig
+    from dmlo.odometry import Odometry
 
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.ransac.refit, config.ransac.ray_range_ratio = refit, ratio  # type: ignore[assignment]
     with pytest.raises(ValueError, match=message):
         Odometry.from_default(config)
@@ -210,9 +210,9 @@ def test_a_bad_refit_setting_is_refused_up_front(refit: str, ratio: object, mess
      (90.0, r"ransac.ray_bearing_threshold_deg: must be a number >= 0 and < 90, got 90.0")],
 )
 def test_a_bad_bearing_threshold_is_refused_up_front(angle: float, message: str) -> None:
-    from dmlo.odometry import Odometry, OdometryConfig
+    from dmlo.odometry import Odometry
 
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.ransac.ray_bearing_threshold_deg = angle
     with pytest.raises(ValueError, match=message):
         Odometry.from_default(config)

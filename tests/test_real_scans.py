@@ -14,6 +14,7 @@ import pytest
 from dmlo.bench.consensus import gicp_consensus
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
+from support import frame_to_frame
 
 pytest.importorskip("small_gicp")
 pytestmark = pytest.mark.slow
@@ -46,7 +47,7 @@ def highway(shared_data: Path) -> tuple[list[np.ndarray], np.ndarray]:
 def test_on_the_highway_ramp_pure_dmlo_sees_the_car_move(highway: tuple[list[np.ndarray], np.ndarray]) -> None:
     scans, reference = highway
     assert np.linalg.norm(reference[:, :3, 3], axis=1).min() > 0.9  # about a metre a frame
-    moved, errors = _pair_errors(OdometryConfig(), scans, reference)
+    moved, errors = _pair_errors(frame_to_frame(), scans, reference)
     assert moved.min() > 0.5
     assert errors.max() < 0.15, errors
 
@@ -56,7 +57,7 @@ def test_counted_one_vote_each_the_road_rings_report_the_car_standing_still(
 ) -> None:
     """The failure the votes remove, so that the test above can fail."""
     scans, reference = highway
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.ransac.vote_by_tilt, config.ransac.vote_voxel = False, None
     moved, _ = _pair_errors(config, scans[:4], reference[:3])
     assert moved.max() < 0.2
@@ -66,7 +67,7 @@ def test_on_the_highway_ramp_dmlo_with_mapping_is_centimetre_accurate(
     highway: tuple[list[np.ndarray], np.ndarray],
 ) -> None:
     scans, reference = highway
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.mapping.enabled = True
     _, errors = _pair_errors(config, scans, reference)
     assert errors.mean() < 0.03 and errors.max() < 0.05, errors

@@ -17,6 +17,7 @@ from dmlo.odometry import Odometry, OdometryConfig, ReflectanceNotice
 from dmlo.odometry import reflectance
 from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
+from support import frame_to_frame
 
 RANGE_ONLY = default_model_path() / reflectance.RANGE_ONLY_DIR
 VARIANTS = ("unit", "x255", "zeros", "absent")
@@ -53,7 +54,7 @@ def real_drive(shared_data: Path) -> list[np.ndarray]:
 
 def register_all(scans: list[np.ndarray], config: OdometryConfig | None = None, model: Path | None = None):
     """The poses of `scans` and the reflectance notices one odometry gave."""
-    odometry = Odometry(model or default_model_path(), config)
+    odometry = Odometry(model or default_model_path(), config or frame_to_frame())
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         poses = [odometry.register(points) for points in scans]
@@ -129,7 +130,7 @@ def test_a_bad_reflectance_setting_is_refused_by_name_when_loaded(value: object)
 
 
 def test_a_reflectance_setting_changed_after_loading_is_refused_by_the_odometry() -> None:
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.reflectance = "0-256"
     with pytest.raises(ValueError, match="^reflectance: "):
         Odometry.from_default(config)
@@ -169,7 +170,7 @@ def test_the_choice_is_noticed_once_per_odometry(drive: list[np.ndarray], name: 
 @pytest.mark.parametrize(("setting", "said"), [("0-255", "the config says reflectance 0-255: divided by 255"),
                                                 ("none", "the config says reflectance none: the range-only model runs")])
 def test_the_config_overrides_the_guess(drive: list[np.ndarray], setting: str, said: str) -> None:
-    poses, notices, _ = register_all([variant(points, "x255") for points in drive[:3]], OdometryConfig(reflectance=setting))
+    poses, notices, _ = register_all([variant(points, "x255") for points in drive[:3]], frame_to_frame(reflectance=setting))
     assert len(notices) == 1 and said in notices[0]
     if setting == "0-255":
         guessed, _, _ = register_all([variant(points, "x255") for points in drive[:3]])
@@ -177,7 +178,7 @@ def test_the_config_overrides_the_guess(drive: list[np.ndarray], setting: str, s
 
 
 def test_the_unit_setting_clips_a_larger_scale_and_says_so(drive: list[np.ndarray]) -> None:
-    _, notices, odometry = register_all([variant(points, "x255") for points in drive[:3]], OdometryConfig(reflectance="unit"))
+    _, notices, odometry = register_all([variant(points, "x255") for points in drive[:3]], frame_to_frame(reflectance="unit"))
     assert len(notices) == 1 and "clipped" in notices[0] and "scan 0" in notices[0]
     assert odometry.reflectance_choice == reflectance.Choice("unit", "the config says reflectance unit")
 
@@ -204,10 +205,10 @@ def test_scans_too_poor_to_match_decide_nothing(drive: list[np.ndarray]) -> None
 
 
 def test_register_pair_follows_the_scan_without_reflectance(drive: list[np.ndarray]) -> None:
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     with pytest.warns(ReflectanceNotice, match="range-only model runs"):
         mixed = odometry.register_pair(drive[0], variant(drive[1], "absent"))
-    plain = Odometry.from_default()
+    plain = Odometry.from_default(frame_to_frame())
     with pytest.warns(ReflectanceNotice):
         absent = plain.register_pair(variant(drive[0], "absent"), variant(drive[1], "absent"))
     np.testing.assert_allclose(mixed.T_tgt_ref, absent.T_tgt_ref, atol=1e-9)
@@ -246,7 +247,7 @@ def test_the_bundled_range_only_model_is_the_default_one_without_reflectance() -
 
 
 def four_variants(scans: list[np.ndarray], mapping: bool) -> dict[str, np.ndarray]:
-    config = OdometryConfig()
+    config = frame_to_frame()
     config.mapping.enabled = mapping
     return {name: register_all([variant(points, name) for points in scans], config)[0] for name in VARIANTS}
 

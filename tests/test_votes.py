@@ -11,6 +11,7 @@ import pytest
 import dmlo_rs
 from dmlo.odometry import Odometry, OdometryConfig
 from dmlo_rs import CylinderConfig
+from support import frame_to_frame
 
 
 def _plane_scan(normal: np.ndarray, offset: float, config: CylinderConfig) -> np.ndarray:
@@ -102,9 +103,12 @@ def test_votes_keep_the_road_from_outvoting_the_posts() -> None:
     ("key", "value"), [("vote_by_tilt", "false"), ("vote_by_tilt", 1), ("min_vote", 0.0), ("min_vote", 1.5), ("min_vote", None)],
 )
 def test_a_bad_vote_setting_is_refused_by_name(key: str, value: object) -> None:
-    config = OdometryConfig.from_dict({"ransac": {key: value}})
-    with pytest.raises(ValueError, match=f"ransac.{key}"):
-        Odometry.from_default(config)
+    with pytest.raises(ValueError, match=f"^ransac.{key}: "):
+        OdometryConfig.from_dict({"ransac": {key: value}})  # when loaded
+    config = OdometryConfig()
+    setattr(config.ransac, key, value)
+    with pytest.raises(ValueError, match=f"^ransac.{key}: "):
+        Odometry.from_default(config)  # and when changed after loading
 
 
 def test_a_scene_of_road_alone_is_reported_degenerate_and_bridged_by_the_motion_model() -> None:
@@ -112,14 +116,14 @@ def test_a_scene_of_road_alone_is_reported_degenerate_and_bridged_by_the_motion_
     config = CylinderConfig.kitti()
     road = _plane_scan(np.array([0.0, 0.0, 1.0]), -1.73, config)
     road[:, 3] = np.random.default_rng(0).uniform(0.1, 0.6, len(road))  # asphalt's texture
-    odometry = Odometry.from_default()
+    odometry = Odometry.from_default(frame_to_frame())
     for _ in range(3):
         odometry.register(road)
     matched = odometry.diagnostics[1:]
     assert all(d.num_inliers >= 10 and d.inlier_votes is not None and d.inlier_votes < 5 for d in matched)
     assert all(d.fallback == "degenerate_scene" for d in matched)
     assert odometry.diagnostics[1].to_dict()["inlier_votes"] == pytest.approx(matched[0].inlier_votes, abs=0.01)
-    trusting = OdometryConfig()
+    trusting = frame_to_frame()
     trusting.motion_model.min_inlier_votes = 0.0
     odometry = Odometry.from_default(trusting)
     for _ in range(2):
@@ -140,7 +144,7 @@ def test_cars_keeping_pace_with_the_ego_do_not_outvote_the_static_scene(tmp_path
     truth = np.linalg.inv(sequence.poses[:-1]) @ sequence.poses[1:]
 
     def errors(voxel: float | None) -> np.ndarray:
-        config = OdometryConfig()
+        config = frame_to_frame()
         config.ransac.vote_voxel = voxel
         odometry = Odometry.from_default(config)
         poses = np.stack([odometry.register(sequence[i].points) for i in range(len(sequence))])
@@ -153,6 +157,9 @@ def test_cars_keeping_pace_with_the_ego_do_not_outvote_the_static_scene(tmp_path
 
 @pytest.mark.parametrize("value", [0.0, -1.0, "2"])
 def test_a_bad_vote_voxel_is_refused_by_name(value: object) -> None:
-    config = OdometryConfig.from_dict({"ransac": {"vote_voxel": value}})
-    with pytest.raises(ValueError, match="ransac.vote_voxel"):
-        Odometry.from_default(config)
+    with pytest.raises(ValueError, match="^ransac.vote_voxel: "):
+        OdometryConfig.from_dict({"ransac": {"vote_voxel": value}})  # when loaded
+    config = OdometryConfig()
+    config.ransac.vote_voxel = value  # type: ignore[assignment]
+    with pytest.raises(ValueError, match="^ransac.vote_voxel: "):
+        Odometry.from_default(config)  # and when changed after loading

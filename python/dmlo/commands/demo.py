@@ -9,8 +9,8 @@ from dmlo.cli import non_negative_int
 
 EXAMPLES = """examples:
   dmlo demo                       # 100 frames, seed 1, results in runs/demo
-  dmlo demo --frames 300 --seed 7 --mapping
-  dmlo demo --motion-distortion --deskew --mapping   # skewed sweeps, as a real spinning sensor's
+  dmlo demo --frames 300 --seed 7 --no-mapping   # the paper's frame-to-frame DMLO
+  dmlo demo --motion-distortion --deskew   # skewed sweeps, as a real spinning sensor's
 """
 
 
@@ -20,8 +20,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "demo",
         help="simulate a short drive and run the bundled model on it",
-        description="Simulate an HDL-64E drive through a procedural street, run DMLO with the bundled "
-        "model, print metrics against the simulator's ground truth, and save poses and a plot.",
+        description="Simulate an HDL-64E drive through a procedural street, run DMLO + mapping with the bundled "
+        "model (--no-mapping: frame-to-frame DMLO), print metrics against the simulator's ground truth, and save "
+        "poses and a plot.",
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

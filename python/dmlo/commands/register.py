@@ -12,6 +12,7 @@ from dmlo.commands.run import add_odometry_arguments, build_odometry
 
 EXAMPLES = """examples:
   dmlo register 000000.bin 000001.bin
+  dmlo register 000000.bin 000001.bin --no-mapping   # DMLO's matches alone, as the paper's pair
   dmlo register a.pcd b.pcd --large-motion --out T_b_a.txt
   dmlo register 000720.bin 001500.bin --loop --json
 """
@@ -19,7 +20,8 @@ EXAMPLES = """examples:
 DESCRIPTION = """\
 Register scan B against scan A (.bin, .ply or .pcd) and print T_b_a, the 4×4 motion that carries a point
 of A into B's frame (p_b = T_b_a · p_a), with the number of matches and RANSAC inliers. By default the
-pair is matched like two consecutive scans of a drive; --large-motion is for scans several metres apart
+pair is matched like two consecutive scans of a drive, and the motion refined by NDT of B against A as its
+map (DMLO + mapping; --no-mapping: the matches' motion alone); --large-motion is for scans several metres apart
 (the wide-window graph from several starts along A's heading, then re-matched), --loop also tries every
 30° of yaw for scans that face another way (loop closures), at 12× the cost.
 """
@@ -62,8 +64,8 @@ def _read(path: Path, role: str):  # type: ignore[no-untyped-def]
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    if args.mapping:
-        raise UserError("--mapping refines a drive against its map; a single pair has none")
+    if args.mapping and (args.large_motion or args.loop):
+        raise UserError("--mapping refines consecutive scans; --large-motion and --loop match the pair again in rounds instead")
     reference, target = _read(args.reference, "reference"), _read(args.target, "target")
     odometry = build_odometry(args)
     if args.loop:
@@ -91,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
             "inliers": result.num_inliers,
             "inlier_ratio": result.inlier_ratio,
             "rounds": result.rounds,
+            "map_refined": result.map_refined,
             "seconds": seconds,
         }))
         return 0
@@ -98,6 +101,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"T_b_a (p_b = T_b_a · p_a):\n{rows}")
     print(f"{result.num_inliers} of {result.num_matches} matches are RANSAC inliers; "
           f"{result.rounds} matching round(s), {seconds:.2f} s")
+    if result.map_refined is not None:
+        print("refined by NDT against A (mapping)" if result.map_refined
+              else "warning: NDT against A did not converge; the matches' motion is kept")
     if result.num_inliers < odometry.config.motion_model.min_inliers:
         print(f"warning: fewer than {odometry.config.motion_model.min_inliers} inliers, the motion is not to be trusted"
               + ("" if args.large_motion or args.loop else " (far apart? try --large-motion, or --loop)"))

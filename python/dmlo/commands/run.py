@@ -9,8 +9,8 @@ from dmlo.cli import UserError, positive_int
 
 EXAMPLES = """examples:
   dmlo run /data/kitti --sequence 07 --out runs/kitti07
-  dmlo run sim_drive/ --mapping --out runs/sim
-  dmlo run raw_drive/ --format folder --deskew --mapping --out runs/raw
+  dmlo run sim_drive/ --no-mapping --out runs/sim_frame_to_frame
+  dmlo run raw_drive/ --format folder --deskew --out runs/raw
   dmlo run my_scans/ --format folder --model my_model.onnx
 """
 
@@ -54,8 +54,11 @@ def add_odometry_arguments(parser: argparse.ArgumentParser, sequence: bool = Tru
     need one."""
     parser.add_argument("--model", type=Path, default=None, help="ONNX model (default: the bundled model)")
     parser.add_argument("--config", type=Path, default=None, help="odometry config JSON (see config.json of a run)")
-    parser.add_argument("--mapping", action="store_true",
-                        help="refine every pose by scan-to-map NDT (bench: add a DMLO + mapping row)")
+    parser.add_argument("--mapping", action=argparse.BooleanOptionalAction, default=None,
+                        help="refine every pose by NDT against a local map of recent scans (register: against "
+                        "scan A): DMLO + mapping, the "
+                        "paper's full system (default; config mapping.enabled); --no-mapping: the paper's "
+                        "frame-to-frame DMLO (bench: its row alone)")
     parser.add_argument("--symmetric", action="store_true",
                         help="also match every scan back against the previous one and take the midpoint "
                         "motion: less drift, one more matching pass per frame")
@@ -77,7 +80,8 @@ def add_odometry_arguments(parser: argparse.ArgumentParser, sequence: bool = Tru
 
 
 def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # type: ignore[no-untyped-def]
-    """The odometry the arguments ask for; `mapping` overrides `--mapping`."""
+    """The odometry the arguments ask for; `mapping` overrides `--mapping` / `--no-mapping`, which override
+    the config's `mapping.enabled`."""
     from dmlo.odometry import Odometry, OdometryConfig
     from dmlo.odometry.matcher import default_model_path
 
@@ -85,8 +89,9 @@ def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # ty
         config = OdometryConfig.load(args.config) if args.config else OdometryConfig()
     except (OSError, ValueError) as err:
         raise UserError(f"cannot read config {args.config}: {err}") from err
-    if args.mapping if mapping is None else mapping:
-        config.mapping.enabled = True
+    mapping = args.mapping if mapping is None else mapping
+    if mapping is not None:
+        config.mapping.enabled = mapping
     if args.symmetric:
         config.matching.symmetric = True
     if args.no_coherence:

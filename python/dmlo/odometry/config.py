@@ -183,9 +183,14 @@ class DeskewConfig:
 @with_config(_SCHEMA)
 @dataclass
 class MappingConfig:
-    """Optional scan-to-map NDT refinement over a local submap of recent scans."""
+    """Scan-to-map NDT refinement of every pose over a local map of recent scans (§III-D-c), on by default:
+    the network's matches bring each scan within NDT's basin with no initial guess, and NDT against many
+    scans in one frame, fitting every point rather than a few hundred matches, takes out the error the
+    matches leave and the drift that frame-to-frame estimates pile up. `Odometry.register_pair` refines a
+    consecutive pair against the reference scan alone (`dmlo.odometry.mapping`). `enabled = False` is the
+    paper's frame-to-frame DMLO."""
 
-    enabled: Flag = False
+    enabled: Flag = True
     voxel_size: Positive = 1.0
     max_scans: AtLeastOne = 10  # keyframes the local map keeps
     # A scan enters the map only once it moved this far (metres) or turned this much (degrees) from the

@@ -23,6 +23,7 @@ from dmlo.poses import midpoint_motion
 from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
+from dmlo.odometry.mapping import refine_pair
 from dmlo.odometry import reflectance
 from dmlo.odometry.reflectance import ReflectanceNotice
 from dmlo.odometry.matcher import (
@@ -121,6 +122,7 @@ class PairResult:
     inliers: npt.NDArray[np.bool_]
     rounds: int = 1  # with `large_motion`: matching rounds whose estimate was kept (`LargeMotionConfig`)
     inlier_votes: float | None = None  # the inliers' summed votes above the floor when RANSAC voted (`ransac.vote_by_tilt`)
+    map_refined: bool | None = None  # `register_pair` with mapping: NDT against the reference converged (None: not tried)
 
     @property
     def inlier_ratio(self) -> float:
@@ -159,7 +161,8 @@ class _Stopwatch:
 
 
 class Odometry:
-    """Frame-to-frame DMLO odometry with the paper's motion model and optional NDT mapping.
+    """DMLO odometry with the paper's motion model and, by default, its scan-to-map NDT refinement
+    (`mapping.enabled = False`: frame-to-frame DMLO).
 
     >>> odometry = Odometry.from_default()
     >>> for points in scans:               # N×4 float32: x, y, z, reflectance
@@ -346,23 +349,30 @@ class Odometry:
     def register_pair(
         self, reference: npt.ArrayLike, target: npt.ArrayLike, large_motion: bool = False
     ) -> PairResult:
-        """The motion `T_tgt_ref` between two scans, with no motion model, map or initial guess.
+        """The motion `T_tgt_ref` between two scans, with no motion model or initial guess.
 
-        `large_motion` matches with the model's wide-window graph (the paper's D = 40 at inference,
+        With `mapping.enabled` (the default), a consecutive pair's motion is refined by NDT of the target
+        against the reference scan as its map (`dmlo.odometry.mapping.refine_pair`), when RANSAC found at
+        least `motion_model.min_inliers` inliers; `map_refined` says whether NDT converged. `large_motion`
+        matches with the model's wide-window graph (the paper's D = 40 at inference,
         §IV-D) for scans far apart, e.g. several frames or metres, and then again with the reference moved
         by the estimate (`config.large_motion`); it matches one way only, whatever `matching.symmetric`
         says. The result's points are in the frames of the scans given. A scan with fewer than
         `config.min_points` finite points is refused (ValueError): with no motion model to fall back on,
         the identity would be a silent wrong answer.
         """
-        reference_cloud = self._finite_scan(reference, "reference")
-        tgt_image, tgt_range, tgt_points = self._project(self._finite_scan(target, "target"))
+        reference_cloud, target_cloud = self._finite_scan(reference, "reference"), self._finite_scan(target, "target")
+        tgt_image, tgt_range, tgt_points = self._project(target_cloud)
         if large_motion:
             return self._register_far(reference_cloud, tgt_image, tgt_range)
         ref_image, ref_range, ref_points = self._project(reference_cloud)
         ref_features = self.matcher.encode(ref_image)
         output = self.matcher.frame(tgt_image, ref_features)
         pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features, ref_points, tgt_points)
+        if self.config.mapping.enabled and pair.num_inliers >= self.config.motion_model.min_inliers:
+            refined = refine_pair(reference_cloud, target_cloud, pair.T_tgt_ref, self.config.mapping)
+            pair.map_refined = refined is not None
+            pair.T_tgt_ref = pair.T_tgt_ref if refined is None else refined
         return pair
 
     def _finite_scan(self, points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
