@@ -49,6 +49,7 @@ def across_the_gap(drive: Path, odometry: Odometry) -> tuple[np.ndarray, np.ndar
 def test_a_pair_across_missing_scans_is_matched_again_from_the_prediction(highway: Path) -> None:
     paper = frame_to_frame()
     paper.motion_model.rematch_gap = None
+    paper.motion_model.match_from_prediction_m = None  # the paper's path: from the identity alone
     lost = Odometry.from_default(paper)
     lost_motion, truth = across_the_gap(highway, lost)
     assert np.linalg.norm(truth[:3, 3]) > 8.5
@@ -112,6 +113,7 @@ def test_a_consecutive_pair_that_would_give_way_is_matched_again(highway: Path) 
     honest_poses = [honest.register(p) for p in scans]
     paper = frame_to_frame()
     paper.motion_model.rematch_gap = None
+    paper.motion_model.match_from_prediction_m = None
     gated = WrongFirstPair.from_default(paper)
     for points in scans:
         gated.register(points)

@@ -75,11 +75,13 @@ def rematch(
     match: Callable[..., PairResult],
     config: LargeMotionConfig,
     min_inliers: int,
+    tilt_votes: bool = False,
 ) -> PairResult | None:
     """Rounds of matching the reference moved by the `estimate` so far (`T_tgt_ref`) against the target's
     features with the model's own window, until a round — or the `last_correction` that led to `estimate` —
     corrects less than the configured steps. None when not one round kept `min_inliers` inliers: a round with
-    fewer lost the scene, and the estimate before it is the better one."""
+    fewer lost the scene, and the estimate before it is the better one. `tilt_votes`: RANSAC votes as for
+    consecutive scans (`ransac.vote_by_tilt`), the moved reference's own points giving the surfaces."""
     result: PairResult | None = None
     correction = last_correction
     for round_ in rounds:
@@ -87,9 +89,12 @@ def rematch(
             moved_m, turned_deg = pose_difference(np.eye(4), correction)
             if moved_m < config.min_step and turned_deg < config.min_step_deg:
                 break
-        ref_image, ref_range, _ = project(moved(reference, estimate))
+        ref_image, ref_range, ref_points = project(moved(reference, estimate))
         flow, confidence = matcher.match(matcher.encode(ref_image), tgt_features)
-        pair = match(ref_range, tgt_range, flow, confidence, tilt_votes=False)
+        if tilt_votes:
+            pair = match(ref_range, tgt_range, flow, confidence, ref_points=ref_points)
+        else:
+            pair = match(ref_range, tgt_range, flow, confidence, tilt_votes=False)
         if pair.num_inliers < min_inliers:
             break
         result, correction = in_given_frames(pair, estimate, rounds=round_), pair.T_tgt_ref

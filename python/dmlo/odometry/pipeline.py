@@ -203,17 +203,18 @@ class Odometry:
 
     def _available_rematch_gap(self) -> int | None:
         """`motion_model.rematch_gap`, or None with a warning when the model lacks the graphs it needs."""
-        gap = self.config.motion_model.rematch_gap
+        motion = self.config.motion_model
         missing = [name for name in (ENCODER_GRAPH, MATCH_GRAPH) if not self.matcher.path.with_name(name).is_file()]
-        if gap is not None and missing:
+        self._can_rematch = not missing
+        if missing and (motion.rematch_gap is not None or motion.match_from_prediction_m is not None):
             warnings.warn(
                 f"{self.matcher.path.parent} has no {' or '.join(missing)}: pairs across missing scans are not matched "
-                "again from the prediction (motion_model.rematch_gap); `dmlo export CHECKPOINT --out DIR` writes "
-                "every graph",
+                "again from the prediction (motion_model.rematch_gap), nor pairs beyond the network's window "
+                "(motion_model.match_from_prediction_m); `dmlo export CHECKPOINT --out DIR` writes every graph",
                 stacklevel=3,
             )
             return None
-        return gap
+        return motion.rematch_gap
 
     @classmethod
     def from_default(cls, config: OdometryConfig | None = None) -> Odometry:
@@ -267,7 +268,10 @@ class Odometry:
         diagnostics.image_fill = float(np.count_nonzero(ranges) / ranges.size)
         self._check_sensor(diagnostics.image_fill)
         previous = self._reference
-        output = self.matcher.frame(image, previous.features if previous else None)  # §III-C
+        if previous is not None and self._beyond_window():
+            output = FrameOutput(self.matcher.encode(image), None, None)  # matched from the prediction instead
+        else:
+            output = self.matcher.frame(image, previous.features if previous else None)  # §III-C
         watch.lap("network")
         if output.matching_ms is not None:  # the crate matched: its share timed apart from the encoding
             diagnostics.timings_ms["network"] -= output.matching_ms
@@ -664,19 +668,24 @@ class Odometry:
         diagnostics: FrameDiagnostics,
         watch: _Stopwatch,
     ) -> Matrix4:
-        pair, forward, backward = self._pair(
-            previous.range, tgt_range, output, previous.features, previous.points, tgt_points, watch
-        )
-        diagnostics.num_matches = forward.num_matches
-        diagnostics.num_inliers = forward.num_inliers
-        diagnostics.inlier_ratio = forward.inlier_ratio
-        diagnostics.inlier_votes = pair.inlier_votes
-        diagnostics.backward_inliers = None if backward is None else backward.num_inliers
         gap = diagnostics.gap = self._clock.frame - self._reference_frame
         predicted = self._predicted_motion(gap)
-        pair = self._rematched_if_better(pair, previous, tgt_image, tgt_range, output.features, predicted, gap, diagnostics)
-        if watch and diagnostics.rematch_rounds is not None:
-            watch.lap("rematch")
+        if output.flow is None:  # `_beyond_window`
+            pair = self._matched_from_prediction(previous, tgt_range, output.features, predicted, diagnostics)
+            if watch:
+                watch.lap("rematch")
+        else:
+            pair, forward, backward = self._pair(
+                previous.range, tgt_range, output, previous.features, previous.points, tgt_points, watch
+            )
+            diagnostics.num_matches = forward.num_matches
+            diagnostics.num_inliers = forward.num_inliers
+            diagnostics.inlier_ratio = forward.inlier_ratio
+            diagnostics.backward_inliers = None if backward is None else backward.num_inliers
+            pair = self._rematched_if_better(pair, previous, tgt_image, tgt_range, output.features, predicted, gap, diagnostics)
+            if watch and diagnostics.rematch_rounds is not None:
+                watch.lap("rematch")
+        diagnostics.inlier_votes = pair.inlier_votes
         if pair.num_inliers < self.config.motion_model.min_inliers:
             diagnostics.fallback = "constant_velocity"  # the motion model of §III-D-c
             return predicted
@@ -701,6 +710,44 @@ class Odometry:
                 self._gated_last = True
                 return predicted
         return pair.T_tgt_ref
+
+    def _beyond_window(self) -> bool:
+        """Whether the predicted motion since the reference scan exceeds `motion_model.match_from_prediction_m`
+        (the network's window cannot reach the near scene's flow) between consecutive scans; never before a
+        velocity is measured."""
+        limit = self.config.motion_model.match_from_prediction_m
+        gap = self._clock.frame - self._reference_frame
+        if limit is None or not self._can_rematch or not self._velocity_measured:
+            return False
+        if gap > self.config.motion_model.prediction_horizon:
+            return False
+        if self._rematch_gap is not None and gap >= self._rematch_gap:
+            return False  # across missing scans `_rematched_if_better` also tries the wide window
+        moved, _ = pose_difference(np.eye(4), self._predicted_motion(gap))
+        return bool(moved > limit)
+
+    def _matched_from_prediction(
+        self,
+        previous: _Scan,
+        tgt_range: npt.NDArray[np.float32],
+        tgt_features: Features,
+        predicted: Matrix4,
+        diagnostics: FrameDiagnostics,
+    ) -> PairResult:
+        """The pair matched in rounds from the prediction (`_beyond_window`), its matches voted as for
+        consecutive scans; no inliers when not one round kept `motion_model.min_inliers` of them."""
+        again = rematch(
+            previous.cloud, predicted, tgt_range, tgt_features, rounds=range(1, self.config.large_motion.max_rounds + 1),
+            last_correction=None, matcher=self.matcher, project=self._project, match=self._match,
+            config=self.config.large_motion, min_inliers=self.config.motion_model.min_inliers, tilt_votes=True,
+        )
+        diagnostics.rematch_rounds = 0 if again is None else again.rounds
+        if again is None:
+            nothing = np.zeros((0, 3))
+            return PairResult(predicted, 0, 0, nothing, nothing, np.zeros(0, dtype=bool))
+        diagnostics.num_matches, diagnostics.num_inliers = again.num_matches, again.num_inliers
+        diagnostics.inlier_ratio = again.inlier_ratio
+        return again
 
     def _rematched_if_better(
         self,
