@@ -1,4 +1,4 @@
-"""The benchmark scripts run end to end on a tiny simulated drive (their numbers go into the README)."""
+"""The benchmark scripts run end to end on a tiny simulated drive (their numbers go into BENCHMARKS.md and the README)."""
 
 from __future__ import annotations
 

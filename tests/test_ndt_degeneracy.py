@@ -1,7 +1,7 @@
 """Degeneracy-aware NDT (`NdtMap.align(..., degeneracy_threshold=...)`): directions the map does not
 constrain keep the initial estimate (Zhang, Kaess & Singh 2016). A synthetic corridor, where the axis is
 degenerate, and a simulated straight drive, where it is not (the along-track pull there is a bias of the
-ground's ring sampling that carries 12–30 % of the best direction's information: see the README)."""
+ground's ring sampling that carries 12–30 % of the best direction's information: see docs/measurements.md)."""
 
 from __future__ import annotations
 

@@ -74,7 +74,7 @@ def test_a_model_with_the_frame_graph_alone_deskews_the_same(
 
 def test_mapping_on_skewed_sweeps_drifts_less_deskewed(highway: tuple[list[np.ndarray], np.ndarray]) -> None:
     # A map of skewed sweeps pulls every scan along the road (measured: 2.9 cm off after 19 frames,
-    # deskewed 0.7 cm; over 300 frames along KITTI 07 t_rel 0.54 % against 0.08 %, README).
+    # deskewed 0.7 cm; over 300 frames along KITTI 07 t_rel 0.54 % against 0.08 %, docs/measurements.md).
     scans, truth = highway
     end_errors = {}
     for deskew in (False, True):

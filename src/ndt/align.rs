@@ -38,7 +38,7 @@ const ARMIJO: f64 = 1e-4;
 /// Default [`NdtAlignConfig::degeneracy_threshold`]: a translation with under 5 % of the information of
 /// the best-constrained one. A synthetic corridor's axis has ≈ 3 % (in-plane information of planar
 /// distributions is about the map's `min_eigenvalue_ratio` = 1 % of their normal information, times the
-/// share of points on them), the weakest translation on simulated streets 12–37 % (see the README).
+/// share of points on them), the weakest translation on simulated streets 12–37 % (docs/measurements.md).
 pub const DEFAULT_DEGENERACY_THRESHOLD: f64 = 0.05;
 /// Default [`NdtAlignConfig::rotation_degeneracy_threshold`]: the weakest rotation (roll) on simulated
 /// streets has 2–10 % of the strongest's, on the synthetic corridor 8 %.

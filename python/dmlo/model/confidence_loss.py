@@ -8,7 +8,7 @@ matches lay within 1 px of the truth; choosing the kept cells by their true erro
 pair rotation error (0.082° → 0.034°). The loss here is the binary cross entropy of Q* against "the
 predicted match lies within ``inlier_px`` of the truth", over every cell with a ground truth.
 
-Tried for one epoch from the bundled model (README, "Confidence loss"): weight 0.5 barely moved the ranking
+Tried for one epoch from the bundled model (docs/measurements.md, "Confidence loss"): weight 0.5 barely moved the ranking
 (kept matches within 1 px 21.0 → 21.8 %), weight 5 bent the flow itself and raised the pair error; Q* shares
 its softmax with the flow, so the option stays off by default.
 """

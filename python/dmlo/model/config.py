@@ -15,7 +15,7 @@ class MatcherConfig:
 
     The defaults are the paper's structure: a 9-layer coarse net with strides 4 (rows) × 8 (cols) and a
     refine net of 2 plain + 3 deformable 3×3 convolutions. ``refine_channels`` and the plain/deformable
-    split are the knobs that trade accuracy for speed (see the README's benchmark).
+    split are the knobs that trade accuracy for speed (BENCHMARKS.md, "Network").
     """
 
     coarse_channels: int = 32
@@ -43,7 +43,7 @@ class MatcherConfig:
     the paper) the centroid of the 3×3 cells around the most likely one (`dmlo.model.window.peak_centroid`).
     Q* is the best 2×2 window's mass either way, and the loss does not depend on it, so a trained model can
     be exported with either. Measured with the bundled weights: held-out pair rotation error 0.079 → 0.062°,
-    but no gain on the bench drives (README), so the paper's stays the default."""
+    but no gain on the bench drives (docs/measurements.md), so the paper's stays the default."""
     range_scale_m: float = 80.0
     """The range channel enters the network divided by this (metres); reflectance enters as is."""
     use_reflectance: bool = True

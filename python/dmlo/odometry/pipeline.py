@@ -946,7 +946,7 @@ def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> P
     than `min_inliers` inliers is left out; with neither, the forward pair goes on to the motion model.
 
     The network's errors in the two directions are only partly the same, so the midpoint cancels part of
-    them (beyond the paper; measured in the README).
+    them (beyond the paper; measured in docs/measurements.md).
     """
     reverse = PairResult(
         T_tgt_ref=np.linalg.inv(backward.T_tgt_ref).astype(np.float64),
