@@ -4,13 +4,29 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 from numpy.typing import ArrayLike
 
 from dmlo.metrics.kitti import kitti_odometry_errors
 from dmlo.metrics.trajectory import Alignment, absolute_trajectory_error, relative_pose_error
 from dmlo.poses import as_poses
 
-__all__ = ["evaluate_trajectory"]
+__all__ = ["MAX_COORDINATE", "evaluate_trajectory"]
+
+# Largest position (m) the metrics take: beyond any trajectory measured in metres, while sums of squares
+# of it stay far from float64's overflow (a translation of 1e308 in a pose file made the alignment's SVD
+# spin forever on infinities).
+MAX_COORDINATE = 1e12
+
+
+def _check_magnitude(name: str, poses: Any) -> None:
+    beyond = np.flatnonzero(np.abs(poses[:, :3, 3]).max(axis=1) > MAX_COORDINATE)
+    if beyond.size:
+        first = int(beyond[0])
+        raise ValueError(
+            f"{name}: pose {first} lies {np.abs(poses[first, :3, 3]).max():.3g} m from the origin, beyond the "
+            f"{MAX_COORDINATE:.0e} m the metrics take ({beyond.size} such poses)"
+        )
 
 
 def evaluate_trajectory(
@@ -26,6 +42,8 @@ def evaluate_trajectory(
     """
     gt = as_poses(poses_gt, "poses_gt")
     est = as_poses(poses_est, "poses_est")
+    for name, poses in (("poses_gt", gt), ("poses_est", est)):
+        _check_magnitude(name, poses)
     if len(gt) != len(est):
         raise ValueError(f"poses_gt has {len(gt)} poses but poses_est has {len(est)}")
     if delta < 1:

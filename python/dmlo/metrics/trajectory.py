@@ -74,6 +74,8 @@ def umeyama_alignment(
     mean_src, mean_dst = src.mean(axis=0), dst.mean(axis=0)
     centred_src, centred_dst = src - mean_src, dst - mean_dst
     covariance = centred_dst.T @ centred_src / len(src)
+    if not np.all(np.isfinite(covariance)):  # LAPACK's SVD may never return on infinities
+        raise ValueError("alignment positions are too large: their covariance overflows")
     u, singular, vt = np.linalg.svd(covariance)
     reflection = np.eye(3)
     if np.linalg.det(u) * np.linalg.det(vt) < 0:
