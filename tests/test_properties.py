@@ -314,8 +314,9 @@ def corrupted(draw: st.DrawFn, base: np.ndarray) -> Any:
     share = draw(plausible_or(st.sampled_from([0.0, 0.01]), 0.3, 1.0))
     value = draw(st.sampled_from(ADVERSARIAL))
     scan[rng.random(scan.shape) < share] = value
-    scan[:, :3] *= draw(plausible_or(st.just(1.0), 1e-3, 1e3, 1e7))
-    scan[:, 3] *= draw(plausible_or(st.sampled_from([1.0, 255.0, 0.0]), -1.0, 1e9))
+    with np.errstate(all="ignore"):  # inf × 0
+        scan[:, :3] *= draw(plausible_or(st.just(1.0), 1e-3, 1e3, 1e7))
+        scan[:, 3] *= draw(plausible_or(st.sampled_from([1.0, 255.0, 0.0]), -1.0, 1e9))
     form = draw(plausible_or(st.sampled_from(["float32", "float64", "xyz"]), "int", "rows", "list"))
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore")
