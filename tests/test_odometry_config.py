@@ -80,8 +80,10 @@ BAD = [
     ({"ransac": {"threshold": float("inf")}}, "ransac.threshold: must be a finite number > 0, got inf"),
     ({"ransac": {"confidence": 1.0}}, "ransac.confidence: must be a number > 0 and < 1, got 1.0"),
     ({"ransac": {"confidence": "0.99"}}, "ransac.confidence: must be a number > 0 and < 1, got '0.99'"),
-    ({"ransac": {"max_iterations": 0}}, "ransac.max_iterations: must be an integer >= 1, got 0"),
-    ({"ransac": {"max_iterations": 10.5}}, "ransac.max_iterations: must be an integer >= 1, got 10.5"),
+    ({"ransac": {"max_iterations": 0}}, "ransac.max_iterations: must be an integer from 1 to 1000000, got 0"),
+    ({"ransac": {"max_iterations": 10.5}}, "ransac.max_iterations: must be an integer from 1 to 1000000, got 10.5"),
+    # A scene without a consensus runs every hypothesis, in the crate, where Ctrl-C cannot stop them.
+    ({"ransac": {"max_iterations": 2**63}}, "ransac.max_iterations: must be an integer from 1 to 1000000, got 9223372036854775808"),
     ({"ransac": {"seed": -1}}, "ransac.seed: must be an integer >= 0, got -1"),
     ({"ransac": {"seed": 2**64}}, "ransac.seed: must be an integer from 0 to 2^64 - 1, got 18446744073709551616"),
     ({"ransac": {"seed": "7"}}, "ransac.seed: must be an integer >= 0, got '7'"),

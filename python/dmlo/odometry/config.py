@@ -87,7 +87,9 @@ class RansacConfig:
 
     threshold: Positive = 0.1  # metres; the paper's inlier threshold
     confidence: Annotated[float, Strict(), Gt(0), Lt(1)] = 0.999
-    max_iterations: AtLeastOne = 1000
+    # At most a million: the hypotheses run in the crate, where Ctrl-C cannot stop them, and a scene without
+    # a consensus runs every one.
+    max_iterations: Annotated[int, Strict(), Ge(1), Le(1_000_000)] = 1000
     seed: Count = 0
     # How the refits on the inliers solve for the motion: "point_to_point", the closed-form SVD solve
     # (Eq. 12–14, the paper's, isotropic noise), or beyond the paper "ray_noise": that solve refined by
