@@ -157,6 +157,10 @@ class MotionModelConfig:
     # matches voted as `ransac.vote_by_tilt` says — instead of from the identity first. Below it, matching
     # from the identity is the more accurate (a moved reference loses the cells it occludes). None: never.
     match_from_prediction_m: Positive | None = 1.5
+    # Matching rounds from the prediction at most (each projects, encodes and matches the moved reference
+    # again): the first carries the pair within the window, later ones refine while the correction exceeds
+    # `large_motion.min_step`.
+    prediction_rounds: AtLeastOne = 2
 
 
 @with_config(_SCHEMA)

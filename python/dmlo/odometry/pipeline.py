@@ -737,7 +737,7 @@ class Odometry:
         """The pair matched in rounds from the prediction (`_beyond_window`), its matches voted as for
         consecutive scans; no inliers when not one round kept `motion_model.min_inliers` of them."""
         again = rematch(
-            previous.cloud, predicted, tgt_range, tgt_features, rounds=range(1, self.config.large_motion.max_rounds + 1),
+            previous.cloud, predicted, tgt_range, tgt_features, rounds=range(1, self.config.motion_model.prediction_rounds + 1),
             last_correction=None, matcher=self.matcher, project=self._project, match=self._match,
             config=self.config.large_motion, min_inliers=self.config.motion_model.min_inliers, tilt_votes=True,
         )
