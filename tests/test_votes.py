@@ -138,8 +138,9 @@ def test_cars_keeping_pace_with_the_ego_do_not_outvote_the_static_scene(tmp_path
     from dmlo.simulator import simulate_sequence
 
     trajectory = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_gt_poses" / "07.txt"
-    simulate_sequence(tmp_path, frames=15, seed=41, trajectory=trajectory if trajectory.is_file() else None,
-                      escorts=True, progress=False)
+    if not trajectory.is_file():  # the generated drive's jam is another scene, measured on neither setting
+        pytest.skip(f"KITTI 07's poses not found at {trajectory}")
+    simulate_sequence(tmp_path, frames=15, seed=41, trajectory=trajectory, escorts=True, progress=False)
     sequence = open_sequence(tmp_path)
     truth = np.linalg.inv(sequence.poses[:-1]) @ sequence.poses[1:]
 
