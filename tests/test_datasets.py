@@ -606,12 +606,35 @@ def test_lzf_back_references() -> None:
     # (control 7 << 5 with an extra length byte 0 → 7 + 2 = 9).
     stream = bytes([2]) + b"abc" + bytes([1 << 5, 2]) + bytes([7 << 5, 0, 0])
     assert D.lzf_decompress(stream, 15) == b"abcabc" + b"c" * 9
-    with pytest.raises(ValueError, match="before the start"):
+    with pytest.raises(ValueError, match="error in compressed data"):  # a back reference before the start
         D.lzf_decompress(bytes([1 << 5, 5]), 3)
-    with pytest.raises(ValueError, match="literal run past the end"):
+    with pytest.raises(ValueError, match="error in compressed data"):  # a literal run past the end
         D.lzf_decompress(bytes([5]) + b"ab", 6)
-    with pytest.raises(ValueError, match="header says 7"):
+    with pytest.raises(ValueError, match="decompressed to 3 bytes, the header says 7"):
         D.lzf_decompress(bytes([2]) + b"abc", 7)
+    with pytest.raises(ValueError, match="decompressed to 15 bytes, the header says 14"):
+        D.lzf_decompress(stream, 14)
+    with pytest.raises(ValueError, match="decompressed to more than 13 bytes"):
+        D.lzf_decompress(stream, 13)
+    assert D.lzf_decompress(b"", 0) == b""
+    with pytest.raises(ValueError, match="for an empty result"):
+        D.lzf_decompress(bytes([2]) + b"abc", 0)
+
+
+def test_binary_compressed_pcd_without_the_io_extra_names_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The LZF decoder is optional (the io extra): without it a compressed scan is an unreadable scan whose
+    # error says what to install, and the other encodings still read.
+    monkeypatch.setitem(sys.modules, "lzf", None)  # `import lzf` raises ImportError
+    points = random_points(20)
+    raw = b"".join(np.ascontiguousarray(points[:, i]).tobytes() for i in range(4))
+    compressed = lzf_literals(raw)
+    path = tmp_path / "scan.pcd"
+    sizes = np.array([len(compressed), len(raw)], "<u4").tobytes()
+    path.write_bytes(pcd_header(20, "binary_compressed").encode() + sizes + compressed)
+    with pytest.raises(D.DatasetError, match=r"scan.pcd: binary_compressed PCD needs the LZF decoder: pip install 'dmlo\[io\]'"):
+        D.read_pcd(path)
+    path.write_bytes(pcd_header(20, "binary").encode() + points.tobytes())
+    np.testing.assert_array_equal(D.read_pcd(path), points)
 
 
 def test_pcd_binary_compressed(tmp_path: Path) -> None:

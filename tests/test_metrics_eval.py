@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 
 from dmlo import poses as P
 from dmlo.cli import main
-from dmlo.plot import plot_trajectories, view_axes
+from dmlo.plot import PlotUnavailable, plot_trajectories, view_axes
 
 
 def run_eval(capsys, *args: str) -> tuple[int, str, str]:
@@ -173,6 +174,22 @@ def test_plot_trajectories_writes_a_png(tmp_path: Path) -> None:
         plot_trajectories(None, est, tmp_path / "c.png", axes=(1, 1))
     with pytest.raises(ValueError, match=r"estimate must have shape \(N, 4, 4\)"):
         plot_trajectories(None, np.zeros((3, 3)), tmp_path / "c.png")
+
+
+def test_eval_without_matplotlib_prints_the_metrics_and_skips_the_plot_with_a_notice(
+    tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Plots are the optional `plot` extra: without matplotlib the metrics still come, the plot is skipped
+    # and one line says how to get it.
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ImportError
+    with pytest.raises(PlotUnavailable, match=r"pip install 'dmlo\[plot\]'"):
+        plot_trajectories(None, drive(5), tmp_path / "direct.png")
+    P.write_kitti_poses(tmp_path / "gt.txt", drive(30))
+    plot = tmp_path / "plot.png"
+    code, out, err = run_eval(capsys, str(tmp_path / "gt.txt"), str(tmp_path / "gt.txt"), "--plot", str(plot))
+    assert code == 0 and "ATE rmse" in out and "plot " not in out
+    assert err.strip() == "dmlo eval: warning: --plot skipped: plots need matplotlib: pip install 'dmlo[plot]'"
+    assert not plot.exists() and not list(tmp_path.glob("*.png"))
 
 
 def test_eval_help_describes_the_metrics(capsys) -> None:

@@ -342,3 +342,20 @@ def test_run_on_another_sensor_warns_in_one_line(tmp_path: Path) -> None:
     lines = [line.split("\r")[-1] for line in result.stderr.splitlines()]
     warning = [line for line in lines if "warning" in line]
     assert len(warning) == 1 and warning[0].startswith("dmlo run: warning: the scans fill only"), result.stderr
+
+
+def test_run_without_matplotlib_writes_everything_but_the_plot_and_says_how_to_get_it(drive: Path, tmp_path: Path) -> None:
+    # Plots are the optional `plot` extra: the command line runs with matplotlib made unimportable.
+    out = tmp_path / "out"
+    code = (
+        "import sys; sys.modules['matplotlib'] = None; from dmlo.cli import main; "
+        f"sys.exit(main(['run', {str(drive)!r}, '--max-frames', '3', '--out', {str(out)!r}]))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "vs ground truth" in result.stdout
+    assert (out / "metrics.json").is_file() and (out / "poses_kitti.txt").is_file()
+    assert not (out / "trajectory.png").exists() and not list(out.glob(".trajectory*"))
+    lines = [line.split("\r")[-1] for line in result.stderr.splitlines()]
+    warning = [line for line in lines if "warning" in line]
+    assert warning == ["dmlo run: warning: trajectory.png skipped: plots need matplotlib: pip install 'dmlo[plot]'"], result.stderr

@@ -2,7 +2,9 @@
 
 The view plane is chosen from the data: the two coordinate axes along which the trajectories extend the
 most. For LiDAR poses (z up) that is x–y; for KITTI camera poses (y down) it is x–z. Matplotlib is used
-through its Agg canvas directly, so no GUI backend is touched and nothing global is changed.
+through its Agg canvas directly, so no GUI backend is touched and nothing global is changed. Matplotlib is
+optional (the ``plot`` extra): without it :func:`plot_trajectories` raises :class:`PlotUnavailable`, which the
+commands turn into a one-line notice and skip the plot.
 """
 
 from __future__ import annotations
@@ -15,7 +17,13 @@ from numpy.typing import ArrayLike, NDArray
 
 from dmlo.poses import as_poses
 
-__all__ = ["plot_trajectories", "view_axes"]
+__all__ = ["PLOT_INSTALL_HINT", "PlotUnavailable", "plot_trajectories", "view_axes"]
+
+PLOT_INSTALL_HINT = "pip install 'dmlo[plot]'"
+
+
+class PlotUnavailable(ImportError):
+    """Matplotlib (the ``plot`` extra) is not installed; the message says how to get it."""
 
 _AXIS_NAMES = ("x", "y", "z")
 
@@ -45,10 +53,15 @@ def plot_trajectories(
 
     ``ground_truth`` (or None) and ``estimate`` are ``(N, 4, 4)`` poses in the same world frame (they may
     differ in length, e.g. a run stopped early); ``axes`` forces the
-    view plane (e.g. ``(0, 2)`` for x–z), otherwise it is chosen by :func:`view_axes`.
+    view plane (e.g. ``(0, 2)`` for x–z), otherwise it is chosen by :func:`view_axes`. Raises
+    :class:`PlotUnavailable` without matplotlib.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    try:
+        import matplotlib  # noqa: F401  (the optional dependency itself, checked first)
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        raise PlotUnavailable(f"plots need matplotlib: {PLOT_INSTALL_HINT}") from None
 
     est = as_poses(estimate, "estimate")
     gt = None if ground_truth is None else as_poses(ground_truth, "ground_truth")

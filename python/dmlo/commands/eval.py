@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -117,13 +118,17 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as err:
         raise UserError(str(err)) from None
 
+    plotted = False
     if args.plot is not None:
-        from dmlo.plot import plot_trajectories
+        from dmlo.plot import PlotUnavailable, plot_trajectories
 
         try:
             plot_trajectories(
                 poses_gt, poses_est, args.plot, title=f"{args.estimate.name} vs {args.ground_truth.name}"
             )
+            plotted = True
+        except PlotUnavailable as err:  # the metrics are still printed; the plot is optional
+            warnings.warn(f"--plot skipped: {err}", stacklevel=2)
         except OSError as err:
             raise UserError(f"cannot write the plot {args.plot}: {err}") from None
 
@@ -131,6 +136,6 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(result))
     else:
         print(format_table(result))
-        if args.plot is not None:
+        if plotted:
             print(f"plot           {args.plot}")
     return 0

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -54,9 +55,10 @@ def run_sequence(
 
     `poses_kitti.txt` / `poses_tum.txt` (T_world_lidar, world = the first scan, readable by evo),
     `diagnostics.jsonl`, `config.json`, and with ground truth `ground_truth_kitti.txt`,
-    `metrics.json` and `trajectory.png`. `max_frames` (≥ 1) stops after that many scans. A folder with an
-    earlier run's files raises `OutputError` unless `overwrite` (which deletes them first); so does any
-    failure to write, naming the file.
+    `metrics.json` and `trajectory.png` (skipped with a warning without matplotlib, the `plot` extra).
+    `max_frames` (≥ 1) stops after that many scans. A folder with an earlier run's files raises
+    `OutputError` unless `overwrite` (which deletes them first); so does any failure to write, naming the
+    file.
     """
     if max_frames is not None and max_frames < 1:
         raise ValueError(f"max_frames: must be at least 1, got {max_frames}")
@@ -104,7 +106,7 @@ def run_sequence(
 
 def _evaluate(ground_truth: np.ndarray, estimate: np.ndarray, out_dir: Path, name: str) -> dict[str, Any]:
     from dmlo.metrics import evaluate_trajectory
-    from dmlo.plot import plot_trajectories
+    from dmlo.plot import PlotUnavailable, plot_trajectories
 
     # Both trajectories start at the identity, so they compare without any alignment.
     ground_truth = np.linalg.inv(ground_truth[0]) @ ground_truth
@@ -113,7 +115,10 @@ def _evaluate(ground_truth: np.ndarray, estimate: np.ndarray, out_dir: Path, nam
     metrics = evaluate_trajectory(ground_truth, estimate)
     with atomic_output(out_dir / "metrics.json") as temporary:
         temporary.write_text(json.dumps(metrics, indent=2) + "\n")
-    with atomic_output(out_dir / "trajectory.png") as temporary:
-        # LiDAR frame, z up: the top view is the x–y plane.
-        plot_trajectories(ground_truth, estimate, temporary, title=name, axes=(0, 1))
+    try:
+        with atomic_output(out_dir / "trajectory.png") as temporary:
+            # LiDAR frame, z up: the top view is the x–y plane.
+            plot_trajectories(ground_truth, estimate, temporary, title=name, axes=(0, 1))
+    except PlotUnavailable as err:  # plots are optional: the poses and metrics are what the run is for
+        warnings.warn(f"trajectory.png skipped: {err}", stacklevel=2)
     return metrics
