@@ -91,6 +91,8 @@ pub fn surface_normal(
         .or_else(|| plane_normal(points, config, row, col, &WIDE))
 }
 
+// `!(most > 0.0)` also refuses a NaN eigenvalue, which `most <= 0.0` would let through.
+#[allow(clippy::neg_cmp_op_on_partial_ord)]
 fn plane_normal(
     points: &[f32],
     config: &CylinderConfig,
