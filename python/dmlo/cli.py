@@ -42,6 +42,29 @@ def _integer_at_least(least: int, meaning: str) -> Callable[[str], int]:
     return parse
 
 
+# The optional packages a command may need and the extra of pyproject.toml that installs each
+# (tests/test_dependencies.py holds this table to pyproject.toml).
+EXTRA_OF_PACKAGE = {
+    "torch": "train",
+    "onnx": "train",
+    "onnxscript": "train",
+    "scipy": "train",
+    "matplotlib": "plot",
+    "lzf": "io",
+    "pyarrow": "argoverse2",
+    "kiss_icp": "bench",
+    "small_gicp": "bench",
+    "open3d": "bench",
+}
+
+
+def missing_extra_message(err: ModuleNotFoundError) -> str | None:
+    """For an optional package that is not installed, what to install; None for any other module."""
+    package = (err.name or "").split(".")[0]
+    extra = EXTRA_OF_PACKAGE.get(package)
+    return None if extra is None else f"{package} is not installed: pip install 'dmlo[{extra}]'"
+
+
 positive_int = _integer_at_least(1, "a positive integer")
 non_negative_int = _integer_at_least(0, "a non-negative integer")
 
@@ -93,6 +116,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"dmlo {args.command}: interrupted", file=sys.stderr)
         return 130
+    except ModuleNotFoundError as err:  # an optional extra the command needs: say which, in one line
+        message = missing_extra_message(err)
+        if message is None:
+            raise
+        print(f"dmlo {args.command}: error: {message}", file=sys.stderr)
+        return 1
     except OSError as err:  # a full disk, a file in the way, no permission: what and where, in one line
         from dmlo.outputs import describe_os_error
 
