@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dmlo.bench.peers import PEERS
+from support import frame_to_frame
 
 
 def _static_scans(shared_data: Path, count: int) -> list[np.ndarray]:
@@ -28,10 +31,41 @@ def test_peer_stays_still_on_static_scans(shared_data: Path, name: str) -> None:
         assert np.allclose(pose[:3, :3], np.eye(3), atol=1e-3)
 
 
-def test_peers_are_optional() -> None:
-    # Listing the peers never imports them: `dmlo` works without any of them installed.
+def test_peers_are_optional(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Listing the peers imports none of them, and a benchmark asked for a peer that is not installed says so,
+    # with the extra to install, and still runs DMLO.
     assert {p.name for p in PEERS} >= {"KISS-ICP", "small_gicp GICP", "Open3D GICP", "Open3D FPFH+RANSAC"}
-    assert all(isinstance(p.available, bool) for p in PEERS)
+    listing = subprocess.run(
+        [sys.executable, "-c", "import sys; from dmlo.bench.peers import PEERS; [p.name for p in PEERS]; "
+         "print(sorted({'kiss_icp', 'small_gicp', 'open3d'} & set(sys.modules)))"],
+        capture_output=True, text=True, check=True,
+    )
+    assert listing.stdout.strip() == "[]"
+
+    from dmlo.bench import runner
+    from dmlo.bench.peers import Peer
+    from dmlo.datasets import open_sequence
+    from dmlo.odometry import Odometry
+    from dmlo.simulator import simulate_sequence
+
+    def never_made() -> None:
+        raise AssertionError("an unavailable peer must not run")
+
+    absent = Peer("Absent ICP", "dmlo_test_absent_peer_package", never_made)  # type: ignore[arg-type]
+    monkeypatch.setattr(runner, "PEERS", (*PEERS, absent))
+    drive = tmp_path / "drive"
+    simulate_sequence(drive, frames=3, seed=4, progress=False)
+    with pytest.warns(runner.PeerUnavailableWarning) as caught:
+        rows = runner.benchmark_sequence(
+            open_sequence(drive), {"DMLO": lambda: Odometry.from_default(frame_to_frame())}, tmp_path / "bench",
+            peers=["Absent ICP"],
+        )
+    assert [str(w.message) for w in caught] == [
+        "skipping Absent ICP: dmlo_test_absent_peer_package is not installed (pip install 'dmlo[bench]')"
+    ]
+    assert [row.method for row in rows] == ["DMLO"]
+    assert rows[0].hz > 0 and rows[0].metrics["ate_rmse"] < 0.1  # 3 frames, 2 m: DMLO ran and tracked
+    assert not (tmp_path / "bench" / "Absent_ICP.txt").exists() and (tmp_path / "bench" / "DMLO.txt").is_file()
 
 
 def test_a_peer_whose_package_is_missing_or_does_not_load_is_unavailable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
