@@ -631,7 +631,8 @@ def test_binary_compressed_pcd_without_the_io_extra_names_it(tmp_path: Path, mon
     path = tmp_path / "scan.pcd"
     sizes = np.array([len(compressed), len(raw)], "<u4").tobytes()
     path.write_bytes(pcd_header(20, "binary_compressed").encode() + sizes + compressed)
-    with pytest.raises(D.DatasetError, match=r"scan.pcd: binary_compressed PCD needs the LZF decoder: pip install 'dmlo\[io\]'"):
+    hint = r"scan.pcd: binary_compressed PCD needs the LZF decoder: pip install 'dmlo\[io\]'"
+    with pytest.raises(D.DatasetError, match=hint):
         D.read_pcd(path)
     path.write_bytes(pcd_header(20, "binary").encode() + points.tobytes())
     np.testing.assert_array_equal(D.read_pcd(path), points)

@@ -344,7 +344,9 @@ def test_run_on_another_sensor_warns_in_one_line(tmp_path: Path) -> None:
     assert len(warning) == 1 and warning[0].startswith("dmlo run: warning: the scans fill only"), result.stderr
 
 
-def test_run_without_matplotlib_writes_everything_but_the_plot_and_says_how_to_get_it(drive: Path, tmp_path: Path) -> None:
+def test_run_without_matplotlib_writes_everything_but_the_plot_and_says_how_to_get_it(
+    drive: Path, tmp_path: Path
+) -> None:
     # Plots are the optional `plot` extra: the command line runs with matplotlib made unimportable.
     out = tmp_path / "out"
     code = (
@@ -358,4 +360,5 @@ def test_run_without_matplotlib_writes_everything_but_the_plot_and_says_how_to_g
     assert not (out / "trajectory.png").exists() and not list(out.glob(".trajectory*"))
     lines = [line.split("\r")[-1] for line in result.stderr.splitlines()]
     warning = [line for line in lines if "warning" in line]
-    assert warning == ["dmlo run: warning: trajectory.png skipped: plots need matplotlib: pip install 'dmlo[plot]'"], result.stderr
+    notice = "dmlo run: warning: trajectory.png skipped: plots need matplotlib: pip install 'dmlo[plot]'"
+    assert warning == [notice], result.stderr
