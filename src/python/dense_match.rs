@@ -6,7 +6,7 @@ use pyo3::prelude::*;
 
 use crate::dense_match::{self, DenseMatchConfig, FeatureMap, OffsetRule, ScanFeatures};
 
-use super::core::{count, floats, flow_array, image_array, shape_error, Floats, Int};
+use super::convert::{count, floats, flow_array, image_array, shape_error, Floats, Int};
 use super::pool::{run, threads};
 
 /// Flow `[2, H, W]` and confidence `[H, W]` as numpy arrays.

@@ -1,10 +1,19 @@
 //! PyO3 bindings: numpy in, numpy out, GIL released around every computation, crate errors mapped to
 //! Python exceptions. Only compiled with the `python` feature.
+//!
+//! Every function checks dtype, shape and finiteness at the boundary (naming the argument; helpers in
+//! [`convert`]), copies non-contiguous or float64 input where a float32 buffer is needed, releases the
+//! GIL around the work, runs rayon work in a pool owned by the bindings ([`pool`]: recreated after
+//! `fork()`, never the global pool), and turns any panic into a `RuntimeError`. One file per topic.
 
-mod core;
+mod convert;
 mod dense_match;
+mod deskew;
+mod matches;
 mod ndt;
 mod pool;
+mod projection;
+mod registration;
 mod sim;
 mod surface;
 
@@ -37,7 +46,10 @@ impl From<Error> for PyErr {
 fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("RegistrationError", m.py().get_type::<RegistrationError>())?;
-    core::register(m)?;
+    projection::register(m)?;
+    registration::register(m)?;
+    matches::register(m)?;
+    deskew::register(m)?;
     dense_match::register(m)?;
     sim::register(m)?;
     ndt::register(m)?;

@@ -12,7 +12,7 @@ use numpy::{
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
-use super::core::{counts, Int};
+use super::convert::{counts, Int};
 
 use crate::ndt::{
     isometry_from_matrix4, NdtAlignConfig, NdtMap, NdtMapConfig, NdtResult, NeighbourSearch,

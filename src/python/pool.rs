@@ -7,7 +7,7 @@ use std::sync::{Arc, Mutex};
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 
-use super::core::Int;
+use super::convert::Int;
 
 /// `num_threads` from Python as [`run`] takes it. Values within `i64` are checked by the pool itself;
 /// beyond that they are refused here, by the same name and rule.

@@ -9,7 +9,7 @@ use numpy::{
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-use super::core::{count, Int};
+use super::convert::{count, Int};
 
 use crate::raycast::{Ellipsoid, Hit, OrientedBox, Primitive, Scene, Triangle, VerticalCylinder};
 

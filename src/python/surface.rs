@@ -7,8 +7,9 @@ use pyo3::prelude::*;
 
 use crate::surface;
 
-use super::core::{floats, shape_error, vector_i64, PyCylinderConfig};
+use super::convert::{floats, shape_error, vector_i64};
 use super::pool::run;
+use super::projection::PyCylinderConfig;
 
 /// Per reference cell (`rows[i]`, `cols[i]`, e.g. a decoded match's cell): the weight of its vote for a
 /// horizontal motion, the horizontal part of the normal of the surface there in the reference scan's
