@@ -70,6 +70,7 @@ fn required_iterations(inlier_ratio: f64, confidence: f64, max_iterations: usize
         max_iterations
     }
 }
+
 /// Estimates `T` with `dst ≈ T·src` from putative matches `src[i] ↔ dst[i]`, robust to outliers.
 ///
 /// Errors: [`Error::TooFewPoints`] for fewer than 3 matches; [`Error::InvalidArgument`] for bad

@@ -34,6 +34,7 @@ impl Projection {
         self.index.iter().filter(|&&i| i >= 0).count()
     }
 }
+
 /// `points` must be a flat array of whole points of 3 (x, y, z) or 4 (… reflectance) values.
 pub(super) fn check_flat_points(points: &[f32], channels: usize) -> Result<()> {
     if channels != 3 && channels != 4 {
@@ -228,6 +229,7 @@ impl ClosestPoints {
         }
     }
 }
+
 /// Φ (Eq. 1) for a scan of `x, y, z, reflectance` points; see [`project_flat`].
 pub fn project(points: &[[f32; 4]], config: &CylinderConfig) -> Result<Projection> {
     project_flat(points.as_flattened(), 4, config)

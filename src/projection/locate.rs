@@ -17,6 +17,7 @@ pub(super) struct Located {
 pub(super) const NO_CELL: u32 = u32::MAX;
 /// Sentinel for "this point is NaN/Inf".
 pub(super) const NON_FINITE: u32 = u32::MAX - 1;
+
 // ---- exact cell lookup without arctangents -------------------------------------------------------
 //
 // The definition of a point's cell is the libm formula `⌊origin − atan2(·,·)·cells_per_radian + ½⌋`
@@ -482,6 +483,7 @@ impl CellLocator {
         (self.cell(row, col), range as f32)
     }
 }
+
 /// Tables of the most recent config, reused while calls keep the same config (building them costs
 /// about a tenth of projecting a scan).
 pub(super) fn cached_locator(config: &CylinderConfig) -> Arc<CellLocator> {

@@ -217,6 +217,7 @@ impl Matches {
         ))
     }
 }
+
 /// A hypothesis's consensus: the summed votes of its inliers (their count when matches carry no votes),
 /// how many they are, and their summed squared distance.
 #[derive(Debug, Clone, Copy)]
