@@ -1,0 +1,212 @@
+use super::*;
+use approx::assert_relative_eq;
+
+/// Deterministic pseudo-random features, unit length per cell like the network's.
+fn features(channels: usize, height: usize, width: usize, seed: u64) -> Vec<f32> {
+    let mut state = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    let mut values: Vec<f32> = (0..channels * height * width)
+        .map(|_| {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 40) as f32 / (1u64 << 24) as f32) - 0.5
+        })
+        .collect();
+    let cells = height * width;
+    for cell in 0..cells {
+        let norm = (0..channels)
+            .map(|c| values[c * cells + cell].powi(2))
+            .sum::<f32>()
+            .sqrt();
+        for c in 0..channels {
+            values[c * cells + cell] /= norm;
+        }
+    }
+    values
+}
+
+/// The target as the reference shifted by `(rows, cols)` cells: target(i, j) = reference(i − rows,
+/// j − cols), random outside.
+fn shifted(
+    reference: &[f32],
+    channels: usize,
+    height: usize,
+    width: usize,
+    shift: (isize, isize),
+) -> Vec<f32> {
+    let mut target = features(channels, height, width, 99);
+    for c in 0..channels {
+        for i in 0..height as isize {
+            for j in 0..width as isize {
+                let (si, sj) = (i - shift.0, j - shift.1);
+                if si >= 0 && si < height as isize && sj >= 0 && sj < width as isize {
+                    target[c * height * width + (i as usize) * width + j as usize] =
+                        reference[c * height * width + (si as usize) * width + sj as usize];
+                }
+            }
+        }
+    }
+    target
+}
+
+fn config() -> DenseMatchConfig {
+    DenseMatchConfig {
+        coarse_window: 5,
+        refine_window: 5,
+        stride: [4, 8],
+        coarse_scale: 30.0,
+        refine_scale: 30.0,
+        refine_offset: OffsetRule::BestWindow,
+    }
+}
+
+#[test]
+fn a_shifted_scene_is_matched_by_its_shift_away_from_the_borders() {
+    let (height, width) = (16, 64);
+    // Coarse shift of (1, 1) coarse cells = (4, 8) pixels, then exact in the refine stage.
+    let coarse_ref = features(16, 4, 8, 1);
+    let coarse_tgt = shifted(&coarse_ref, 16, 4, 8, (1, 1));
+    let refine_ref = features(16, height, width, 2);
+    let refine_tgt = shifted(&refine_ref, 16, height, width, (4, 8));
+    fn map(data: &[f32], channels: usize, height: usize, width: usize) -> FeatureMap<'_> {
+        FeatureMap {
+            data,
+            channels,
+            height,
+            width,
+        }
+    }
+    let reference = ScanFeatures {
+        coarse: map(&coarse_ref, 16, 4, 8),
+        refine: map(&refine_ref, 16, height, width),
+    };
+    let target = ScanFeatures {
+        coarse: map(&coarse_tgt, 16, 4, 8),
+        refine: map(&refine_tgt, 16, height, width),
+    };
+    let result = match_features(&reference, &target, &config()).unwrap();
+    // Cells whose coarse cell and refine window stay inside the image: the whole shift, confidently.
+    for i in 0..8 {
+        for j in 0..48 {
+            let cell = i * width + j;
+            assert_relative_eq!(result.flow[cell], 4.0, epsilon = 0.51);
+            assert_relative_eq!(result.flow[height * width + cell], 8.0, epsilon = 0.51);
+            assert!(result.confidence[cell] > 0.5, "cell ({i}, {j})");
+        }
+    }
+}
+
+#[test]
+fn cells_matched_in_groups_match_as_they_do_one_by_one() {
+    // Random scenes, so coarse origins vary from block to block (groups straddling two blocks of equal
+    // origin, cells alone where they differ or a centre is clamped), widths with a remainder after the
+    // last group, strides that do and do not put a group in one block, and channel counts the
+    // correlation has a fast path for and not.
+    let cases = [
+        // (channels coarse, refine), (height, width), stride, windows (coarse, refine)
+        ((32, 8), (16, 64), [4, 8], (15, 7)),
+        ((16, 12), (12, 60), [4, 4], (5, 5)),
+        ((8, 4), (8, 36), [2, 2], (9, 3)),
+        ((32, 8), (16, 192), [4, 8], (41, 11)),
+    ];
+    for (seed, ((coarse_channels, refine_channels), (height, width), stride, windows)) in
+        cases.into_iter().enumerate()
+    {
+        let (coarse_h, coarse_w) = (height / stride[0], width / stride[1]);
+        let seed = 10 * seed as u64;
+        let maps = [
+            features(coarse_channels, coarse_h, coarse_w, seed + 1),
+            features(refine_channels, height, width, seed + 2),
+            features(coarse_channels, coarse_h, coarse_w, seed + 3),
+            features(refine_channels, height, width, seed + 4),
+        ];
+        let map = |data, channels, height, width| FeatureMap {
+            data,
+            channels,
+            height,
+            width,
+        };
+        let reference = ScanFeatures {
+            coarse: map(&maps[0], coarse_channels, coarse_h, coarse_w),
+            refine: map(&maps[1], refine_channels, height, width),
+        };
+        let target = ScanFeatures {
+            coarse: map(&maps[2], coarse_channels, coarse_h, coarse_w),
+            refine: map(&maps[3], refine_channels, height, width),
+        };
+        let mut config = config();
+        (config.coarse_window, config.refine_window) = windows;
+        config.stride = stride;
+        config.coarse_scale = 8.0;
+        config.refine_scale = 8.0;
+        let checked = match_features(&reference, &target, &config).unwrap();
+        let grouped = match_checked(&reference, &target, &config, Grouping::Allowed);
+        assert_eq!(checked, grouped);
+        let alone = match_checked(&reference, &target, &config, Grouping::CellByCell);
+        // Same offsets to the bit (the window sums run in the same order); Q* summed in another order.
+        assert_eq!(grouped.flow, alone.flow, "case {seed}");
+        for (a, b) in grouped.confidence.iter().zip(&alone.confidence) {
+            assert_relative_eq!(*a, *b, max_relative = 1e-5);
+            assert!(*a > 0.0 && *a <= 1.0, "Q* {a} is not a mass");
+        }
+    }
+}
+
+#[test]
+fn bad_shapes_settings_and_values_are_named() {
+    let coarse = features(4, 4, 8, 1);
+    let refine = features(4, 16, 64, 2);
+    let scan = |coarse: &'static [f32], refine: &'static [f32]| ScanFeatures {
+        coarse: FeatureMap {
+            data: coarse,
+            channels: 4,
+            height: 4,
+            width: 8,
+        },
+        refine: FeatureMap {
+            data: refine,
+            channels: 4,
+            height: 16,
+            width: 64,
+        },
+    };
+    let coarse: &'static [f32] = Box::leak(coarse.into_boxed_slice());
+    let refine: &'static [f32] = Box::leak(refine.into_boxed_slice());
+    let good = scan(coarse, refine);
+    let message = |r: Result<DenseFlow>| r.unwrap_err().to_string();
+
+    let mut even = config();
+    even.refine_window = 4;
+    assert!(message(match_features(&good, &good, &even)).starts_with("refine_window"));
+    let mut cold = config();
+    cold.coarse_scale = 0.0;
+    assert!(message(match_features(&good, &good, &cold)).starts_with("coarse_scale"));
+
+    let mut nan = refine.to_vec();
+    nan[17] = f32::NAN;
+    let nan: &'static [f32] = Box::leak(nan.into_boxed_slice());
+    let with_nan = scan(coarse, nan);
+    assert!(message(match_features(&good, &with_nan, &config())).starts_with("tgt_refine"));
+
+    let mut short = good;
+    short.refine.data = &refine[1..];
+    assert!(message(match_features(&short, &good, &config())).starts_with("ref_refine"));
+
+    let mut wrong_stride = config();
+    wrong_stride.stride = [2, 8];
+    assert!(message(match_features(&good, &good, &wrong_stride)).starts_with("ref_refine"));
+    let mut huge_stride = config();
+    huge_stride.stride = [usize::MAX, 8];
+    assert!(message(match_features(&good, &good, &huge_stride)).starts_with("ref_refine"));
+
+    let mut widest = config();
+    widest.coarse_window = 17; // 2 · 8 columns + 1: all the coarse image can use
+    assert!(match_features(&good, &good, &widest).is_ok());
+    widest.coarse_window = 19;
+    assert!(message(match_features(&good, &good, &widest)).starts_with("coarse_window"));
+    let mut too_wide = config();
+    too_wide.refine_window = 1_000_001;
+    assert!(message(match_features(&good, &good, &too_wide)).starts_with("refine_window"));
+}
