@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dmlo.bench.peers import PEERS
+from dmlo.peers.peers import PEERS
 from support import frame_to_frame
 
 
@@ -36,14 +36,14 @@ def test_peers_are_optional(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> 
     # with the extra to install, and still runs DMLO.
     assert {p.name for p in PEERS} >= {"KISS-ICP", "small_gicp GICP", "Open3D GICP", "Open3D FPFH+RANSAC"}
     listing = subprocess.run(
-        [sys.executable, "-c", "import sys; from dmlo.bench.peers import PEERS; [p.name for p in PEERS]; "
+        [sys.executable, "-c", "import sys; from dmlo.peers.peers import PEERS; [p.name for p in PEERS]; "
          "print(sorted({'kiss_icp', 'small_gicp', 'open3d'} & set(sys.modules)))"],
         capture_output=True, text=True, check=True,
     )
     assert listing.stdout.strip() == "[]"
 
-    from dmlo.bench import runner
-    from dmlo.bench.peers import Peer
+    from dmlo.peers import runner
+    from dmlo.peers.peers import Peer
     from dmlo.datasets import open_sequence
     from dmlo.odometry import Odometry
     from dmlo.simulator import simulate_sequence
@@ -69,7 +69,7 @@ def test_peers_are_optional(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> 
 
 
 def test_a_peer_whose_package_is_missing_or_does_not_load_is_unavailable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from dmlo.bench.peers import Peer
+    from dmlo.peers.peers import Peer
 
     # An installed package that fails on import, as Open3D's wheel does without the system's libusb.
     (tmp_path / "broken_peer_package").mkdir()

@@ -126,7 +126,7 @@ def test_real_scan_benchmark_runs_on_a_plain_folder_of_scans(drive: Path, tmp_pa
 def test_real_scan_pair_errors_are_measured_against_the_reference() -> None:
     from scipy.spatial.transform import Rotation
 
-    from dmlo.bench.consensus import ConsensusReference
+    from dmlo.peers.consensus import ConsensusReference
     from dmlo.benchmarks.real import pair_errors
 
     rng = np.random.default_rng(0)

@@ -34,7 +34,6 @@ EXTRAS_OF: dict[str, tuple[str, ...]] = {
     "dmlo.commands.train": ("train",),
     "dmlo.commands.export": ("train",),
     "dmlo.plot": ("plot",),
-    "dmlo.bench": ("bench",),  # the peer adapters (issue 23 item 4 renames them dmlo.peers)
     "dmlo.peers": ("bench",),
     "dmlo.benchmarks": ("bench",),
     "dmlo.benchmarks.network": ("train",),

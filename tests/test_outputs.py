@@ -114,7 +114,7 @@ def test_a_bench_folder_is_an_earlier_run_too(drive: Path, tmp_path: Path) -> No
 def test_bench_file_patterns_cover_every_peer() -> None:
     import fnmatch
 
-    from dmlo.bench.peers import PEERS
+    from dmlo.peers.peers import PEERS
 
     for name in ["DMLO", "DMLO (symmetric, deskewed) + mapping", *(peer.name for peer in PEERS)]:
         file = f"{name.replace(' ', '_')}.txt"
@@ -129,7 +129,7 @@ class StandStill:
 
 
 def test_bench_refuses_an_earlier_run_and_overwrite_removes_every_method_file(drive: Path, tmp_path: Path) -> None:
-    from dmlo.bench.runner import benchmark_sequence
+    from dmlo.peers.runner import benchmark_sequence
 
     sequence, out = open_sequence(drive), tmp_path / "bench"
     benchmark_sequence(sequence, {"DMLO": StandStill, "DMLO + mapping": StandStill}, out, peers=[], max_frames=2)

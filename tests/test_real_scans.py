@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dmlo.bench.consensus import gicp_consensus
+from dmlo.peers.consensus import gicp_consensus
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
 from support import frame_to_frame

@@ -46,7 +46,7 @@ RUN_FILES = (
     "trajectory.png",
 )
 # What `dmlo bench` (`benchmark_sequence`) writes: the ground truth and one pose file per method, named
-# after the method: DMLO's rows all start with "DMLO", the peers' (`dmlo.bench.peers.PEERS`, a test keeps
+# after the method: DMLO's rows all start with "DMLO", the peers' (`dmlo.peers.peers.PEERS`, a test keeps
 # them covered) with the library's name.
 BENCH_FILES = ("ground_truth.txt", "DMLO*.txt", "KISS-ICP*.txt", "small_gicp*.txt", "Open3D*.txt")
 

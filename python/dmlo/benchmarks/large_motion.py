@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dmlo.bench.peers import PEERS, fpfh_ransac_align, open3d_icp_align, small_gicp_align
+from dmlo.peers.peers import PEERS, fpfh_ransac_align, open3d_icp_align, small_gicp_align
 from dmlo.datasets import open_sequence
 from dmlo.metrics import registration_errors
 

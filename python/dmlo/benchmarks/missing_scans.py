@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dmlo.bench.peers import PEERS, FrameOdometry
+from dmlo.peers.peers import PEERS, FrameOdometry
 from dmlo.datasets import open_sequence
 from dmlo.metrics import registration_errors
 

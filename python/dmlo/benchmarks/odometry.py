@@ -21,7 +21,7 @@ import argparse
 import json
 from pathlib import Path
 
-from dmlo.bench.runner import benchmark_sequence, format_table
+from dmlo.peers.runner import benchmark_sequence, format_table
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
 from dmlo.simulator import simulate_sequence

@@ -6,7 +6,7 @@ Without folders it runs every set under ``DIR/kitti_real`` (``../shared/data`` b
 anything ``dmlo run`` reads, a plain folder of ``.bin`` scans included, so it runs on anyone's own drive;
 ground-truth poses, when the folder has them, only seed the reference. The reference of every
 consecutive pair is the consensus of two independent scan-to-scan GICPs (small_gicp and Open3D,
-`dmlo.bench.consensus`); each method's pose deltas are compared with it: mean and largest translation
+`dmlo.peers.consensus`); each method's pose deltas are compared with it: mean and largest translation
 and rotation error a pair, the mean signed pitch error (about the sensor's y axis, which points left: positive tips the nose
 down), the
 frames DMLO left to its motion model, speed, and ratios to KISS-ICP measured in the same run.
@@ -27,9 +27,9 @@ import numpy as np
 import numpy.typing as npt
 from tqdm import tqdm
 
-from dmlo.bench.consensus import ConsensusReference, gicp_consensus
-from dmlo.bench.peers import PEERS, FrameOdometry
-from dmlo.bench.runner import REFERENCE_PEER
+from dmlo.peers.consensus import ConsensusReference, gicp_consensus
+from dmlo.peers.peers import PEERS, FrameOdometry
+from dmlo.peers.runner import REFERENCE_PEER
 from dmlo.datasets import open_sequence
 from dmlo.metrics import rotation_error_axes_deg
 from dmlo.odometry import Odometry, OdometryConfig

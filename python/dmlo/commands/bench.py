@@ -38,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dmlo.bench.runner import UnknownPeerError, benchmark_sequence, format_table
+    from dmlo.peers.runner import UnknownPeerError, benchmark_sequence, format_table
     from dmlo.cli import UserError
     from dmlo.commands.run import build_odometry
     from dmlo.datasets import DatasetError, open_sequence
@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         settings.append("matching in " + ("the crate" if args.matching_stage == "crate" else "onnxruntime"))
     peers = args.peers
     if peers is None and args.deskew:  # compare with the peer that compensates its sweeps too
-        from dmlo.bench.peers import PEERS
+        from dmlo.peers.peers import PEERS
 
         peers = [p.name for p in PEERS if (p.by_default or p.name == "KISS-ICP deskewed") and p.available]
     name = f"DMLO ({', '.join(settings)})" if settings else "DMLO"

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from dmlo.bench.peers import _import_problem
+from dmlo.peers.peers import _import_problem
 from dmlo.poses import midpoint_motion
 
 Matrix4 = npt.NDArray[np.float64]

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from dmlo.bench.peers import PEERS, FrameOdometry
+from dmlo.peers.peers import PEERS, FrameOdometry
 from dmlo.datasets import ScanSequence
 from dmlo.outputs import BENCH_FILES, RUN_FILES, atomic_output, check_output_folder, prepare_output_folder
 from dmlo.poses import write_kitti_poses

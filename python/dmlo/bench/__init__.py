@@ -1,1 +1,0 @@
-"""Side-by-side benchmarks of dmlo against the LiDAR odometry tools people use today."""
