@@ -10,7 +10,8 @@ from dmlo.odometry.config import (
     OdometryConfig,
     RansacConfig,
 )
-from dmlo.odometry.pipeline import FrameDiagnostics, Odometry, PairResult, SensorMismatchWarning
+from dmlo.odometry.pair import PairResult
+from dmlo.odometry.pipeline import FrameDiagnostics, Odometry, SensorMismatchWarning
 from dmlo.odometry.reflectance import ReflectanceNotice
 
 __all__ = [

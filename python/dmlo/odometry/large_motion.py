@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -18,9 +17,7 @@ import numpy.typing as npt
 from dmlo.metrics.trajectory import pose_difference
 from dmlo.odometry.config import LargeMotionConfig
 from dmlo.odometry.matcher import Features, Matcher
-
-if TYPE_CHECKING:
-    from dmlo.odometry.pipeline import PairResult
+from dmlo.odometry.pair import PairResult
 
 Matrix4 = npt.NDArray[np.float64]
 Image = npt.NDArray[np.float32]

@@ -24,6 +24,7 @@ from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
 from dmlo.odometry.mapping import refine_pair
+from dmlo.odometry.pair import PairResult
 from dmlo.odometry import reflectance
 from dmlo.odometry.reflectance import ReflectanceNotice
 from dmlo.odometry.matcher import (
@@ -108,25 +109,6 @@ class FrameDiagnostics:
             "deskewed": self.deskewed,
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
         }
-
-
-@dataclass
-class PairResult:
-    """The motion between a reference and a target scan: `T_tgt_ref` with `p_tgt = T p_ref` (Eq. 7)."""
-
-    T_tgt_ref: Matrix4
-    num_matches: int
-    num_inliers: int
-    source_points: npt.NDArray[np.float64]
-    target_points: npt.NDArray[np.float64]
-    inliers: npt.NDArray[np.bool_]
-    rounds: int = 1  # with `large_motion`: matching rounds whose estimate was kept (`LargeMotionConfig`)
-    inlier_votes: float | None = None  # the inliers' summed votes above the floor when RANSAC voted (`ransac.vote_by_tilt`)
-    map_refined: bool | None = None  # `register_pair` with mapping: NDT against the reference converged (None: not tried)
-
-    @property
-    def inlier_ratio(self) -> float:
-        return self.num_inliers / self.num_matches if self.num_matches else 0.0
 
 
 @dataclass

@@ -8,14 +8,11 @@ the rails' posts, the sign poles and the trees to tell how far the car moved.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from dmlo.simulator.primitives import FENCE, POLE, TRAFFIC_SIGN, TRUNK, VEGETATION, PrimitiveSet, yaw_pitch_rotation
-
-if TYPE_CHECKING:
-    from dmlo.simulator.scene import StreetLayout, StreetPath
+from dmlo.simulator.street import StreetLayout, StreetPath
 
 RAIL_PIECE = 4.0  # metres: the beam in straight pieces, so it follows curves; a post at every joint
 RAIL_BOTTOM, RAIL_TOP = 0.45, 0.8  # metres above the road: a W-beam's band

@@ -22,16 +22,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 from dmlo_rs import RayScene
 
 from dmlo.simulator.primitives import ROAD, SIDEWALK, PrimitiveSet
-
-if TYPE_CHECKING:
-    from dmlo.simulator.scene import MovingCar, StreetLayout, StreetPath
+from dmlo.simulator.street import MovingCar, StreetLayout, StreetPath
 
 TRAFFIC = ("lanes", "mixed")
 _SAMPLE = 1.0  # metres between the samples of a car path
