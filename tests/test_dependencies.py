@@ -35,8 +35,6 @@ EXTRAS_OF: dict[str, tuple[str, ...]] = {
     "dmlo.commands.export": ("train",),
     "dmlo.plot": ("plot",),
     "dmlo.peers": ("bench",),
-    "dmlo.benchmarks": ("bench",),
-    "dmlo.benchmarks.network": ("train",),
 }
 
 # Distributions whose import name is not their normalised project name.

@@ -58,7 +58,7 @@ def test_finished_variants_are_skipped_and_rows_collected(tmp_path: Path, monkey
     monkeypatch.setattr(ablation, "simulate_drives", lambda data, poses: ([tmp_path], [tmp_path]))
     monkeypatch.setattr(ablation, "train_variant", train)
     monkeypatch.setattr(ablation, "export_variant", lambda run: run)
-    monkeypatch.setattr("dmlo.benchmarks.matching.evaluate", lambda model, drives, pairs: measured)
+    monkeypatch.setattr("dmlo.metrics.matching.evaluate", lambda model, drives, pairs: measured)
     assert ablation.main(["--data", str(tmp_path), "--out", str(tmp_path), "--variants", "fast", "no_norm"]) == 0
     assert trained == ["no_norm"]
     results = json.loads((tmp_path / "ablation.json").read_text())

@@ -3,7 +3,7 @@
     python -m dmlo.train.ablation --data DATA_DIR --out RUNS_DIR [--epochs 1] [--variants fast no_norm ...]
 
 Every variant trains from scratch on the default recipe's simulated drives with the same seed, data order,
-optimiser and number of steps, is exported to ONNX, and is measured by `dmlo.benchmarks.matching` on the
+optimiser and number of steps, is exported to ONNX, and is measured by `benchmarks/matching.py` on the
 held-out drives (EPE and Fl-all over all cells and over the kept matches, pose error after RANSAC, time per
 frame). Finished variants are skipped and an interrupted one resumes, so the same command continues a run;
 `RUNS_DIR/ablation.json` and `RUNS_DIR/ablation.md` collect the rows.
@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     train, val = simulate_drives(args.data, args.poses if args.poses.is_dir() else None)
 
-    from dmlo.benchmarks.matching import evaluate
+    from dmlo.metrics.matching import evaluate
 
     results_path = args.out / "ablation.json"
     results = json.loads(results_path.read_text()) if results_path.is_file() else {}

@@ -4,7 +4,7 @@ Simulated drives along real KITTI ground-truth trajectories (several seeds), plu
 scans when `../shared/data` is present. Every method reads the same files; the table gives drift, speed
 and the ratios to KISS-ICP measured in this run.
 
-    python -m dmlo.benchmarks.odometry --frames 300 --seeds 1 2 3 --trajectories 07 07 05 --out runs/bench_odometry
+    python benchmarks/odometry.py --frames 300 --seeds 1 2 3 --trajectories 07 07 05 --out runs/bench_odometry
 
 With `--highway SEED` a named drive is added: the simulator's highway (`--scene highway`, guard rails and
 sparse poles) along KITTI 01's trajectory (~1 m a frame), its lasers' reflectance gains spread by ±0.6, the
@@ -43,7 +43,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--seeds", type=int, nargs="*", default=[1, 2, 3])
-    parser.add_argument("--poses", type=Path, default=Path(__file__).resolve().parents[3].parent / "shared/data/kitti_gt_poses",
+    parser.add_argument("--poses", type=Path, default=Path(__file__).resolve().parents[2] / "shared/data/kitti_gt_poses",
                         help="folder of KITTI ground-truth pose files to drive along (default: ../shared/data)")
     parser.add_argument("--trajectories", nargs="+", default=list(TRAJECTORIES), metavar="XX",
                         help="KITTI sequence each seed's drive follows, in order (cycled; default: 07 05 00)")

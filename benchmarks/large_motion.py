@@ -6,7 +6,7 @@ large_motion=True)` does by default, and once as in the paper) against ICP start
 below 5° and the translation error below 2 m (the usual global-registration criterion); errors are the
 paper's (angular `2·asin(‖R−R̄‖_F/(2√2))`, translation ‖t−t̄‖) over the successful pairs.
 
-    python -m dmlo.benchmarks.large_motion DRIVE [DRIVE ...] --gaps 5 10 --pairs 20
+    python benchmarks/large_motion.py DRIVE [DRIVE ...] --gaps 5 10 --pairs 20
 """
 
 from __future__ import annotations

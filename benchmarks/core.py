@@ -1,6 +1,6 @@
 """Speed and accuracy of the Rust core against numpy references and Open3D, in one run.
 
-    python -m dmlo.benchmarks.core [--data DIR] [--repeats N]
+    python benchmarks/core.py [--data DIR] [--repeats N]
 
 Measures, on a real KITTI scan from ``kitti_raw_static`` and on synthetic correspondences: the cylinder
 projection (one thread and all cores); NMS over a full 64×1792 confidence map; RANSAC on 500 / 2000 matches with 50 % / 80 %
@@ -198,7 +198,7 @@ def ratio(other: float | None, ours: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    repo = Path(__file__).resolve().parents[3]
+    repo = Path(__file__).resolve().parents[1]
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=repo.parent / "shared" / "data" / "kitti_raw_static")
     parser.add_argument("--repeats", type=int, default=15)

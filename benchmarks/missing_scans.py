@@ -7,7 +7,7 @@ registered; the error is that of the motion across the gap (angular `2·asin(‖
 files); the peers have no such call and are simply given the next scan, as a user of theirs would. A gap
 counts as bridged when its motion errs less than 10 cm and 1°; gap 1 (nothing missing) is the baseline.
 
-    python -m dmlo.benchmarks.missing_scans DRIVE [DRIVE ...] --gaps 1 2 4 8 12 --cases 8
+    python benchmarks/missing_scans.py DRIVE [DRIVE ...] --gaps 1 2 4 8 12 --cases 8
 """
 
 from __future__ import annotations

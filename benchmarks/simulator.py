@@ -1,4 +1,4 @@
-"""Speed of the simulator: `python -m dmlo.simulator.bench [--frames N] [--trajectory FILE]`.
+"""Speed of the simulator: `python benchmarks/simulator.py [--frames N] [--trajectory FILE]`.
 
 Reports the scene size and build time, the Rust ray casting time of one 64 × 2083 scan (static scene
 plus moving cars), and the whole frame including the measurement model and writing the files. Run it

@@ -1,10 +1,10 @@
 """Per-frame onnxruntime time of the exported matcher (``frame.onnx``) for several refine variants, of
 exported model folders on a real scan pair, or of where a model's matching stage runs.
 
-    python -m dmlo.benchmarks.network [--height 64 --width 1792 --threads 2 --repeats 10 --profile]
-    python -m dmlo.benchmarks.network --models python/dmlo/models/default other/ --drive DRIVE [--frame 10]
+    python benchmarks/network.py [--height 64 --width 1792 --threads 2 --repeats 10 --profile]
+    python benchmarks/network.py --models python/dmlo/models/default other/ --drive DRIVE [--frame 10]
         [--graph frame_wide]
-    python -m dmlo.benchmarks.network --stages --drive DRIVE [--models FOLDER]
+    python benchmarks/network.py --stages --drive DRIVE [--models FOLDER]
 
 With ``--stages`` one model (default: the bundled one) runs its correlation and window decoding both ways on
 the same scan pair of ``--drive``, each call timed in turns with the others: in onnxruntime (``frame.onnx``

@@ -1,6 +1,6 @@
 """Real scans: DMLO, DMLO + mapping and the peers, pair by pair against a GICP consensus, in one run.
 
-    python -m dmlo.benchmarks.real [FOLDER ...] [--data DIR] [--out runs/bench_real]
+    python benchmarks/real.py [FOLDER ...] [--data DIR] [--out runs/bench_real]
 
 Without folders it runs every set under ``DIR/kitti_real`` (``../shared/data`` by default). A folder is
 anything ``dmlo run`` reads, a plain folder of ``.bin`` scans included, so it runs on anyone's own drive;
@@ -34,7 +34,7 @@ from dmlo.datasets import open_sequence
 from dmlo.metrics import rotation_error_axes_deg
 from dmlo.odometry import Odometry, OdometryConfig
 
-DEFAULT_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DEFAULT_PEERS = ("KISS-ICP", "small_gicp GICP")
 
 
