@@ -28,14 +28,14 @@ def _plyfile_reader(path: Path) -> np.ndarray:
     import plyfile
 
     vertex = plyfile.PlyData.read(str(path))["vertex"].data
-    return scan_files._points_from_fields(path, {name: vertex[name] for name in vertex.dtype.names})
+    return scan_files._points_from_fields(path, {name: vertex[name] for name in vertex.dtype.names or ()})
 
 
 def _pypcd4_reader(path: Path) -> np.ndarray:
     import pypcd4
 
     data = pypcd4.PointCloud.from_path(path).pc_data
-    return scan_files._points_from_fields(path, {name: data[name] for name in data.dtype.names})
+    return scan_files._points_from_fields(path, {name: data[name] for name in data.dtype.names or ()})
 
 
 def _write_files(data: Path, out: Path) -> list[Path]:

@@ -49,6 +49,17 @@ def test_the_python_package_type_checks() -> None:
     assert out.returncode == 0, out.stdout + out.stderr
 
 
+def test_the_benchmark_scripts_type_check() -> None:
+    # They left the wheel for the checkout's benchmarks/ folder, and with it the package's check above.
+    scripts = Path(__file__).resolve().parents[1] / "benchmarks"
+    out = subprocess.run(
+        [sys.executable, "-m", "mypy", str(scripts), "--ignore-missing-imports", "--no-error-summary"],
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
 def test_every_command_has_help_with_examples() -> None:
     from dmlo.cli import _COMMANDS
 
