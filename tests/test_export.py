@@ -253,3 +253,22 @@ def test_refine_window_can_be_widened_at_export(tmp_path) -> None:
         assert config["refine_window"] == 7  # every graph, the large-motion one too
         assert MatcherConfig.from_dict({**config, "refine_window": 5, "coarse_window": model.config.coarse_window}) == model.config
     assert dmlo_main([*common, "--out", str(tmp_path / "even"), "--refine-window", "6"]) == 2  # must be odd
+
+
+def test_an_export_removes_the_graphs_an_earlier_export_left_beside_its_own(tmp_path, capsys) -> None:
+    from dmlo.cli import main as dmlo_main
+    from dmlo.train import checkpoint
+
+    model = Matcher(MatcherConfig.preset("fast"))
+    checkpoint.save_atomic({"model": model.state_dict(), "model_config": model.config.to_dict()}, tmp_path / "c.pt")
+    out = tmp_path / "model"
+    size = ["--height", "32", "--width", "64"]
+    assert dmlo_main(["export", str(tmp_path / "c.pt"), "--out", str(out), *size, "--wide-window", "21"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["encoder.onnx", "frame.onnx", "frame_wide.onnx", "match.onnx"]
+    (out / "range_only").mkdir()
+    (out / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    assert dmlo_main(["export", str(tmp_path / "c.pt"), "--out", str(out), *size, "--graphs", "frame"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["frame.onnx", "notes.txt", "range_only"]
+    printed = capsys.readouterr().out
+    assert all(f"removed {out / name}" in printed for name in ("frame_wide.onnx", "encoder.onnx", "match.onnx"))

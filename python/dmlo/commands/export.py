@@ -109,4 +109,22 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(err)) from err
     for name, path in paths.items():
         print(f"{name}: {path}")
+    for stale in remove_stale_graphs(Path(args.out), set(paths.values())):
+        print(f"removed {stale} (an earlier export's: the odometry would have run it beside these)")
     return 0
+
+
+MODEL_GRAPHS = ("frame.onnx", "frame_wide.onnx", "encoder.onnx", "match.onnx")
+
+
+def remove_stale_graphs(out: Path, written: set[Path]) -> list[Path]:
+    """The graphs of an earlier export in `out` that this one did not write, removed: the odometry opens every
+    graph it finds beside `frame.onnx`, so a stale one would silently run another checkpoint's weights.
+    Other files and folders (a range-only model, training state) stay."""
+    removed = []
+    for name in MODEL_GRAPHS:
+        path = out / name
+        if path.is_file() and path not in written:
+            path.unlink()
+            removed.append(path)
+    return removed
