@@ -9,7 +9,6 @@ import re
 import typing
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from dmlo.cli import main as dmlo_main
@@ -222,33 +221,21 @@ def test_a_section_replaced_by_a_mapping_is_refused() -> None:
 # -- the command line: one line, exit code 2, before frame 0 -------------------------------------------------
 
 
-@pytest.fixture()
-def scans(tmp_path: Path) -> Path:
-    """Two plausible scans of a plain folder (never read: the config is refused first)."""
-    folder = tmp_path / "scans"
-    folder.mkdir()
-    rng = np.random.default_rng(0)
-    for index in range(2):
-        points = np.concatenate([rng.uniform(-20, 20, (3000, 3)), rng.uniform(0, 1, (3000, 1))], axis=1)
-        points.astype(np.float32).tofile(folder / f"{index:06d}.bin")
-    return folder
-
-
 @pytest.mark.parametrize(
     ("data", "message"),
     [case for case in BAD if case[1].endswith(("threshold: must be a number > 0, got 'abc'", "got 'false'", "min_inliers: must be an integer >= 3, got -1"))],
 )
 @pytest.mark.parametrize("command", ["run", "register"])
 def test_the_cli_refuses_a_bad_config_in_one_line_before_the_first_scan(
-    command: str, data: dict[str, object], message: str, scans: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    command: str, data: dict[str, object], message: str, plain_scans: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     config = tmp_path / "bad.json"
     config.write_text(json.dumps(data))
     out = tmp_path / "out"
     if command == "run":
-        argv = ["run", str(scans), "--format", "folder", "--config", str(config), "--out", str(out)]
+        argv = ["run", str(plain_scans), "--format", "folder", "--config", str(config), "--out", str(out)]
     else:
-        argv = ["register", str(scans / "000000.bin"), str(scans / "000001.bin"), "--config", str(config)]
+        argv = ["register", str(plain_scans / "000000.bin"), str(plain_scans / "000001.bin"), "--config", str(config)]
     assert dmlo_main(argv) == 2
     captured = capsys.readouterr()
     assert captured.err == f"dmlo {command}: error: cannot read config {config}: {message}\n"
@@ -256,9 +243,9 @@ def test_the_cli_refuses_a_bad_config_in_one_line_before_the_first_scan(
     assert not (out / "poses_kitti.txt").exists()  # no frame was written
 
 
-def test_the_cli_names_a_config_that_is_not_json(scans: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_cli_names_a_config_that_is_not_json(plain_scans: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = tmp_path / "bad.json"
     config.write_text('{"ransac": {"threshold": 0.1,}}')
-    assert dmlo_main(["run", str(scans), "--format", "folder", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
+    assert dmlo_main(["run", str(plain_scans), "--format", "folder", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"dmlo run: error: cannot read config {config}: ") and err.count("\n") == 1

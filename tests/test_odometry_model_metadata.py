@@ -9,7 +9,6 @@ import shutil
 import warnings
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 onnx = pytest.importorskip("onnx")
@@ -123,27 +122,16 @@ def test_the_bundled_models_metadata_passes(bundled: Path) -> None:
     assert matcher._scales is not None and set(matcher._scales) == {"coarse", "refine"}
 
 
-@pytest.fixture()
-def scans(tmp_path: Path) -> Path:
-    folder = tmp_path / "scans"
-    folder.mkdir()
-    rng = np.random.default_rng(0)
-    for index in range(2):
-        points = np.concatenate([rng.uniform(-20, 20, (3000, 3)), rng.uniform(0, 1, (3000, 1))], axis=1)
-        points.astype(np.float32).tofile(folder / f"{index:06d}.bin")
-    return folder
-
-
 @pytest.mark.parametrize("command", ["run", "register"])
 def test_the_cli_reports_corrupt_metadata_in_one_line_before_the_first_scan(
-    command: str, bundled: Path, scans: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    command: str, bundled: Path, plain_scans: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     model = corrupt(bundled, tmp_path / "model", {"dmlo.similarity_scales": "{\"coarse\": 13.2}"})
     out = tmp_path / "out"
     if command == "run":
-        argv = ["run", str(scans), "--format", "folder", "--model", str(model), "--out", str(out)]
+        argv = ["run", str(plain_scans), "--format", "folder", "--model", str(model), "--out", str(out)]
     else:
-        argv = ["register", str(scans / "000000.bin"), str(scans / "000001.bin"), "--model", str(model)]
+        argv = ["register", str(plain_scans / "000000.bin"), str(plain_scans / "000001.bin"), "--model", str(model)]
     assert dmlo_main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"dmlo {command}: error: {model / 'frame.onnx'}: dmlo.similarity_scales.refine must be")

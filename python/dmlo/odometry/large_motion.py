@@ -88,10 +88,7 @@ def rematch(
                 break
         ref_image, ref_range, ref_points = project(moved(reference, estimate))
         flow, confidence = matcher.match(matcher.encode(ref_image), tgt_features)
-        if tilt_votes:
-            pair = match(ref_range, tgt_range, flow, confidence, ref_points=ref_points)
-        else:
-            pair = match(ref_range, tgt_range, flow, confidence, tilt_votes=False)
+        pair = match(ref_range, tgt_range, flow, confidence, ref_points=ref_points, tilt_votes=tilt_votes)
         if pair.num_inliers < min_inliers:
             break
         result, correction = in_given_frames(pair, estimate, rounds=round_), pair.T_tgt_ref

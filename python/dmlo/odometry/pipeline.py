@@ -74,8 +74,8 @@ class FrameDiagnostics:
     # few upright surfaces to tell the horizontal motion (`motion_model.min_inlier_votes`); "too_few_points" /
     # "unreadable_scan" for scans not matched
     fallback: str | None = None
-    # with motion_model.rematch_gap: the rounds of matching from the prediction whose motion was taken, 0 when
-    # they were tried and the pair's own motion kept; None when not tried
+    # with motion_model.rematch_gap or match_from_prediction_m: the rounds of matching from the prediction whose
+    # motion was taken, 0 when they were tried and none was kept; None when not tried
     rematch_rounds: int | None = None
     # with matching.symmetric: RANSAC inliers of the new scan matched back against the previous one
     backward_inliers: int | None = None
@@ -88,6 +88,10 @@ class FrameDiagnostics:
     # ms per stage, each once: "network" (projection and onnxruntime), "matching" (the crate's matching
     # stage, when it ran there), "coherence", "decode_nms", "ransac", and the optional ones' own stages
     timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def count_matches(self, pair: PairResult) -> None:
+        """The matches and RANSAC inliers of the pair whose motion the frame took."""
+        self.num_matches, self.num_inliers, self.inlier_ratio = pair.num_matches, pair.num_inliers, pair.inlier_ratio
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -660,9 +664,7 @@ class Odometry:
             pair, forward, backward = self._pair(
                 previous.range, tgt_range, output, previous.features, previous.points, tgt_points, watch
             )
-            diagnostics.num_matches = forward.num_matches
-            diagnostics.num_inliers = forward.num_inliers
-            diagnostics.inlier_ratio = forward.inlier_ratio
+            diagnostics.count_matches(forward)
             diagnostics.backward_inliers = None if backward is None else backward.num_inliers
             pair = self._rematched_if_better(pair, previous, tgt_image, tgt_range, output.features, predicted, gap, diagnostics)
             if watch and diagnostics.rematch_rounds is not None:
@@ -727,8 +729,7 @@ class Odometry:
         if again is None:
             nothing = np.zeros((0, 3))
             return PairResult(predicted, 0, 0, nothing, nothing, np.zeros(0, dtype=bool))
-        diagnostics.num_matches, diagnostics.num_inliers = again.num_matches, again.num_inliers
-        diagnostics.inlier_ratio = again.inlier_ratio
+        diagnostics.count_matches(again)
         return again
 
     def _rematched_if_better(
@@ -781,8 +782,7 @@ class Odometry:
             return pair
         diagnostics.rematch_rounds = again.rounds
         diagnostics.fallback = "rematched_from_prediction"
-        diagnostics.num_matches, diagnostics.num_inliers = again.num_matches, again.num_inliers
-        diagnostics.inlier_ratio = again.inlier_ratio
+        diagnostics.count_matches(again)
         return again
 
     def _implausible(self, pair: PairResult, predicted: Matrix4, gap: int) -> bool:
