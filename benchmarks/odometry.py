@@ -8,7 +8,10 @@ and the ratios to KISS-ICP measured in this run.
 
 With `--highway SEED` a named drive is added: the simulator's highway (`--scene highway`, guard rails and
 sparse poles) along KITTI 01's trajectory (~1 m a frame), its lasers' reflectance gains spread by ±0.6, the
-feature-poor scene where the road's rings lock from scan to scan.
+feature-poor scene where the road's rings lock from scan to scan. With `--jam SEED` a named traffic jam is
+added: a generated route with crossing traffic, six cars keeping pace with the ego (a lead car and a
+follower in its lane, two in each lane beside it; `--escorts`), the scene where the cars around the ego
+outnumber the static scene's matches.
 
 With `--motion-distortion` the drives are simulated with skewed sweeps (every column cast from the pose of
 the moment it fires, as a real spinning sensor's) and DMLO runs with and without deskewing
@@ -54,20 +57,25 @@ def main() -> None:
                         help="simulate skewed sweeps and add deskewed DMLO rows")
     parser.add_argument("--highway", type=int, default=None, metavar="SEED",
                         help="add the named highway drive of this scene seed (along KITTI 01)")
+    parser.add_argument("--jam", type=int, default=None, metavar="SEED",
+                        help="add the named traffic-jam drive of this scene seed (a generated route)")
     parser.add_argument("--out", type=Path, default=Path("runs/bench_odometry"))
     args = parser.parse_args()
 
     drives = [(seed, args.trajectories[index % len(args.trajectories)], "street") for index, seed in enumerate(args.seeds)]
     if args.highway is not None:
         drives.append((args.highway, HIGHWAY_TRAJECTORY, "highway"))
+    if args.jam is not None:
+        drives.append((args.jam, None, "jam"))
     for seed, trajectory_name, scene in drives:
-        trajectory = args.poses / f"{trajectory_name}.txt"
+        trajectory = args.poses / f"{trajectory_name or 'generated'}.txt"
         drive = args.out / (f"drive_seed{seed}" if scene == "street" else f"{scene}_seed{seed}")
         if not (drive / "poses.txt").is_file():
             simulate_sequence(drive, frames=args.frames, seed=seed,
-                              trajectory=trajectory if trajectory.is_file() else None,
-                              motion_distortion=args.motion_distortion, scene=scene,
-                              laser_gain_spread=HIGHWAY_LASER_GAIN_SPREAD if scene == "highway" else 0.0)
+                              trajectory=trajectory if trajectory_name and trajectory.is_file() else None,
+                              motion_distortion=args.motion_distortion, scene="street" if scene == "jam" else scene,
+                              laser_gain_spread=HIGHWAY_LASER_GAIN_SPREAD if scene == "highway" else 0.0,
+                              traffic="mixed" if scene == "jam" else "lanes", escorts=scene == "jam")
         elif _skewed(drive) != args.motion_distortion:
             parser.error(f"{drive} holds drives {'with' if _skewed(drive) else 'without'} motion distortion; "
                          "choose another --out")
@@ -81,7 +89,7 @@ def main() -> None:
         # The drive is kept and reused by the next run; its results are replaced.
         rows = benchmark_sequence(sequence, variants, args.out / drive.name, peers=args.peers, max_frames=args.frames,
                                   overwrite=True)
-        source = f"KITTI {trajectory.stem}" if trajectory.is_file() else "generated"
+        source = f"KITTI {trajectory.stem}" if trajectory_name and trajectory.is_file() else "generated"
         print(f"\n### {drive.name} ({source} trajectory, {len(sequence)} frames)\n")
         print(format_table(rows))
 

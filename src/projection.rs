@@ -37,7 +37,7 @@ mod reference;
 mod tests;
 
 pub use config::{CylinderConfig, MAX_IMAGE_CELLS};
-pub use image::{project, project_flat, unproject_many, Projection};
+pub use image::{point_cells, project, project_flat, unproject_many, Projection};
 
 /// `x.floor()` without a libm call on baseline x86-64 (which lacks an inline rounding instruction);
 /// NaN and huge values go to `floor` itself.

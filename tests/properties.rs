@@ -16,7 +16,10 @@ use proptest::test_runner::Config;
 
 /// `cases` for CI; `DMLO_PROPERTY_SCALE=50` runs fifty times as many to hunt for bugs.
 fn config(cases: u32) -> Config {
-    let scale: f64 = std::env::var("DMLO_PROPERTY_SCALE").ok().and_then(|s| s.parse().ok()).unwrap_or(1.0);
+    let scale: f64 = std::env::var("DMLO_PROPERTY_SCALE")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1.0);
     Config {
         cases: ((cases as f64 * scale) as u32).max(1),
         failure_persistence: None,
@@ -81,7 +84,12 @@ fn assert_rigid(transform: &Isometry3<f64>) {
     let matrix = transform.to_homogeneous();
     assert!(matrix.iter().all(|v| v.is_finite()), "{matrix}");
     let rotation = transform.rotation.to_rotation_matrix().into_inner();
-    assert!((rotation.transpose() * rotation - nalgebra::Matrix3::identity()).abs().max() < 1e-6);
+    assert!(
+        (rotation.transpose() * rotation - nalgebra::Matrix3::identity())
+            .abs()
+            .max()
+            < 1e-6
+    );
     assert!(rotation.determinant() > 0.0);
 }
 

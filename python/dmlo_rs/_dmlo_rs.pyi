@@ -22,6 +22,7 @@ __all__ += [
     "RayRefit",
     "Matches",
     "project",
+    "point_cells",
     "unproject",
     "ground_truth_flow",
     "rigid_transform",
@@ -153,6 +154,15 @@ def project(
 ) -> Projection:
     """Cylinder projection (Eq. 1) of an N×4 (x, y, z, reflectance) or N×3 scan; float64 is converted
     to float32. Each cell keeps its closest point; NaN/Inf points are dropped and counted."""
+
+def point_cells(
+    points: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    config: CylinderConfig,
+    *,
+    num_threads: int | None = None,
+) -> npt.NDArray[np.int64]:
+    """Each point's flat cell index (row · width + col) by the rule `project` uses; −1 outside the image,
+    at the origin or non-finite."""
 
 def unproject(
     rows: npt.NDArray[np.floating],

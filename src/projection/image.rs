@@ -68,13 +68,7 @@ pub fn project_flat(
     config.validate()?;
     check_flat_points(points, channels)?;
     let (height, width) = (config.height, config.width);
-    // Below 2³¹ cells, the lookup's 32-bit arithmetic is exact (that is already a 32 GiB image).
-    if height * width >= i32::MAX as usize {
-        return Err(Error::invalid(
-            "config",
-            format!("image too large: {height} x {width} cells, at most 2^31 - 1"),
-        ));
-    }
+    check_cell_count(config)?;
     let locator = cached_locator(config);
     if points.len() / channels >= i32::MAX as usize {
         return Err(Error::invalid(
@@ -270,4 +264,44 @@ pub fn unproject_many(
         .zip(ranges)
         .map(|((&row, &col), &range)| config.unproject(row, col, range))
         .collect())
+}
+
+/// Below 2³¹ cells, the lookup's 32-bit arithmetic is exact (that is already a 32 GiB image).
+fn check_cell_count(config: &CylinderConfig) -> Result<()> {
+    let (height, width) = (config.height, config.width);
+    if height * width >= i32::MAX as usize {
+        return Err(Error::invalid(
+            "config",
+            format!("image too large: {height} x {width} cells, at most 2^31 - 1"),
+        ));
+    }
+    Ok(())
+}
+
+/// The flat cell index (`row · width + col`) each point of a flat `N × channels` scan falls in, by the
+/// same rule as [`project_flat`] (so a point's cell is the one whose kept point it competed for); −1 for
+/// points outside the cropped image, at the origin or with a NaN/Inf value. Lets a per-cell result (a
+/// mask predicted on the image) reach every point, not only the one each cell kept.
+pub fn point_cells(points: &[f32], channels: usize, config: &CylinderConfig) -> Result<Vec<i64>> {
+    config.validate()?;
+    check_flat_points(points, channels)?;
+    check_cell_count(config)?;
+    let locator = cached_locator(config);
+    let mut cells = vec![-1_i64; points.len() / channels];
+    cells
+        .par_chunks_mut(BLOCK)
+        .zip(points.par_chunks(BLOCK * channels))
+        .for_each(|(out, block)| {
+            let mut located = Located {
+                cells: [NO_CELL; BLOCK],
+                ranges: [0.0; BLOCK],
+            };
+            locator.locate_block(block, channels, &mut located);
+            for (cell, &found) in out.iter_mut().zip(located.cells.iter()) {
+                if found != NO_CELL && found != NON_FINITE {
+                    *cell = i64::from(found);
+                }
+            }
+        });
+    Ok(cells)
 }

@@ -485,3 +485,72 @@ fn unproject_many_checks_its_input() {
     assert!(unproject_many(&[3.0], &[], &[2.0], &config).is_err());
     assert!(unproject_many(&[3.0], &[1.0], &[f64::NAN], &config).is_err());
 }
+
+/// `point_cells` agrees with the reference projection: every kept point lies in its own cell, every
+/// point in a cell is no closer than the one kept there, and exactly the dropped points get −1.
+fn assert_cells_agree_with_reference(points: &[f32], channels: usize, config: &CylinderConfig) {
+    let image = reference::project_flat(points, channels, config).unwrap();
+    let cells = point_cells(points, channels, config).unwrap();
+    assert_eq!(cells.len(), points.len() / channels);
+    for (cell, &kept) in image.index.iter().enumerate() {
+        if kept >= 0 {
+            assert_eq!(
+                cells[kept as usize], cell as i64,
+                "{config:?}: kept point {kept}"
+            );
+        }
+    }
+    let range = |i: usize| {
+        let p = &points[i * channels..i * channels + 3];
+        let (x, y, z) = (f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+        (x * x + y * y + z * z).sqrt()
+    };
+    for (i, &cell) in cells.iter().enumerate() {
+        if cell >= 0 {
+            let kept = image.index[cell as usize];
+            assert!(
+                kept >= 0,
+                "{config:?}: point {i} in cell {cell}, which the projection left empty"
+            );
+            // The projection compares float32 ranges: equal within their rounding.
+            assert!(
+                range(kept as usize) <= range(i) * (1.0 + 1e-6),
+                "{config:?}: point {i} closer than cell {cell}'s"
+            );
+        }
+    }
+    let dropped = cells.iter().filter(|&&c| c < 0).count();
+    assert_eq!(
+        dropped,
+        image.num_non_finite + image.num_out_of_view,
+        "{config:?}"
+    );
+}
+
+#[test]
+fn point_cells_follow_the_projection_on_adversarial_points() {
+    let mut rng = ChaCha8Rng::seed_from_u64(23);
+    for config in edge_configs() {
+        let points = adversarial_points(&config, &mut rng);
+        assert_cells_agree_with_reference(&points, 4, &config);
+        let xyz: Vec<f32> = points
+            .chunks_exact(4)
+            .flat_map(|p| [p[0], p[1], p[2]])
+            .collect();
+        assert_cells_agree_with_reference(&xyz, 3, &config);
+    }
+}
+
+#[test]
+fn point_cells_refuse_what_the_projection_refuses() {
+    let config = CylinderConfig::kitti();
+    assert!(point_cells(&[1.0, 2.0, 3.0, 0.5, 1.0], 4, &config).is_err());
+    assert!(point_cells(&[1.0, 2.0], 2, &config).is_err());
+    let huge = CylinderConfig {
+        horizontal_resolution_deg: 1e-5,
+        width: 30_000_000,
+        ..config
+    };
+    assert!(point_cells(&[1.0, 2.0, 3.0], 3, &huge).is_err());
+    assert!(point_cells(&[], 3, &config).unwrap().is_empty());
+}

@@ -17,6 +17,7 @@ pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyProjection>()?;
     m.add_function(wrap_pyfunction!(project, m)?)?;
     m.add_function(wrap_pyfunction!(unproject, m)?)?;
+    m.add_function(wrap_pyfunction!(point_cells, m)?)?;
     m.add_function(wrap_pyfunction!(ground_truth_flow, m)?)?;
     Ok(())
 }
@@ -266,4 +267,24 @@ fn ground_truth_flow<'py>(
     let flow = flow_array(h, w, gt.flow)?;
     let valid = image_array(h, w, gt.valid)?;
     Ok((flow.into_pyarray(py), valid.into_pyarray(py)))
+}
+
+/// Each point's flat cell index (`row · width + col`) in `config`'s image, by the rule `project` uses;
+/// −1 outside the image, at the origin or non-finite. `points` as for `project` → int64 array of N.
+#[pyfunction]
+#[pyo3(signature = (points, config, *, num_threads = None))]
+fn point_cells<'py>(
+    py: Python<'py>,
+    points: &Bound<'py, PyAny>,
+    config: &PyCylinderConfig,
+    num_threads: Option<Int>,
+) -> PyResult<Bound<'py, numpy::PyArray1<i64>>> {
+    let (array, columns) = scan_points(points)?;
+    let data = array.f32_data();
+    let config = config.inner;
+    let data_ref: &[f32] = &data;
+    let cells = run(py, threads(num_threads)?, || {
+        projection::point_cells(data_ref, columns, &config)
+    })?;
+    Ok(cells.into_pyarray(py))
 }

@@ -32,8 +32,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/dmlo"), help="output folder (default: runs/dmlo)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the files of an earlier run in --out (refused otherwise)")
-    parser.add_argument("--keep-moving", action="store_true",
-                        help="keep points labelled as moving objects (default: removed when labels exist)")
     parser.set_defaults(run=run)
 
 
@@ -74,6 +72,10 @@ def add_odometry_arguments(parser: argparse.ArgumentParser, sequence: bool = Tru
     parser.add_argument("--reflectance", choices=("auto", "unit", "0-255", "0-65535", "none"), default=None,
                         help="the scans' reflectance scale: auto (default; config reflectance) reads it from the first "
                         "scan; none (or no usable reflectance) runs the range-only model beside the model")
+    parser.add_argument("--keep-moving", action="store_true",
+                        help="keep the points on moving objects; by default they are left out of matching and "
+                        "of the map: labelled ones where the dataset has labels, else those the moving-object "
+                        "network beside the model finds (config moving_objects.detect)")
     parser.add_argument("--no-coherence", action="store_true",
                         help="rank the matches by the network's confidence alone, as the paper does, instead of "
                         "also by how well each agrees with its neighbours' flow")
@@ -102,6 +104,8 @@ def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # ty
         config.reflectance = args.reflectance
     if getattr(args, "deskew", False):
         config.deskew.enabled = True
+    if args.keep_moving:
+        config.moving_objects.detect = False
     model = args.model or default_model_path()
     try:
         return Odometry(model, config)

@@ -7,6 +7,7 @@ from dmlo.odometry.config import (
     MappingConfig,
     MatchingConfig,
     MotionModelConfig,
+    MovingObjectsConfig,
     OdometryConfig,
     RansacConfig,
 )
@@ -21,6 +22,7 @@ __all__ = [
     "MappingConfig",
     "MatchingConfig",
     "MotionModelConfig",
+    "MovingObjectsConfig",
     "Odometry",
     "OdometryConfig",
     "PairResult",

@@ -240,6 +240,18 @@ class LargeMotionConfig:
 
 @with_config(_SCHEMA)
 @dataclass
+class MovingObjectsConfig:
+    """Points on moving objects when no labels say which they are (`dmlo.odometry.moving`): the moving-object
+    network beside the model (`moving.onnx`) predicts them, and they are left out of matching and of the map
+    like labelled moving points. `detect = False` keeps every point not labelled moving (`--keep-moving`
+    keeps those too); a model without the network keeps every point."""
+
+    detect: Flag = True
+    threshold: Annotated[float, Strict(), Gt(0), Lt(1)] = 0.5  # a cell's moving probability above it drops its points
+
+
+@with_config(_SCHEMA)
+@dataclass
 class OdometryConfig:
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
@@ -247,6 +259,7 @@ class OdometryConfig:
     deskew: DeskewConfig = field(default_factory=DeskewConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     large_motion: LargeMotionConfig = field(default_factory=LargeMotionConfig)
+    moving_objects: MovingObjectsConfig = field(default_factory=MovingObjectsConfig)
     # onnxruntime's (and the crate's matching stage's) threads; 0 lets them choose. More than the machine's
     # cores are bounded to them, with a warning (`dmlo.odometry.matcher.usable_threads`).
     threads: Count = 0

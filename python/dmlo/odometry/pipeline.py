@@ -36,9 +36,11 @@ from dmlo.odometry.matcher import (
     ModelError,
     OnnxMatcher,
     WIDE_FRAME_GRAPH,
+    available_cores,
     default_model_path,
     wide_graph_path,
 )
+from dmlo.odometry.moving import MovingObjectDetector, moving_objects_graph
 
 Matrix4 = npt.NDArray[np.float64]
 
@@ -83,6 +85,9 @@ class FrameDiagnostics:
     ndt_degenerate_directions: int | None = None  # pose directions the map did not constrain (kept as DMLO's)
     map_keyframe: bool | None = None  # with mapping: the scan entered the map (it moved far enough from the last)
     ndt_start: str | None = None  # the NDT start that won: "dmlo", or "motion_model" when DMLO's pose was off
+    # points the moving-object network left out (`moving_objects`); None when it did not run (labels given,
+    # detection off, or a model without the network)
+    num_moving_predicted: int | None = None
     image_fill: float | None = None  # fraction of the cylinder image's cells holding a point
     deskewed: bool = False  # with deskew.enabled: the sweep was motion-compensated (from the 3rd scan on)
     # ms per stage, each once: "network" (projection and onnxruntime), "matching" (the crate's matching
@@ -109,6 +114,7 @@ class FrameDiagnostics:
             "ndt_degenerate_directions": self.ndt_degenerate_directions,
             "map_keyframe": self.map_keyframe,
             "ndt_start": self.ndt_start,
+            "num_moving_predicted": self.num_moving_predicted,
             "image_fill": None if self.image_fill is None else round(self.image_fill, 4),
             "deskewed": self.deskewed,
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
@@ -186,6 +192,15 @@ class Odometry:
         self._model_is_range_only = getattr(self.matcher, "model_config", {}).get("use_reflectance", True) is False
         self._range_only_graph = None if self._model_is_range_only else reflectance.range_only_model(self.matcher.path)
         self._warned_clipping = False
+        self._moving_objects = self._open_moving_objects()
+
+    def _open_moving_objects(self) -> MovingObjectDetector | None:
+        """The moving-object network beside the model, when `moving_objects.detect` asks for it and it is there."""
+        settings = self.config.moving_objects
+        graph = moving_objects_graph(self.matcher.path) if settings.detect else None
+        if graph is None:
+            return None
+        return MovingObjectDetector(graph, settings.threshold, min(self.config.threads, available_cores()))
 
     def _available_rematch_gap(self) -> int | None:
         """`motion_model.rematch_gap`, or None with a warning when the model lacks the graphs it needs."""
@@ -233,6 +248,11 @@ class Odometry:
         diagnostics = FrameDiagnostics(index=len(self.poses), num_points=len(cloud))
         watch = _Stopwatch(diagnostics.timings_ms)
         keep = _finite_rows(cloud)
+        scan_fill = None  # of the whole scan, when the moving-object network projected it
+        if moving is None and self._moving_objects is not None:
+            moving, scan_fill = self._moving_objects.detect(cloud)
+            diagnostics.num_moving_predicted = int(np.count_nonzero(moving))
+            watch.lap("moving_objects")
         if moving is not None:
             still = ~_as_mask(moving, len(cloud))
             keep = still if keep is None else keep & still
@@ -252,7 +272,7 @@ class Odometry:
 
         image, ranges, points = self._project(cloud)  # Eq. 1
         diagnostics.image_fill = float(np.count_nonzero(ranges) / ranges.size)
-        self._check_sensor(diagnostics.image_fill)
+        self._check_sensor(diagnostics.image_fill if scan_fill is None else scan_fill)
         previous = self._reference
         if previous is not None and self._beyond_window():
             output = FrameOutput(self.matcher.encode(image), None, None)  # matched from the prediction instead
@@ -366,8 +386,13 @@ class Odometry:
         return pair
 
     def _finite_scan(self, points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
+        """A pair's scan: its finite points not on moving objects (when the network is there to say)."""
         cloud = self._scan_in(points, name)
-        cloud = _rows(cloud, _finite_rows(cloud))
+        keep = _finite_rows(cloud)
+        if self._moving_objects is not None:
+            still = ~self._moving_objects.mask(cloud)
+            keep = still if keep is None else keep & still
+        cloud = _rows(cloud, keep)
         if len(cloud) < self.config.min_points:
             raise ValueError(
                 f"{name}: {len(cloud)} finite points, fewer than the {self.config.min_points} needed to register "

@@ -1,0 +1,65 @@
+"""Points on moving objects found without labels: the learned moving-object network (`dmlo.model.moving`).
+
+Vehicles that keep pace with the ego car (a lead car in a jam, cars beside it) or pass it can outnumber
+the static scene's matches and capture the consensus: the odometry then follows them, not the road.
+With labels (a SemanticKITTI drive) their moving points are known; on real drives the network beside the
+model (`moving.onnx`) predicts, cell by cell of the scan's cylinder image, the probability of a moving
+object, and every point in a cell above the threshold is left out of matching and of the map, as labelled
+moving points are (§III-D-c).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+import dmlo_rs
+
+GRAPH = "moving.onnx"  # beside the model's frame.onnx
+
+
+def moving_objects_graph(model_graph: Path) -> Path | None:
+    """The moving-object network beside a model's `frame.onnx`, if the model has one."""
+    graph = model_graph.with_name(GRAPH)
+    return graph if graph.is_file() else None
+
+
+class MovingObjectDetector:
+    """`mask(cloud)`: True for the points of an N×3/N×4 scan that the network puts on moving objects."""
+
+    def __init__(self, graph: Path, threshold: float = 0.5, threads: int = 0) -> None:
+        import onnxruntime as ort
+
+        from dmlo.odometry.matcher import ModelError, _cylinder_from_metadata, _json_object, _open_session, _size
+
+        options = ort.SessionOptions()
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        if threads > 0:
+            options.intra_op_num_threads = threads
+        self._session: Any = _open_session(graph, options, ["CPUExecutionProvider"])
+        metadata = self._session.get_modelmeta().custom_metadata_map
+        if metadata.get("dmlo.graph") != "moving":
+            raise ModelError(f"{graph}: not a dmlo moving-object graph (dmlo.graph = 'moving' expected)")
+        self.cylinder = _cylinder_from_metadata(_json_object(metadata, "dmlo.cylinder_config", graph), graph)
+        if _size(metadata, graph) != (self.cylinder.height, self.cylinder.width):
+            raise ModelError(f"{graph}: network input size differs from its cylinder image")
+        self.path = graph
+        self.threshold = threshold
+
+    def detect(self, cloud: npt.NDArray[np.float32]) -> tuple[npt.NDArray[np.bool_], float]:
+        """The points on moving objects, and the fraction of the image's cells the whole scan fills (the
+        sensor check's figure, which the scan left after removing them would understate)."""
+        projection = dmlo_rs.project(cloud, self.cylinder)
+        index, ranges = projection.index, np.asarray(projection.range)
+        height = np.where(index >= 0, cloud[np.maximum(index, 0), 2], 0.0).astype(np.float32)
+        (probability,) = self._session.run(None, {"range": ranges[None], "height": height[None]})
+        moving = probability[0].ravel() > self.threshold
+        cells = np.asarray(dmlo_rs.point_cells(cloud, self.cylinder))
+        return (cells >= 0) & moving[np.maximum(cells, 0)], float(np.count_nonzero(ranges) / ranges.size)
+
+    def mask(self, cloud: npt.NDArray[np.float32]) -> npt.NDArray[np.bool_]:
+        """True for the points on moving objects."""
+        return self.detect(cloud)[0]
