@@ -34,9 +34,11 @@ HIGHWAY_TRAJECTORY = "01"  # KITTI's highway
 HIGHWAY_LASER_GAIN_SPREAD = 0.6
 
 
-def _dmlo(model: Path | None, mapping: bool, symmetric: bool = False, deskew: bool = False) -> Odometry:
+def _dmlo(model: Path | None, mapping: bool, symmetric: bool = False, deskew: bool = False,
+          keep_moving: bool = False) -> Odometry:
     config = OdometryConfig()
     config.mapping.enabled = mapping
+    config.moving_objects.detect = not keep_moving
     config.matching.symmetric = symmetric
     config.deskew.enabled = deskew
     return Odometry(model, config) if model else Odometry.from_default(config)
@@ -59,6 +61,8 @@ def main() -> None:
                         help="add the named highway drive of this scene seed (along KITTI 01)")
     parser.add_argument("--jam", type=int, default=None, metavar="SEED",
                         help="add the named traffic-jam drive of this scene seed (a generated route)")
+    parser.add_argument("--keep-moving", action="store_true",
+                        help="add rows for DMLO without the moving-object network (moving_objects.detect = false)")
     parser.add_argument("--out", type=Path, default=Path("runs/bench_odometry"))
     args = parser.parse_args()
 
@@ -81,6 +85,9 @@ def main() -> None:
                          "choose another --out")
         sequence = open_sequence(drive)
         variants = {"DMLO": lambda: _dmlo(args.model, False), "DMLO + mapping": lambda: _dmlo(args.model, True)}
+        if args.keep_moving:
+            variants["DMLO, moving kept"] = lambda: _dmlo(args.model, False, keep_moving=True)
+            variants["DMLO + mapping, moving kept"] = lambda: _dmlo(args.model, True, keep_moving=True)
         if args.symmetric:
             variants["DMLO (symmetric)"] = lambda: _dmlo(args.model, False, symmetric=True)
         if args.motion_distortion:

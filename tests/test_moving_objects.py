@@ -213,3 +213,30 @@ def test_the_sensor_check_counts_the_whole_scan_not_what_is_left_after_the_movin
         odometry.register(points)
     assert odometry.diagnostics[0].num_moving_predicted == most.sum()
     assert odometry.diagnostics[0].image_fill < 0.35
+
+
+def test_non_finite_rows_change_nothing_the_network_flags(jam: Path) -> None:
+    sequence = open_sequence(jam)
+    rng = np.random.default_rng(2)
+    dirty_run, clean_run = Odometry(default_model_path(), frame_to_frame()), Odometry(default_model_path(), frame_to_frame())
+    for index in range(3):
+        scan = sequence[index].points
+        dirty = scan.copy()
+        rows = rng.choice(len(scan), 300, replace=False)
+        dirty[rows, rng.integers(0, 4, 300)] = np.nan
+        np.testing.assert_array_equal(dirty_run.register(dirty), clean_run.register(np.delete(scan, rows, axis=0)))
+    assert [d.num_moving_predicted for d in dirty_run.diagnostics] == [d.num_moving_predicted for d in clean_run.diagnostics]
+
+
+def test_register_pair_leaves_the_moving_out_of_a_consecutive_pair_not_of_a_far_one(jam: Path) -> None:
+    sequence = open_sequence(jam)
+    kept = frame_to_frame()
+    kept.moving_objects.detect = False
+    detecting, keeping = Odometry(default_model_path(), frame_to_frame()), Odometry(default_model_path(), kept)
+    a, b, far = sequence[0].points, sequence[1].points, sequence[6].points
+    truth = np.linalg.inv(sequence[1].pose) @ sequence[0].pose
+    consecutive = detecting.register_pair(a, b).T_tgt_ref
+    assert np.linalg.norm(consecutive[:3, 3] - truth[:3, 3]) < 0.05
+    assert np.linalg.norm(keeping.register_pair(a, b).T_tgt_ref[:3, 3] - truth[:3, 3]) > 0.2  # the escorts win
+    np.testing.assert_array_equal(detecting.register_pair(a, far, large_motion=True).T_tgt_ref,
+                                  keeping.register_pair(a, far, large_motion=True).T_tgt_ref)

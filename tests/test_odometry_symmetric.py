@@ -103,7 +103,9 @@ def test_round_trip_error_against_a_loop(wraps: bool) -> None:
 def test_symmetric_pair_leaves_out_the_cells_the_backward_flow_does_not_lead_back(scans: list[np.ndarray]) -> None:
     import dmlo_rs
 
-    odometry = Odometry.from_default(symmetric_config(consistency_px=1.0))
+    config = symmetric_config(consistency_px=1.0)
+    config.moving_objects.detect = False  # the pieces below match every point
+    odometry = Odometry.from_default(config)
     symmetric = odometry.register_pair(scans[0], scans[1])
     # The same from the public pieces, with the round trip checked by a loop.
     (ref_image, ref_range), (tgt_image, tgt_range) = odometry.project(scans[0]), odometry.project(scans[1])

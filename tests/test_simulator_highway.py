@@ -65,3 +65,21 @@ def test_escorts_keep_pace_with_the_ego(tmp_path: Path) -> None:
         ahead.append(lead[:, 0].min())
     moved = np.linalg.norm((np.linalg.inv(sequence.poses[0]) @ sequence.poses[2])[:3, 3])
     assert moved > 0.1 and abs(ahead[1] - ahead[0]) < 0.1  # the ego moved; its lead car stayed as far ahead
+
+
+def test_a_narrow_street_has_its_kerbs_close_and_no_lanes_beside_the_egos(tmp_path: Path) -> None:
+    from dmlo.simulator import generate_street
+    from dmlo.simulator.primitives import SIDEWALK
+
+    poses = np.repeat(np.eye(4)[None], 20, axis=0)
+    poses[:, 0, 3] = np.arange(20) * 0.8
+    for seed in range(6):
+        narrow = generate_street(poses, seed, scene="narrow", escorts=True)
+        assert 3.5 <= narrow.layout.road_left <= 5.5 and 3.5 <= narrow.layout.road_right <= 5.5
+        assert narrow.moving_cars == []  # no lane beside the ego's
+        assert narrow.escort_cars and all(abs(car.lateral) < 1.0 for car in narrow.escort_cars)  # ahead, behind
+        street = generate_street(poses, seed, escorts=True)
+        assert street.layout.road_left >= 7.0 and street.moving_cars and len(street.escort_cars) == 6
+    points, classes = _drive(tmp_path, scene="narrow")
+    sidewalk = points[classes == SIDEWALK]
+    assert np.abs(sidewalk[:, 1]).min() < 5.6  # a sidewalk within the narrow street's reach

@@ -60,9 +60,10 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--scene",
-        choices=("street", "highway"),
+        choices=("street", "highway", "narrow"),
         default="street",
-        help="street: buildings, furniture, parked cars (default); highway: wide asphalt, guard rails, sparse "
+        help="street: buildings, furniture, parked cars (default); narrow: a residential street, kerbs 3.5-5.5 m "
+        "away and cars parked along them, no lanes beside the ego's; highway: wide asphalt, guard rails, sparse "
         "sign poles, fast lanes (drive it along a highway trajectory, e.g. KITTI 01's)",
     )
     parser.add_argument(

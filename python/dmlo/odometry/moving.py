@@ -52,6 +52,8 @@ class MovingObjectDetector:
     def detect(self, cloud: npt.NDArray[np.float32]) -> tuple[npt.NDArray[np.bool_], float]:
         """The points on moving objects, and the fraction of the image's cells the whole scan fills (the
         sensor check's figure, which the scan left after removing them would understate)."""
+        if len(cloud) == 0:
+            return np.zeros(0, bool), 0.0
         projection = dmlo_rs.project(cloud, self.cylinder)
         index, ranges = projection.index, np.asarray(projection.range)
         height = np.where(index >= 0, cloud[np.maximum(index, 0), 2], 0.0).astype(np.float32)

@@ -367,11 +367,16 @@ class Odometry:
         matches with the model's wide-window graph (the paper's D = 40 at inference,
         §IV-D) for scans far apart, e.g. several frames or metres, and then again with the reference moved
         by the estimate (`config.large_motion`); it matches one way only, whatever `matching.symmetric`
-        says. The result's points are in the frames of the scans given. A scan with fewer than
+        says. Points on moving objects (`moving_objects`) are left out of a consecutive pair, not of a
+        large-motion one. The result's points are in the frames of the scans given. A scan with fewer than
         `config.min_points` finite points is refused (ValueError): with no motion model to fall back on,
         the identity would be a silent wrong answer.
         """
-        reference_cloud, target_cloud = self._finite_scan(reference, "reference"), self._finite_scan(target, "target")
+        # Far apart (a loop closure), the cars of one scan are gone or parked elsewhere in the other: they
+        # cannot agree on a motion, and the parked ones the network would flag are good matches.
+        leave_out = not large_motion
+        reference_cloud = self._finite_scan(reference, "reference", leave_out)
+        target_cloud = self._finite_scan(target, "target", leave_out)
         tgt_image, tgt_range, tgt_points = self._project(target_cloud)
         if large_motion:
             return self._register_far(reference_cloud, tgt_image, tgt_range)
@@ -385,11 +390,12 @@ class Odometry:
             pair.T_tgt_ref = pair.T_tgt_ref if refined is None else refined
         return pair
 
-    def _finite_scan(self, points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
-        """A pair's scan: its finite points not on moving objects (when the network is there to say)."""
+    def _finite_scan(self, points: npt.ArrayLike, name: str, leave_out_moving: bool = True) -> npt.NDArray[np.float32]:
+        """A pair's scan: its finite points, without those on moving objects when the network is there to say
+        and `leave_out_moving`."""
         cloud = self._scan_in(points, name)
         keep = _finite_rows(cloud)
-        if self._moving_objects is not None:
+        if leave_out_moving and self._moving_objects is not None:
             still = ~self._moving_objects.mask(cloud)
             keep = still if keep is None else keep & still
         cloud = _rows(cloud, keep)

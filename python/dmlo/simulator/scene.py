@@ -49,7 +49,7 @@ from dmlo.simulator.trajectory import FRAME_RATE_HZ
 
 __all__ = ["TRAFFIC", "MovingCar", "PathCar", "StreetLayout", "StreetPath", "StreetScene", "generate_street"]
 
-SCENES = ("street", "highway")
+SCENES = ("street", "highway", "narrow")
 TERRAIN_CELL = 5.0
 TERRAIN_REACH = 140.0
 
@@ -206,7 +206,9 @@ def generate_street(
     10 Hz), `mount_height` above the ground. `traffic`: `"lanes"` or `"mixed"` (see `simulate_sequence`).
     `scene`: `"street"` (buildings, furniture, parked cars) or `"highway"` (`dmlo.simulator.highway`: wide
     asphalt, guard rails, sparse sign poles and trees, fast traffic in the lanes beside the ego's).
-    `escorts`: cars that keep pace with the ego (`EscortCar`), as in a traffic jam."""
+    `"narrow"`: a residential street, the kerbs 3.5–5.5 m from the ego's path and cars parked along them,
+    without the lanes of traffic beside the ego's (crossing traffic with `"mixed"`; escorts only ahead and
+    behind). `escorts`: cars that keep pace with the ego (`EscortCar`), as in a traffic jam."""
     if traffic not in TRAFFIC:
         raise ValueError(f"traffic: unknown {traffic!r}; known: {', '.join(TRAFFIC)}")
     if scene not in SCENES:
@@ -216,13 +218,16 @@ def generate_street(
     rng = np.random.default_rng([seed, 0x5CE7E])
     path = StreetPath(lidar_poses, mount_height)
     escort_cars = _escort_cars(np.random.default_rng([seed, 0xE5C0]), 70000) if escorts else []
+    narrow = scene == "narrow"
+    if narrow:  # no lane beside the ego's
+        escort_cars = [car for car in escort_cars if abs(car.lateral) < 1.0]
     if scene == "highway":
         highway = _highway(path, rng)
         highway.escort_cars = escort_cars
         return highway
     layout = StreetLayout(
-        road_left=float(rng.uniform(7.0, 9.0)),
-        road_right=float(rng.uniform(7.0, 8.5)),
+        road_left=float(rng.uniform(3.5, 5.5) if narrow else rng.uniform(7.0, 9.0)),
+        road_right=float(rng.uniform(3.5, 5.5) if narrow else rng.uniform(7.0, 8.5)),
         sidewalk_left=float(rng.uniform(2.0, 4.5)),
         sidewalk_right=float(rng.uniform(2.0, 4.5)),
         kerb=float(rng.uniform(0.1, 0.16)),
@@ -235,7 +240,7 @@ def generate_street(
         _add_roadside(prims, path, layout, side, rng)
         _add_furniture(prims, path, layout, side, rng, instances)
         _add_parked_cars(prims, path, layout, side, rng, instances)
-    moving = _moving_cars(path, layout, rng, instances)
+    moving = _moving_cars(path, layout, rng, instances, lanes=() if narrow else _STREET_LANES)
     cross = None
     if traffic == "mixed":
         cross = add_cross_traffic(
@@ -266,6 +271,8 @@ def _escort_cars(rng: np.random.Generator, first_instance: int) -> list[EscortCa
     return cars
 
 
+# Street lanes beside the ego's: (lateral offset, direction, speed range m/s), as `_moving_cars` takes them.
+_STREET_LANES = ((3.3, -1, 6.0, 15.0), (-3.3, 1, 3.0, 17.0))
 # Highway lanes beside the ego's: (lateral offset, direction, speed range m/s), as `_moving_cars` takes them.
 _HIGHWAY_LANES = ((3.6, -1, 20.0, 32.0), (-3.6, 1, 18.0, 30.0), (7.2, -1, 20.0, 32.0))
 
@@ -700,7 +707,7 @@ def _moving_cars(
     layout: StreetLayout,
     rng: np.random.Generator,
     instances: Iterator[int],
-    lanes: tuple[tuple[float, int, float, float], ...] = ((3.3, -1, 6.0, 15.0), (-3.3, 1, 3.0, 17.0)),
+    lanes: tuple[tuple[float, int, float, float], ...],
 ) -> list[MovingCar]:
     """Cars in `lanes` (lateral offset, direction, speed range m/s) along the ego's path."""
     cars = []

@@ -70,7 +70,8 @@ def simulate_sequence(
     `traffic`: `"lanes"` (moving cars only in the lanes beside the ego's, along its path: what earlier
     versions simulated, byte for byte) or `"mixed"` (also cross streets with cars crossing the ego's path
     and cars turning into and out of it, each on its own path; see `dmlo.simulator.traffic`). `scene`:
-    `"street"` or `"highway"` (guard rails, sparse sign poles, fast lanes; `dmlo.simulator.highway`; drive it
+    `"street"`, `"narrow"` (a residential street: kerbs 3.5–5.5 m away, no lanes beside the ego's) or
+    `"highway"` (guard rails, sparse sign poles, fast lanes; `dmlo.simulator.highway`; drive it
     along a highway trajectory such as KITTI 01's). `laser_gain_spread`: each laser's reflectance scaled by a
     gain of its own, drawn uniformly from 1 ± the spread (0: all equal, as earlier versions): a real sensor's
     lasers differ in their intensity calibration, so the road's rings differ in brightness, and those

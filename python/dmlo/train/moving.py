@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lr", type=float, default=3e-3)
     parser.add_argument("--pos-weight", type=float, default=3.0, help="weight of a moving cell in the loss")
     parser.add_argument("--height-jitter", type=float, default=0.3, help="metres the scan is raised or lowered")
-    parser.add_argument("--tilt-deg", type=float, default=1.5, help="degrees the scan is tipped about a horizontal axis")
+    parser.add_argument("--tilt-deg", type=float, default=0.0, help="degrees the scan is tipped about a horizontal axis")
     parser.add_argument("--stride", type=int, default=1, help="every STRIDE-th scan of each drive")
     parser.add_argument("--threads", type=int, default=0)
     parser.add_argument("--seed", type=int, default=0)

@@ -3,8 +3,9 @@
     python -m dmlo.train.moving_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR]
 
 simulates the labelled drives (skipping those already written; deterministic per seed) — streets with
-traffic in the lanes and across, traffic jams whose cars keep pace with the ego (`--escorts`), highways
-with and without them, skewed sweeps and per-laser gains — and trains `dmlo.train.moving` on them,
+traffic in the lanes and across, residential streets with the kerbs and parked cars close (`--scene
+narrow`), traffic jams whose cars keep pace with the ego (`--escorts`), highways with and without them,
+skewed sweeps and per-laser gains — and trains `dmlo.train.moving` on them,
 resuming from `RUN_DIR/moving.pt`, so the same command continues an interrupted run. About 10 minutes on
 2 CPU cores; on a GPU a few. Then copy `RUN_DIR/moving.onnx` to `python/dmlo/models/default/`.
 """
@@ -31,12 +32,20 @@ DRIVES: tuple[tuple[str, str | None, int, int, int, dict[str, object]], ...] = (
     ("train/s112", "02", 100, 112, 60, {"traffic": "mixed", "laser_gain_spread": 0.2}),
     ("train/s113", "06", 300, 113, 60, {}),
     ("train/s114", "01", 700, 114, 60, {"scene": "highway"}),
+    # Residential streets: kerbs, hedges and parked cars as close as cars in a lane beside the ego would be.
+    ("train/n121", None, 0, 121, 60, {"scene": "narrow"}),
+    ("train/n122", None, 0, 122, 60, {"scene": "narrow", "traffic": "mixed"}),
+    ("train/n123", None, 0, 123, 60, {"scene": "narrow", "traffic": "mixed", "escorts": True}),
+    ("train/n124", "00", 1500, 124, 60, {"scene": "narrow", "traffic": "mixed"}),
+    ("train/n125", "07", 600, 125, 60, {"scene": "narrow", "laser_gain_spread": 0.3}),
+    ("train/n126", "05", 300, 126, 60, {"scene": "narrow", "escorts": True, "motion_distortion": True}),
     ("val/s201", None, 0, 201, 30, {"traffic": "mixed"}),
     ("val/s202", None, 0, 202, 30, {"escorts": True}),
     ("val/s203", "01", 500, 203, 30, {"scene": "highway", "escorts": True}),
     ("val/s204", "03", 100, 204, 30, {"traffic": "mixed", "motion_distortion": True}),
+    ("val/n221", None, 0, 221, 30, {"scene": "narrow", "traffic": "mixed", "escorts": True}),
 )
-TRAIN_ARGUMENTS = "--steps 5000 --batch 16 --crop 512 --lr 3e-3 --pos-weight 3 --height-jitter 0.3 --tilt-deg 1.5".split()
+TRAIN_ARGUMENTS = "--steps 5000 --batch 16 --crop 512 --lr 3e-3 --pos-weight 3 --height-jitter 0.3 --tilt-deg 0".split()
 
 
 def simulate_drives(data: Path, poses: Path) -> tuple[list[Path], list[Path]]:
