@@ -85,12 +85,18 @@ def simulate_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Pa
     return train, val
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def recipe_parser(description: str) -> argparse.ArgumentParser:
+    """The arguments every recipe takes: where its drives go, where the run goes, which KITTI poses to follow."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, help="folder for the simulated drives")
     parser.add_argument("--out", type=Path, required=True, help="training run folder")
     parser.add_argument("--poses", type=Path, default=Path(__file__).resolve().parents[4] / "shared/data/kitti_gt_poses",
                         help="KITTI ground-truth pose files to drive along (default: ../shared/data/kitti_gt_poses)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = recipe_parser(__doc__)
     parser.add_argument("--finetune", action="store_true",
                         help="the second stage: fine-tune OUT/best.pt with the pose loss into OUT/finetune")
     parser.add_argument("--range-only", action="store_true",

@@ -12,9 +12,10 @@ resuming from `RUN_DIR/moving.pt`, so the same command continues an interrupted 
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
+
+from dmlo.train.default_recipe import recipe_parser
 
 # (name, KITTI trajectory or None for a generated route, first pose, seed, frames, simulator options)
 DRIVES: tuple[tuple[str, str | None, int, int, int, dict[str, object]], ...] = (
@@ -68,11 +69,7 @@ def simulate_drives(data: Path, poses: Path) -> tuple[list[Path], list[Path]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, required=True, help="folder for the simulated drives")
-    parser.add_argument("--out", type=Path, required=True, help="training run folder")
-    parser.add_argument("--poses", type=Path, default=Path(__file__).resolve().parents[4] / "shared/data/kitti_gt_poses",
-                        help="KITTI ground-truth pose files to drive along (default: ../shared/data/kitti_gt_poses)")
+    parser = recipe_parser(__doc__)
     parser.add_argument("--steps", type=int, default=None, help="override the recipe's training steps")
     args = parser.parse_args(argv)
     train, val = simulate_drives(args.data, args.poses)
