@@ -240,3 +240,21 @@ def test_register_pair_leaves_the_moving_out_of_a_consecutive_pair_not_of_a_far_
     assert np.linalg.norm(keeping.register_pair(a, b).T_tgt_ref[:3, 3] - truth[:3, 3]) > 0.2  # the escorts win
     np.testing.assert_array_equal(detecting.register_pair(a, far, large_motion=True).T_tgt_ref,
                                   keeping.register_pair(a, far, large_motion=True).T_tgt_ref)
+
+
+@pytest.mark.slow
+def test_creeping_behind_traffic_the_odometry_does_not_follow_the_cars(tmp_path: Path) -> None:
+    """The real failure of issue 22: a car creeping at 0.17 m a frame in a jam, reported driving backwards."""
+    frames = 20
+    poses = np.zeros((frames, 3, 4))
+    poses[:, :, :3] = np.eye(3)
+    poses[:, 2, 3] = np.arange(frames) * 0.17  # KITTI camera frame: z ahead, the LiDAR's x
+    np.savetxt(tmp_path / "creep.txt", poses.reshape(frames, 12))
+    simulate_sequence(tmp_path / "drive", frames=frames, seed=52, trajectory=tmp_path / "creep.txt", escorts=True,
+                      progress=False)
+    detecting, _ = pair_errors(tmp_path / "drive", frame_to_frame())
+    config = frame_to_frame()
+    config.moving_objects.detect = False
+    keeping, _ = pair_errors(tmp_path / "drive", config)
+    assert detecting.max() < 0.04, detecting.round(3)
+    assert keeping.max() > 2 * detecting.max(), (keeping.max(), detecting.max())
