@@ -258,3 +258,17 @@ def test_creeping_behind_traffic_the_odometry_does_not_follow_the_cars(tmp_path:
     keeping, _ = pair_errors(tmp_path / "drive", config)
     assert detecting.max() < 0.04, detecting.round(3)
     assert keeping.max() > 2 * detecting.max(), (keeping.max(), detecting.max())
+
+
+def test_a_run_says_how_much_the_network_left_out(jam: Path, tmp_path: Path) -> None:
+    from dmlo.commands.run import format_summary
+    from dmlo.odometry.run import run_sequence
+
+    sequence = open_sequence(jam)
+    summary = run_sequence(sequence, Odometry(default_model_path(), frame_to_frame()), tmp_path / "network",
+                           remove_moving=False, max_frames=3, progress=False)
+    assert summary.moving_share is not None and 0.05 < summary.moving_share < 0.6
+    assert f"left out {100 * summary.moving_share:.1f} %" in format_summary(summary)
+    labelled = run_sequence(sequence, Odometry(default_model_path(), frame_to_frame()), tmp_path / "labels",
+                            max_frames=3, progress=False)
+    assert labelled.moving_share is None and "moving objects" not in format_summary(labelled)

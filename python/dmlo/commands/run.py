@@ -145,6 +145,9 @@ def format_summary(summary) -> str:  # type: ignore[no-untyped-def]
         f"motion model used for: {fallbacks or 'none'}",
         f"results in {summary.out_dir}/",
     ]
+    if summary.moving_share is not None:
+        lines.insert(1, f"moving objects: the network left out {100 * summary.moving_share:.1f} % of a scan's points "
+                        "on average (--keep-moving keeps them)")
     if summary.metrics:
         m = summary.metrics
         parts = []

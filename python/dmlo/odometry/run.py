@@ -34,6 +34,8 @@ class RunSummary:
     seconds: float
     metrics: dict[str, Any] | None
     out_dir: Path
+    # mean share of a scan's points the moving-object network left out, over the scans it ran on; None: it never ran
+    moving_share: float | None = None
 
     @property
     def hz(self) -> float:
@@ -101,7 +103,10 @@ def run_sequence(
     if ground_truth is not None:
         metrics = _evaluate(ground_truth[:total], np.stack(odometry.poses), out_dir, sequence.name)
     fallbacks = Counter(d.fallback for d in odometry.diagnostics if d.fallback is not None)
-    return RunSummary(total, skipped, dict(fallbacks), seconds, metrics, out_dir)
+    shares = [d.num_moving_predicted / d.num_points for d in odometry.diagnostics
+              if d.num_moving_predicted is not None and d.num_points]
+    moving_share = float(np.mean(shares)) if shares else None
+    return RunSummary(total, skipped, dict(fallbacks), seconds, metrics, out_dir, moving_share)
 
 
 def _evaluate(ground_truth: np.ndarray, estimate: np.ndarray, out_dir: Path, name: str) -> dict[str, Any]:
