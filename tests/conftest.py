@@ -1,4 +1,5 @@
-"""Shared fixtures: where the real data lies (skipping when it is absent), and a plain folder of scans."""
+"""Shared fixtures: where the real data lies (skipping when it is absent), a plain folder of scans, and the
+5-scan simulated street drive many odometry tests run on (simulated once a session)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parent.parent
+from support import REPO
+
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 
@@ -17,6 +19,25 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real test data not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 5-scan simulated street drive (seed 5) in KITTI layout; read-only for the tests that share it."""
+    from dmlo.simulator import simulate_sequence
+
+    out = tmp_path_factory.mktemp("drive")
+    simulate_sequence(out, frames=5, seed=5, progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def scans(drive: Path) -> list[np.ndarray]:
+    """The points of `drive`'s scans (treat as read-only: every test sharing them sees the same arrays)."""
+    from dmlo.datasets import open_sequence
+
+    sequence = open_sequence(drive)
+    return [sequence[i].points for i in range(len(sequence))]
 
 
 @pytest.fixture()

@@ -1,4 +1,5 @@
-"""Helpers shared by several test files (pytest puts `tests/` on the import path)."""
+"""Helpers shared by several test files (`tests/` and its area folders are on the import path: pyproject's
+pytest `pythonpath`)."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ if TYPE_CHECKING:
     from dmlo.odometry import OdometryConfig
 
 FloatArray = npt.NDArray[np.float64]
+REPO = Path(__file__).resolve().parent.parent  # the repository; `../shared/data` lies beside it
 
 
 def assert_simulation_reproducible(tmp_path: Path, same: list[str], differing: list[str], **options: str) -> None:

@@ -43,7 +43,7 @@ def _integer_at_least(least: int, meaning: str) -> Callable[[str], int]:
 
 
 # The optional packages a command may need and the extra of pyproject.toml that installs each
-# (tests/test_dependencies.py holds this table to pyproject.toml).
+# (tests/cli/test_dependencies.py holds this table to pyproject.toml).
 EXTRA_OF_PACKAGE = {
     "torch": "train",
     "onnx": "train",

@@ -1,4 +1,4 @@
-"""Type stubs of the compiled module; checked against it by mypy.stubtest (tests/test_package.py)."""
+"""Type stubs of the compiled module; checked against it by mypy.stubtest (tests/cli/test_package.py)."""
 
 import numpy as np
 import numpy.typing as npt

@@ -14,7 +14,6 @@ from dmlo.odometry.matcher import ModelError, default_model_path
 from dmlo.odometry.pipeline import _round_trip_error, _symmetric
 from dmlo.poses import midpoint_motion as _midpoint
 
-from test_odometry import drive, scans  # noqa: F401  (the 5-scan simulated drive the odometry tests use)
 from support import frame_to_frame
 
 

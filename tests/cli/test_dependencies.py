@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+from support import REPO
 
 tomllib = pytest.importorskip("tomllib")  # Python 3.11+
 
-REPO = Path(__file__).resolve().parent.parent
 PACKAGE = REPO / "python" / "dmlo"
 
 # Which extras a module needs beyond the core, by the longest matching module-name prefix; anything not

@@ -17,19 +17,6 @@ from dmlo.simulator import simulate_sequence
 from support import frame_to_frame
 
 
-@pytest.fixture(scope="module")
-def drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("drive")
-    simulate_sequence(out, frames=5, seed=5, progress=False)
-    return out
-
-
-@pytest.fixture(scope="module")
-def scans(drive: Path) -> list[np.ndarray]:
-    sequence = open_sequence(drive)
-    return [sequence[i].points for i in range(len(sequence))]
-
-
 def test_a_caller_refilling_one_buffer_gets_the_poses_of_separate_scans(scans: list[np.ndarray]) -> None:
     # A sensor driver streams into one buffer; the odometry keeps the previous scan (its reference, its
     # map keyframe), so it must not keep the caller's memory.

@@ -16,8 +16,9 @@ import pytest
 
 from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
+from support import REPO
 
-SCRIPTS = Path(__file__).resolve().parent.parent / "benchmarks"
+SCRIPTS = REPO / "benchmarks"
 
 
 def script(name: str) -> ModuleType:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import dmlo
 import dmlo_rs
+from support import REPO
 
 
 def test_versions_agree() -> None:
@@ -51,7 +52,7 @@ def test_the_python_package_type_checks() -> None:
 
 def test_the_benchmark_scripts_type_check() -> None:
     # They left the wheel for the checkout's benchmarks/ folder, and with it the package's check above.
-    scripts = Path(__file__).resolve().parents[1] / "benchmarks"
+    scripts = REPO / "benchmarks"
     out = subprocess.run(
         [sys.executable, "-m", "mypy", str(scripts), "--ignore-missing-imports", "--no-error-summary"],
         capture_output=True,

@@ -11,8 +11,9 @@ import pytest
 from dmlo.datasets import open_sequence
 from dmlo.simulator import simulate_sequence
 from dmlo.simulator.primitives import BUILDING, CAR, FENCE, POLE, ROAD, TRAFFIC_SIGN
+from support import REPO
 
-HIGHWAY_POSES = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_gt_poses" / "01.txt"
+HIGHWAY_POSES = REPO.parent / "shared" / "data" / "kitti_gt_poses" / "01.txt"
 
 
 def _drive(out: Path, **options: object) -> tuple[np.ndarray, np.ndarray]:

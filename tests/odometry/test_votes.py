@@ -11,7 +11,7 @@ import pytest
 import dmlo_rs
 from dmlo.odometry import Odometry, OdometryConfig
 from dmlo_rs import CylinderConfig
-from support import frame_to_frame
+from support import REPO, frame_to_frame
 
 
 def _plane_scan(normal: np.ndarray, offset: float, config: CylinderConfig) -> np.ndarray:
@@ -137,7 +137,7 @@ def test_cars_keeping_pace_with_the_ego_do_not_outvote_the_static_scene(tmp_path
     from dmlo.datasets import open_sequence
     from dmlo.simulator import simulate_sequence
 
-    trajectory = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_gt_poses" / "07.txt"
+    trajectory = REPO.parent / "shared" / "data" / "kitti_gt_poses" / "07.txt"
     if not trajectory.is_file():  # the generated drive's jam is another scene, measured on neither setting
         pytest.skip(f"KITTI 07's poses not found at {trajectory}")
     simulate_sequence(tmp_path, frames=15, seed=41, trajectory=trajectory, escorts=True, progress=False)

@@ -36,14 +36,6 @@ def variant(points: np.ndarray, name: str) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory: pytest.TempPathFactory) -> list[np.ndarray]:
-    out = tmp_path_factory.mktemp("drive")
-    simulate_sequence(out, frames=5, seed=5, progress=False)
-    sequence = open_sequence(out)
-    return [sequence[i].points for i in range(len(sequence))]
-
-
-@pytest.fixture(scope="module")
 def real_drive(shared_data: Path) -> list[np.ndarray]:
     folder = shared_data / "kitti_real" / "odometry_03"
     if not folder.is_dir():
@@ -146,8 +138,8 @@ def test_every_reflectance_setting_loads_and_saves(value: str, tmp_path: Path) -
 # -- the notice and the model -------------------------------------------------------------------------------
 
 
-def test_scans_in_unit_range_go_on_silently(drive: list[np.ndarray]) -> None:
-    _, notices, odometry = register_all(drive[:2])
+def test_scans_in_unit_range_go_on_silently(scans: list[np.ndarray]) -> None:
+    _, notices, odometry = register_all(scans[:2])
     assert notices == []
     assert odometry.reflectance_choice is not None and odometry.reflectance_choice.mode == "unit"
     assert odometry.matcher.path.parent == default_model_path()
@@ -158,8 +150,8 @@ def test_scans_in_unit_range_go_on_silently(drive: list[np.ndarray]) -> None:
     [("x255", "look like 0–255: divided by 255"), ("zeros", "every point's reflectance is 0: the range-only model runs"),
      ("absent", "no reflectance (N×3 points): the range-only model runs")],
 )
-def test_the_choice_is_noticed_once_per_odometry(drive: list[np.ndarray], name: str, said: str) -> None:
-    _, notices, odometry = register_all([variant(points, name) for points in drive[:3]])
+def test_the_choice_is_noticed_once_per_odometry(scans: list[np.ndarray], name: str, said: str) -> None:
+    _, notices, odometry = register_all([variant(points, name) for points in scans[:3]])
     assert len(notices) == 1 and said in notices[0] and notices[0].startswith("reflectance: ")
     assert "\n" not in notices[0]
     runs_range_only = name != "x255"
@@ -169,63 +161,63 @@ def test_the_choice_is_noticed_once_per_odometry(drive: list[np.ndarray], name: 
 
 @pytest.mark.parametrize(("setting", "said"), [("0-255", "the config says reflectance 0-255: divided by 255"),
                                                 ("none", "the config says reflectance none: the range-only model runs")])
-def test_the_config_overrides_the_guess(drive: list[np.ndarray], setting: str, said: str) -> None:
-    poses, notices, _ = register_all([variant(points, "x255") for points in drive[:3]], frame_to_frame(reflectance=setting))
+def test_the_config_overrides_the_guess(scans: list[np.ndarray], setting: str, said: str) -> None:
+    poses, notices, _ = register_all([variant(points, "x255") for points in scans[:3]], frame_to_frame(reflectance=setting))
     assert len(notices) == 1 and said in notices[0]
     if setting == "0-255":
-        guessed, _, _ = register_all([variant(points, "x255") for points in drive[:3]])
+        guessed, _, _ = register_all([variant(points, "x255") for points in scans[:3]])
         np.testing.assert_array_equal(poses, guessed)
 
 
-def test_the_unit_setting_clips_a_larger_scale_and_says_so(drive: list[np.ndarray]) -> None:
-    _, notices, odometry = register_all([variant(points, "x255") for points in drive[:3]], frame_to_frame(reflectance="unit"))
+def test_the_unit_setting_clips_a_larger_scale_and_says_so(scans: list[np.ndarray]) -> None:
+    _, notices, odometry = register_all([variant(points, "x255") for points in scans[:3]], frame_to_frame(reflectance="unit"))
     assert len(notices) == 1 and "clipped" in notices[0] and "scan 0" in notices[0]
     assert odometry.reflectance_choice == reflectance.Choice("unit", "the config says reflectance unit")
 
 
-def test_a_later_scan_without_reflectance_moves_to_the_range_only_model(drive: list[np.ndarray]) -> None:
-    scans = [drive[0], drive[1], variant(drive[2], "absent"), drive[3]]
-    poses, notices, odometry = register_all(scans)
+def test_a_later_scan_without_reflectance_moves_to_the_range_only_model(scans: list[np.ndarray]) -> None:
+    mixed = [scans[0], scans[1], variant(scans[2], "absent"), scans[3]]
+    poses, notices, odometry = register_all(mixed)
     assert len(notices) == 1 and notices[0].startswith("reflectance: scan 2: the scans have no reflectance")
     assert odometry.matcher.path.parent == RANGE_ONLY and odometry.reflectance_choice.mode == "none"
     # From the switch on, the pairs are those of a drive without reflectance from the start (the reference
     # scan encoded again by the range-only model).
-    absent, _, _ = register_all([variant(points, "absent") for points in drive[:4]])
+    absent, _, _ = register_all([variant(points, "absent") for points in scans[:4]])
     np.testing.assert_allclose(pair_motions(poses)[1:], pair_motions(absent)[1:], atol=1e-9)
 
 
-def test_scans_too_poor_to_match_decide_nothing(drive: list[np.ndarray]) -> None:
+def test_scans_too_poor_to_match_decide_nothing(scans: list[np.ndarray]) -> None:
     # Bridged by the motion model, not matched: an empty, an all-NaN or a ten-point scan keeps the scale.
     nan_scan = np.full((5000, 4), np.nan, np.float32)
     ten = np.ones((10, 4), np.float32)
-    _, notices, odometry = register_all([nan_scan, drive[0], ten, np.zeros((0, 4), np.float32), drive[1], drive[2]])
+    _, notices, odometry = register_all([nan_scan, scans[0], ten, np.zeros((0, 4), np.float32), scans[1], scans[2]])
     assert notices == [] and odometry.reflectance_choice.mode == "unit"
     assert odometry.matcher.path.parent == default_model_path()
     assert [d.fallback for d in odometry.diagnostics[:4]] == ["too_few_points", None, "too_few_points", "too_few_points"]
 
 
-def test_register_pair_follows_the_scan_without_reflectance(drive: list[np.ndarray]) -> None:
+def test_register_pair_follows_the_scan_without_reflectance(scans: list[np.ndarray]) -> None:
     odometry = Odometry.from_default(frame_to_frame())
     with pytest.warns(ReflectanceNotice, match="range-only model runs"):
-        mixed = odometry.register_pair(drive[0], variant(drive[1], "absent"))
+        mixed = odometry.register_pair(scans[0], variant(scans[1], "absent"))
     plain = Odometry.from_default(frame_to_frame())
     with pytest.warns(ReflectanceNotice):
-        absent = plain.register_pair(variant(drive[0], "absent"), variant(drive[1], "absent"))
+        absent = plain.register_pair(variant(scans[0], "absent"), variant(scans[1], "absent"))
     np.testing.assert_allclose(mixed.T_tgt_ref, absent.T_tgt_ref, atol=1e-9)
 
 
-def test_a_model_without_a_range_only_model_says_its_poses_cannot_be_trusted(drive: list[np.ndarray], tmp_path: Path) -> None:
+def test_a_model_without_a_range_only_model_says_its_poses_cannot_be_trusted(scans: list[np.ndarray], tmp_path: Path) -> None:
     for graph in default_model_path().glob("*.onnx"):
         (tmp_path / graph.name).symlink_to(graph)
-    _, notices, odometry = register_all([variant(points, "zeros") for points in drive[:2]], model=tmp_path)
+    _, notices, odometry = register_all([variant(points, "zeros") for points in scans[:2]], model=tmp_path)
     assert len(notices) == 1 and "has no range-only model beside it" in notices[0]
     assert "cannot be trusted" in notices[0] and odometry.matcher.path.parent == tmp_path
 
 
-def test_the_range_only_model_on_its_own_ignores_the_reflectance(drive: list[np.ndarray]) -> None:
-    with_values, notices, _ = register_all(drive[:3], model=RANGE_ONLY)
+def test_the_range_only_model_on_its_own_ignores_the_reflectance(scans: list[np.ndarray]) -> None:
+    with_values, notices, _ = register_all(scans[:3], model=RANGE_ONLY)
     assert len(notices) == 1 and "the model is range-only" in notices[0]
-    without, _, _ = register_all([variant(points, "absent") for points in drive[:3]], model=RANGE_ONLY)
+    without, _, _ = register_all([variant(points, "absent") for points in scans[:3]], model=RANGE_ONLY)
     np.testing.assert_array_equal(with_values, without)
 
 
@@ -261,8 +253,8 @@ def assert_variants_agree(trajectories: dict[str, np.ndarray], within_m: float, 
 
 
 @pytest.mark.parametrize("mapping", [False, True], ids=["pure", "mapping"])
-def test_a_simulated_drive_agrees_on_every_reflectance(drive: list[np.ndarray], mapping: bool) -> None:
-    trajectories = four_variants(drive, mapping)
+def test_a_simulated_drive_agrees_on_every_reflectance(scans: list[np.ndarray], mapping: bool) -> None:
+    trajectories = four_variants(scans, mapping)
     # Within 1 cm a pair takes the map: pure DMLO runs two networks, each off by 1–2 cm a pair from the
     # truth in its own way (measured: 1.5 cm / 0.10° apart at most; with mapping 0.007 cm / 0.002°).
     assert_variants_agree(trajectories, 0.01 if mapping else 0.03, 0.05 if mapping else 0.2)

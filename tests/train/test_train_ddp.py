@@ -11,7 +11,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-REPO = Path(__file__).resolve().parent.parent
+HERE = Path(__file__).resolve().parent  # the worker imports this folder's test_train
 
 WORKER = textwrap.dedent(
     """
@@ -45,7 +45,7 @@ def test_two_cpu_processes_hold_identical_weights_after_steps(tmp_path) -> None:
     script.write_text(WORKER)
     command = [
         sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-        str(script), str(tmp_path), str(REPO / "tests"),
+        str(script), str(tmp_path), str(HERE),
     ]
     result = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]

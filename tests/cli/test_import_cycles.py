@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import ast
 from pathlib import Path
+from support import REPO
 
-REPO = Path(__file__).resolve().parent.parent
 PACKAGE = REPO / "python" / "dmlo"
 
 
