@@ -171,3 +171,25 @@ def test_odometry_benchmark_adds_the_named_highway_drive(tmp_path: Path) -> None
     assert "### highway_seed3 (generated trajectory, 3 frames)" in result.stdout
     info = json.loads((tmp_path / "highway_seed3" / "simulation.json").read_text())
     assert info["scene"] == "highway" and info["laser_gain_spread"] == 0.6
+
+
+def test_odometry_benchmark_adds_the_named_jam_and_the_rows_without_the_network(tmp_path: Path) -> None:
+    command = [sys.executable, str(SCRIPTS / "odometry.py"), "--frames", "3", "--seeds", "--jam", "4", "--keep-moving",
+               "--peers", "--out", str(tmp_path)]
+    result = subprocess.run(command, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "### jam_seed4 (generated trajectory, 3 frames)" in result.stdout
+    assert "| DMLO, moving kept |" in result.stdout and "| DMLO + mapping, moving kept |" in result.stdout
+    info = json.loads((tmp_path / "jam_seed4" / "simulation.json").read_text())
+    assert info["escorts"] is True and info["traffic"] == "mixed" and info["scene"] == "street"
+
+
+def test_moving_objects_benchmark_scores_the_network_on_a_labelled_drive(drive: Path, tmp_path: Path) -> None:
+    out = tmp_path / "moving.json"
+    command = [sys.executable, str(SCRIPTS / "moving_objects.py"), str(drive), "--json", str(out)]
+    result = subprocess.run(command, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert drive.name in result.stdout and "precision" in result.stdout
+    scores = json.loads(out.read_text())[drive.name]
+    assert scores["scans"] == 4 and scores["points"] > 100_000 and scores["moving"] > 0
+    assert 0 <= scores["precision"] <= 1 and 0 <= scores["recall"] <= 1
