@@ -362,3 +362,29 @@ def test_run_without_matplotlib_writes_everything_but_the_plot_and_says_how_to_g
     warning = [line for line in lines if "warning" in line]
     notice = "dmlo run: warning: trajectory.png skipped: plots need matplotlib: pip install 'dmlo[plot]'"
     assert warning == [notice], result.stderr
+
+
+def test_an_estimate_beyond_the_metrics_range_keeps_its_poses_and_skips_the_metrics(drive: Path, tmp_path: Path) -> None:
+    """An estimate gone 10¹³ m away (a broken model, say): the poses are written as they are, the metrics are
+    skipped with a warning instead of failing the run after the poses."""
+    from dmlo.odometry import FrameDiagnostics, OdometryConfig
+
+    class RunawayOdometry:
+        config = OdometryConfig()
+
+        def __init__(self) -> None:
+            self.poses: list[np.ndarray] = []
+            self.diagnostics: list[FrameDiagnostics] = []
+
+        def register(self, points: np.ndarray, moving: object = None, timestamp: object = None) -> np.ndarray:
+            pose = np.eye(4)
+            pose[0, 3] = 1e13 * len(self.poses)
+            self.poses.append(pose)
+            self.diagnostics.append(FrameDiagnostics(index=len(self.poses) - 1, num_points=len(points)))
+            return pose
+
+    with pytest.warns(UserWarning, match="metrics.json and trajectory.png skipped: poses_est: pose 1 lies 1e\\+13 m"):
+        summary = run_sequence(open_sequence(drive), RunawayOdometry(), tmp_path, progress=False)  # type: ignore[arg-type]
+    assert summary.metrics is None and summary.frames == len(open_sequence(drive))
+    assert not (tmp_path / "metrics.json").exists()
+    assert read_kitti_poses(tmp_path / "poses_kitti.txt")[-1, 0, 3] == pytest.approx(1e13 * (summary.frames - 1))

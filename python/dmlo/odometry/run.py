@@ -109,7 +109,7 @@ def run_sequence(
     return RunSummary(total, skipped, dict(fallbacks), seconds, metrics, out_dir, moving_share)
 
 
-def _evaluate(ground_truth: np.ndarray, estimate: np.ndarray, out_dir: Path, name: str) -> dict[str, Any]:
+def _evaluate(ground_truth: np.ndarray, estimate: np.ndarray, out_dir: Path, name: str) -> dict[str, Any] | None:
     from dmlo.metrics import evaluate_trajectory
     from dmlo.plot import PlotUnavailable, plot_trajectories
 
@@ -117,7 +117,11 @@ def _evaluate(ground_truth: np.ndarray, estimate: np.ndarray, out_dir: Path, nam
     ground_truth = np.linalg.inv(ground_truth[0]) @ ground_truth
     with atomic_output(out_dir / "ground_truth_kitti.txt") as temporary:
         write_kitti_poses(temporary, ground_truth)
-    metrics = evaluate_trajectory(ground_truth, estimate)
+    try:
+        metrics = evaluate_trajectory(ground_truth, estimate)
+    except ValueError as err:  # an estimate gone far beyond any drive: the poses stay written, as they are
+        warnings.warn(f"metrics.json and trajectory.png skipped: {err}", stacklevel=2)
+        return None
     with atomic_output(out_dir / "metrics.json") as temporary:
         temporary.write_text(json.dumps(metrics, indent=2) + "\n")
     try:
