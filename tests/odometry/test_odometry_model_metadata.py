@@ -9,6 +9,7 @@ import shutil
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 onnx = pytest.importorskip("onnx")
@@ -164,3 +165,18 @@ def test_more_threads_than_cores_are_bounded_with_a_warning(monkeypatch: pytest.
 
 def test_the_cores_are_counted_as_this_process_may_use_them() -> None:
     assert 1 <= matcher_module.available_cores()
+
+
+def test_a_corrupt_range_only_model_fails_before_the_first_scan(bundled: Path, tmp_path: Path) -> None:
+    """Before, the range-only model opened at the first scan without reflectance: a ModelError mid-drive."""
+    model = tmp_path / "model"
+    shutil.copytree(bundled, model)
+    corrupt(default_model_path() / "range_only", model / "range_only", {"dmlo.model_config": "{"})
+    with pytest.raises(ModelError, match=r"range_only/frame\.onnx: metadata dmlo\.model_config is not JSON"):
+        Odometry(model, OdometryConfig())
+    shutil.rmtree(model / "range_only")
+    shutil.copytree(default_model_path() / "range_only", model / "range_only")
+    odometry = Odometry(model, OdometryConfig())
+    with pytest.warns(UserWarning, match="the range-only model runs"):
+        odometry.register(np.random.default_rng(0).uniform(-30, 30, (20000, 3)).astype(np.float32))
+    assert odometry.matcher.model_config.get("use_reflectance") is False

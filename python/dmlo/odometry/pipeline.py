@@ -187,10 +187,12 @@ class Odometry:
         self._rematch_gap = self._available_rematch_gap()
         self._wide_graph_beside = self.matcher.path.with_name(WIDE_FRAME_GRAPH).is_file()
         # Reflectance (`dmlo.odometry.reflectance`): the scale chosen on the first scan, and the range-only model
-        # beside this one (opened on the first scan without usable reflectance), unless this one is range-only.
+        # beside this one (run from the first scan without usable reflectance on), unless this one is range-only.
+        # It opens now, so that a broken range-only model fails before the first scan, not mid-drive.
         self._reflectance: reflectance.Choice | None = None
         self._model_is_range_only = getattr(self.matcher, "model_config", {}).get("use_reflectance", True) is False
-        self._range_only_graph = None if self._model_is_range_only else reflectance.range_only_model(self.matcher.path)
+        graph = None if self._model_is_range_only else reflectance.range_only_model(self.matcher.path)
+        self._range_only = None if graph is None else self._open_range_only(graph)
         self._warned_clipping = False
         self._moving_objects = self._open_moving_objects()
 
@@ -467,7 +469,7 @@ class Odometry:
             message = f"{why}: divided by {reflectance.SCALES[choice.mode]:g} for the model's [0, 1] scale"
         elif self._model_is_range_only:
             message = f"{why}: the scans' reflectance is not used"
-        elif self._range_only_graph is None:
+        elif self._range_only is None:
             message = (
                 f"{why}, and {self.matcher.path.parent} has no range-only model beside it ({reflectance.RANGE_ONLY_DIR}/): "
                 "it runs on zero reflectance, so these poses cannot be trusted. Set reflectance in the config if the "
@@ -475,19 +477,22 @@ class Odometry:
                 f"dmlo export RUN --out MODEL/{reflectance.RANGE_ONLY_DIR})"
             )
         else:
-            graph = self._range_only_graph
-            self._open_range_only(graph)
-            message = f"{why}: the range-only model runs ({graph.parent})"
+            message = f"{why}: the range-only model runs ({self._range_only.path.parent})"
+            self._switch_to_range_only(self._range_only)
         warnings.warn(message, ReflectanceNotice, stacklevel=4)
 
-    def _open_range_only(self, graph: Path) -> None:
+    def _open_range_only(self, graph: Path) -> OnnxMatcher:
+        """The range-only model beside this one, checked like it (threads already bounded: no second warning)."""
         matcher = OnnxMatcher(
-            graph, threads=self.config.threads, match_graph=self.config.matching.symmetric,
+            graph, threads=min(self.config.threads, available_cores()), match_graph=self.config.matching.symmetric,
             matching_stage=self.config.matching_stage,
         )
         if (matcher.cylinder.height, matcher.cylinder.width) != (self.cylinder.height, self.cylinder.width):
             raise ModelError(f"{graph}: its cylinder image differs from {self.matcher.path}'s")
-        self.matcher, self._wide, self._range_only_graph = matcher, None, None
+        return matcher
+
+    def _switch_to_range_only(self, matcher: OnnxMatcher) -> None:
+        self.matcher, self._wide, self._range_only = matcher, None, None
         self._model_is_range_only = True
         self._rematch_gap = self._available_rematch_gap()
         self._wide_graph_beside = self.matcher.path.with_name(WIDE_FRAME_GRAPH).is_file()
