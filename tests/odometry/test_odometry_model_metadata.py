@@ -167,7 +167,7 @@ def test_the_cores_are_counted_as_this_process_may_use_them() -> None:
     assert 1 <= matcher_module.available_cores()
 
 
-def test_a_corrupt_range_only_model_fails_before_the_first_scan(bundled: Path, tmp_path: Path) -> None:
+def test_a_corrupt_range_only_model_fails_before_the_first_scan(bundled: Path, tmp_path: Path, scans: list[np.ndarray]) -> None:
     """Before, the range-only model opened at the first scan without reflectance: a ModelError mid-drive."""
     model = tmp_path / "model"
     shutil.copytree(bundled, model)
@@ -178,5 +178,5 @@ def test_a_corrupt_range_only_model_fails_before_the_first_scan(bundled: Path, t
     shutil.copytree(default_model_path() / "range_only", model / "range_only")
     odometry = Odometry(model, OdometryConfig())
     with pytest.warns(UserWarning, match="the range-only model runs"):
-        odometry.register(np.random.default_rng(0).uniform(-30, 30, (20000, 3)).astype(np.float32))
+        odometry.register(np.ascontiguousarray(scans[0][:, :3]))  # no reflectance
     assert odometry.matcher.model_config.get("use_reflectance") is False
