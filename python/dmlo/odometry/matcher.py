@@ -92,6 +92,18 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
+def session_options(threads: int) -> Any:
+    """onnxruntime's options for every graph the odometry runs: `threads` (0: its choice), no spinning."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    # Idle worker threads would spin between frames and steal the cores from projection and RANSAC.
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    if threads > 0:
+        options.intra_op_num_threads = threads
+    return options
+
+
 def usable_threads(requested: int) -> int:
     """`threads` as onnxruntime and the crate's matching stage get them: 0 (they choose) or at most the
     machine's cores. More threads than cores only wait for one another, and onnxruntime sets every one up
@@ -137,11 +149,7 @@ class OnnxMatcher:
         graph = path / FRAME_GRAPH if path.is_dir() else path
         if not graph.is_file():
             raise ModelError(f"model not found: {graph}")
-        options = ort.SessionOptions()
-        # Idle worker threads would spin between frames and steal the cores from projection and RANSAC.
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        if threads > 0:
-            options.intra_op_num_threads = threads
+        options = session_options(threads)
         providers = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
         self._session = _open_session(graph, options, providers)
         metadata = self._session.get_modelmeta().custom_metadata_map

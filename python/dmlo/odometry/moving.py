@@ -21,6 +21,18 @@ import dmlo_rs
 GRAPH = "moving.onnx"  # beside the model's frame.onnx
 
 
+def range_and_height(
+    cloud: npt.NDArray[np.float32], cylinder: dmlo_rs.CylinderConfig
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+    """The network's input images of a scan — range `[H, W]` (0 = empty) and height z of each cell's kept point
+    `[H, W]` (0 = empty) — and the kept point's index `[H, W]` (−1 = empty): one function for training
+    (`dmlo.train.moving`) and inference, so that both see the same input."""
+    projection = dmlo_rs.project(cloud, cylinder)
+    index = np.asarray(projection.index)
+    height = np.where(index >= 0, cloud[np.maximum(index, 0), 2], 0.0).astype(np.float32)
+    return np.asarray(projection.range), height, index
+
+
 def moving_objects_graph(model_graph: Path) -> Path | None:
     """The moving-object network beside a model's `frame.onnx`, if the model has one."""
     graph = model_graph.with_name(GRAPH)
@@ -31,15 +43,11 @@ class MovingObjectDetector:
     """`mask(cloud)`: True for the points of an N×3/N×4 scan that the network puts on moving objects."""
 
     def __init__(self, graph: Path, threshold: float = 0.5, threads: int = 0) -> None:
-        import onnxruntime as ort
+        from dmlo.odometry.matcher import (
+            ModelError, _cylinder_from_metadata, _json_object, _open_session, _size, session_options,
+        )
 
-        from dmlo.odometry.matcher import ModelError, _cylinder_from_metadata, _json_object, _open_session, _size
-
-        options = ort.SessionOptions()
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        if threads > 0:
-            options.intra_op_num_threads = threads
-        self._session: Any = _open_session(graph, options, ["CPUExecutionProvider"])
+        self._session: Any = _open_session(graph, session_options(threads), ["CPUExecutionProvider"])
         metadata = self._session.get_modelmeta().custom_metadata_map
         if metadata.get("dmlo.graph") != "moving":
             raise ModelError(f"{graph}: not a dmlo moving-object graph (dmlo.graph = 'moving' expected)")
@@ -54,9 +62,7 @@ class MovingObjectDetector:
         sensor check's figure, which the scan left after removing them would understate)."""
         if len(cloud) == 0:
             return np.zeros(0, bool), 0.0
-        projection = dmlo_rs.project(cloud, self.cylinder)
-        index, ranges = projection.index, np.asarray(projection.range)
-        height = np.where(index >= 0, cloud[np.maximum(index, 0), 2], 0.0).astype(np.float32)
+        ranges, height, _ = range_and_height(cloud, self.cylinder)
         (probability,) = self._session.run(None, {"range": ranges[None], "height": height[None]})
         moving = probability[0].ravel() > self.threshold
         cells = np.asarray(dmlo_rs.point_cells(cloud, self.cylinder))

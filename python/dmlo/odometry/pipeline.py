@@ -202,7 +202,12 @@ class Odometry:
         graph = moving_objects_graph(self.matcher.path) if settings.detect else None
         if graph is None:
             return None
-        return MovingObjectDetector(graph, settings.threshold, min(self.config.threads, available_cores()))
+        return MovingObjectDetector(graph, settings.threshold, self._beside_threads())
+
+    def _beside_threads(self) -> int:
+        """`threads` for the graphs opened beside the model, bounded to the cores without a second warning
+        (the model's matcher already gave one)."""
+        return min(self.config.threads, available_cores())
 
     def _available_rematch_gap(self) -> int | None:
         """`motion_model.rematch_gap`, or None with a warning when the model lacks the graphs it needs."""
@@ -256,8 +261,7 @@ class Odometry:
             diagnostics.num_moving_predicted = int(np.count_nonzero(moving))
             watch.lap("moving_objects")
         if moving is not None:
-            still = ~_as_mask(moving, len(cloud))
-            keep = still if keep is None else keep & still
+            keep = _without(keep, _as_mask(moving, len(cloud)))
         # Also a copy, even when every point stays: the scan is kept as the next reference, and a caller
         # streaming from a sensor may refill the same buffer for the next scan.
         cloud = _rows(cloud, keep)
@@ -398,8 +402,7 @@ class Odometry:
         cloud = self._scan_in(points, name)
         keep = _finite_rows(cloud)
         if leave_out_moving and self._moving_objects is not None:
-            still = ~self._moving_objects.mask(cloud)
-            keep = still if keep is None else keep & still
+            keep = _without(keep, self._moving_objects.mask(cloud))
         cloud = _rows(cloud, keep)
         if len(cloud) < self.config.min_points:
             raise ValueError(
@@ -482,9 +485,9 @@ class Odometry:
         warnings.warn(message, ReflectanceNotice, stacklevel=4)
 
     def _open_range_only(self, graph: Path) -> OnnxMatcher:
-        """The range-only model beside this one, checked like it (threads already bounded: no second warning)."""
+        """The range-only model beside this one, checked like it."""
         matcher = OnnxMatcher(
-            graph, threads=min(self.config.threads, available_cores()), match_graph=self.config.matching.symmetric,
+            graph, threads=self._beside_threads(), match_graph=self.config.matching.symmetric,
             matching_stage=self.config.matching_stage,
         )
         if (matcher.cylinder.height, matcher.cylinder.width) != (self.cylinder.height, self.cylinder.width):
@@ -1038,6 +1041,11 @@ def _finite_rows(cloud: npt.NDArray[np.float32]) -> npt.NDArray[np.bool_] | None
     for column in finite.T[1:]:
         keep &= column
     return keep
+
+
+def _without(keep: npt.NDArray[np.bool_] | None, left_out: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
+    """The rows `keep` marks (all with None) less those `left_out` marks."""
+    return ~left_out if keep is None else keep & ~left_out
 
 
 def _rows(values: npt.NDArray[Any], keep: npt.NDArray[np.bool_] | None) -> npt.NDArray[Any]:

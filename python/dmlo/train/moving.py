@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 import dmlo_rs
 from dmlo.datasets import moving_mask, open_sequence
+from dmlo.odometry.moving import range_and_height
 
 if TYPE_CHECKING:
     import torch
@@ -43,12 +44,8 @@ class LabelledImages:
 def project_labelled(points: NDArray[np.float32], labels: NDArray[np.uint32], cylinder: dmlo_rs.CylinderConfig
                      ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
     """A labelled scan's range, height and moving target images (the target of a cell: its kept point's)."""
-    projection = dmlo_rs.project(points, cylinder)
-    index = projection.index
-    kept = np.maximum(index, 0)
-    height = np.where(index >= 0, points[kept, 2], 0.0).astype(np.float32)
-    moving = (index >= 0) & moving_mask(labels)[kept]
-    return np.asarray(projection.range), height, moving
+    ranges, height, index = range_and_height(points, cylinder)
+    return ranges, height, (index >= 0) & moving_mask(labels)[np.maximum(index, 0)]
 
 
 def load_drives(folders: list[Path], cylinder: dmlo_rs.CylinderConfig, stride: int = 1) -> LabelledImages:
