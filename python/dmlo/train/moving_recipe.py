@@ -6,8 +6,8 @@ simulates the labelled drives (skipping those already written; deterministic per
 traffic in the lanes and across, residential streets with the kerbs and parked cars close (`--scene
 narrow`), traffic jams whose cars keep pace with the ego (`--escorts`), highways with and without them,
 skewed sweeps and per-laser gains — and trains `dmlo.train.moving` on them,
-resuming from `RUN_DIR/moving.pt`, so the same command continues an interrupted run. About 10 minutes on
-2 CPU cores; on a GPU a few. Then copy `RUN_DIR/moving.onnx` to `python/dmlo/models/default/`.
+resuming from `RUN_DIR/moving.pt`, so the same command continues an interrupted run; small enough for 2 CPU
+cores (its time: docs/training.md). Then copy `RUN_DIR/moving.onnx` to `python/dmlo/models/default/`.
 """
 
 from __future__ import annotations
