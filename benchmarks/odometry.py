@@ -11,7 +11,9 @@ sparse poles) along KITTI 01's trajectory (~1 m a frame), its lasers' reflectanc
 feature-poor scene where the road's rings lock from scan to scan. With `--jam SEED` a named traffic jam is
 added: a generated route with crossing traffic, six cars keeping pace with the ego (a lead car and a
 follower in its lane, two in each lane beside it; `--escorts`), the scene where the cars around the ego
-outnumber the static scene's matches.
+outnumber the static scene's matches. With `--stop-and-go SEED` a named stop-and-go drive is added
+(`--scene stop-and-go`): the ego crawls at 0.5–3 m/s and stands for seconds at a time in a queue that
+stops and goes with it, while the oncoming lane and the cross streets' traffic pass.
 
 With `--motion-distortion` the drives are simulated with skewed sweeps (every column cast from the pose of
 the moment it fires, as a real spinning sensor's) and DMLO runs with and without deskewing
@@ -61,6 +63,8 @@ def main() -> None:
                         help="add the named highway drive of this scene seed (along KITTI 01)")
     parser.add_argument("--jam", type=int, default=None, metavar="SEED",
                         help="add the named traffic-jam drive of this scene seed (a generated route)")
+    parser.add_argument("--stop-and-go", type=int, default=None, metavar="SEED",
+                        help="add the named stop-and-go drive of this scene seed (a generated crawl with standstills)")
     parser.add_argument("--keep-moving", action="store_true",
                         help="add rows for DMLO without the moving-object network (moving_objects.detect = false)")
     parser.add_argument("--out", type=Path, default=Path("runs/bench_odometry"))
@@ -71,6 +75,8 @@ def main() -> None:
         drives.append((args.highway, HIGHWAY_TRAJECTORY, "highway"))
     if args.jam is not None:
         drives.append((args.jam, None, "jam"))
+    if args.stop_and_go is not None:
+        drives.append((args.stop_and_go, None, "stop-and-go"))
     for seed, trajectory_name, scene in drives:
         trajectory = args.poses / f"{trajectory_name or 'generated'}.txt"
         drive = args.out / (f"drive_seed{seed}" if scene == "street" else f"{scene}_seed{seed}")
@@ -79,7 +85,7 @@ def main() -> None:
                               trajectory=trajectory if trajectory_name and trajectory.is_file() else None,
                               motion_distortion=args.motion_distortion, scene="street" if scene == "jam" else scene,
                               laser_gain_spread=HIGHWAY_LASER_GAIN_SPREAD if scene == "highway" else 0.0,
-                              traffic="mixed" if scene == "jam" else "lanes", escorts=scene == "jam")
+                              traffic="mixed" if scene in ("jam", "stop-and-go") else "lanes", escorts=scene == "jam")
         elif _skewed(drive) != args.motion_distortion:
             parser.error(f"{drive} holds drives {'with' if _skewed(drive) else 'without'} motion distortion; "
                          "choose another --out")

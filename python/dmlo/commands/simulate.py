@@ -60,11 +60,13 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--scene",
-        choices=("street", "highway", "narrow"),
+        choices=("street", "highway", "narrow", "stop-and-go"),
         default="street",
         help="street: buildings, furniture, parked cars (default); narrow: a residential street, kerbs 3.5-5.5 m "
         "away and cars parked along them, no lanes beside the ego's; highway: wide asphalt, guard rails, sparse "
-        "sign poles, fast lanes (drive it along a highway trajectory, e.g. KITTI 01's)",
+        "sign poles, fast lanes (drive it along a highway trajectory, e.g. KITTI 01's); stop-and-go: a street in a "
+        "traffic jam, the queue in the ego's lane and the one to its right stopping and going with it, the oncoming "
+        "lane flowing (without --trajectory the ego crawls and stands)",
     )
     parser.add_argument(
         "--laser-gain-spread",

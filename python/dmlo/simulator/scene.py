@@ -49,7 +49,7 @@ from dmlo.simulator.trajectory import FRAME_RATE_HZ
 
 __all__ = ["TRAFFIC", "MovingCar", "PathCar", "StreetLayout", "StreetPath", "StreetScene", "generate_street"]
 
-SCENES = ("street", "highway", "narrow")
+SCENES = ("street", "highway", "narrow", "stop-and-go")
 TERRAIN_CELL = 5.0
 TERRAIN_REACH = 140.0
 
@@ -208,7 +208,10 @@ def generate_street(
     asphalt, guard rails, sparse sign poles and trees, fast traffic in the lanes beside the ego's).
     `"narrow"`: a residential street, the kerbs 3.5–5.5 m from the ego's path and cars parked along them,
     without the lanes of traffic beside the ego's (crossing traffic with `"mixed"`; escorts only ahead and
-    behind). `escorts`: cars that keep pace with the ego (`EscortCar`), as in a traffic jam."""
+    behind). `"stop-and-go"`: a street in a traffic jam — the escorts (always on) fill the ego's lane and
+    the lane on its right and stop and go with the ego, while the oncoming lane flows at 6–15 m/s (drive
+    it with `generate_stop_and_go`). `escorts`: cars that keep pace with the ego (`EscortCar`), as in a
+    traffic jam."""
     if traffic not in TRAFFIC:
         raise ValueError(f"traffic: unknown {traffic!r}; known: {', '.join(TRAFFIC)}")
     if scene not in SCENES:
@@ -217,10 +220,13 @@ def generate_street(
         raise ValueError("traffic: a highway has no cross streets; only 'lanes' traffic")
     rng = np.random.default_rng([seed, 0x5CE7E])
     path = StreetPath(lidar_poses, mount_height)
-    escort_cars = _escort_cars(np.random.default_rng([seed, 0xE5C0]), 70000) if escorts else []
+    jam = scene == "stop-and-go"
+    escort_cars = _escort_cars(np.random.default_rng([seed, 0xE5C0]), 70000) if escorts or jam else []
     narrow = scene == "narrow"
     if narrow:  # no lane beside the ego's
         escort_cars = [car for car in escort_cars if abs(car.lateral) < 1.0]
+    if jam:  # the queue fills the ego's lane and the one on its right; the oncoming lane flows
+        escort_cars = [car for car in escort_cars if car.lateral < 1.0]
     if scene == "highway":
         highway = _highway(path, rng)
         highway.escort_cars = escort_cars
@@ -240,7 +246,8 @@ def generate_street(
         _add_roadside(prims, path, layout, side, rng)
         _add_furniture(prims, path, layout, side, rng, instances)
         _add_parked_cars(prims, path, layout, side, rng, instances)
-    moving = _moving_cars(path, layout, rng, instances, lanes=() if narrow else _STREET_LANES)
+    lanes = () if narrow else _STREET_LANES[:1] if jam else _STREET_LANES
+    moving = _moving_cars(path, layout, rng, instances, lanes=lanes)
     cross = None
     if traffic == "mixed":
         cross = add_cross_traffic(

@@ -21,6 +21,7 @@ from dmlo.simulator.trajectory import (
     KITTI_TR,
     camera_to_lidar_poses,
     generate_drive,
+    generate_stop_and_go,
     orthonormalize,
     read_kitti_calib_tr,
     read_kitti_poses,
@@ -72,7 +73,9 @@ def simulate_sequence(
     and cars turning into and out of it, each on its own path; see `dmlo.simulator.traffic`). `scene`:
     `"street"`, `"narrow"` (a residential street: kerbs 3.5–5.5 m away, no lanes beside the ego's) or
     `"highway"` (guard rails, sparse sign poles, fast lanes; `dmlo.simulator.highway`; drive it
-    along a highway trajectory such as KITTI 01's). `laser_gain_spread`: each laser's reflectance scaled by a
+    along a highway trajectory such as KITTI 01's) or `"stop-and-go"` (a street in a traffic jam: the
+    queue around the ego stops and goes with it while the oncoming lane flows; without a `trajectory` the
+    ego crawls and stands, `generate_stop_and_go`). `laser_gain_spread`: each laser's reflectance scaled by a
     gain of its own, drawn uniformly from 1 ± the spread (0: all equal, as earlier versions): a real sensor's
     lasers differ in their intensity calibration, so the road's rings differ in brightness, and those
     stripes move with the sensor, not with the road (with 0.6 on a highway the rings lock as on real scans).
@@ -119,7 +122,7 @@ def simulate_sequence(
     else:
         if start != 0:
             raise ValueError("start: only meaningful with a trajectory file")
-        lidar_poses = generate_drive(frames, seed)
+        lidar_poses = generate_stop_and_go(frames, seed) if scene == "stop-and-go" else generate_drive(frames, seed)
 
     out = Path(out_dir)
     writer = make_layout(layout_name, model, tr)
@@ -197,7 +200,7 @@ def simulate_sequence(
         "traffic": traffic,
         "scene": scene,
         "laser_gain_spread": laser_gain_spread,
-        "escorts": escorts,
+        "escorts": escorts or scene == "stop-and-go",
         "moving_cars": len(street.moving_cars) + len(street.path_cars) + len(street.escort_cars),
         "motion_distortion": motion_distortion,
     }

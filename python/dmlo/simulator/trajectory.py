@@ -171,6 +171,47 @@ def generate_drive(frames: int, seed: int, rate_hz: float = FRAME_RATE_HZ) -> np
     return np.linalg.inv(poses[0]) @ poses
 
 
+def generate_stop_and_go(frames: int, seed: int, rate_hz: float = FRAME_RATE_HZ) -> npt.NDArray[np.float64]:
+    """A drive in a traffic jam as (frames, 4, 4) `T_world_lidar`, frame 0 at identity: crawling at
+    0.5–3 m/s for 2–5 s, braking to a standstill, standing 2–5 s, pulling away again, along a gently
+    curving street; the first stop comes within the first 3 s so that short drives stand too.
+
+    The speeds and accelerations (braking at 1.2, pulling away at 1 m/s²) are those of stop-and-go traffic, where a car creeps
+    a few centimetres to a few decimetres a frame and the scene's moving cars outnumber its motion.
+    """
+    if frames < 1:
+        raise ValueError(f"frames: must be at least 1, got {frames}")
+    rng = np.random.default_rng([seed, 0x57A6])
+    dt = 1.0 / rate_hz
+    speed = float(rng.uniform(1.0, 3.0))
+    target_speed, phase_left = speed, float(rng.uniform(1.0, 3.0))
+    standing = False
+    yaw_rate = float(rng.normal(0.0, 0.01))
+    x = y = yaw = 0.0
+    poses = np.empty((frames, 4, 4))
+    for k in range(frames):
+        pose = np.eye(4)
+        pose[:3, :3] = _rotation_z_y(yaw, 0.0)
+        pose[:3, 3] = (x, y, 0.0)
+        poses[k] = pose
+        phase_left -= dt
+        if target_speed > 0.0 and phase_left <= 0.0:
+            target_speed = 0.0  # brake
+        elif target_speed == 0.0 and speed == 0.0 and not standing:
+            standing, phase_left = True, float(rng.uniform(2.0, 5.0))
+        elif standing and phase_left <= 0.0:
+            standing = False
+            target_speed, phase_left = float(rng.uniform(0.5, 3.0)), float(rng.uniform(2.0, 5.0))
+            yaw_rate = float(rng.normal(0.0, 0.01))
+        # Constant braking and pulling away, as in a queue, not an exponential approach.
+        rate = 1.2 if target_speed < speed else 1.0
+        speed = float(np.clip(target_speed, speed - rate * dt, speed + rate * dt))
+        yaw += yaw_rate * speed * dt
+        x += speed * dt * np.cos(yaw)
+        y += speed * dt * np.sin(yaw)
+    return poses
+
+
 def _rotation_log(rotation: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     """Axis-angle vector of a 3×3 rotation (angle < π)."""
     angle = np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))
