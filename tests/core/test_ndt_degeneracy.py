@@ -207,6 +207,7 @@ def test_a_standing_car_adds_no_keyframes(straight_drive: Path) -> None:
     [
         ("mapping", "keyframe_distance"),
         ("mapping", "keyframe_angle_deg"),
+        ("mapping", "ring_lock_distance"),
         ("mapping", "motion_model_start_distance"),
         ("mapping", "motion_model_start_angle_deg"),
         ("motion_model", "max_deviation"),

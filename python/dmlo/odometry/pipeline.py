@@ -48,6 +48,11 @@ Matrix4 = npt.NDArray[np.float64]
 # VLP-32C 13 %. A network only knows the images it was trained on, so far emptier images mean a sensor
 # the model was not made for, and poses that cannot be trusted.
 LOW_IMAGE_FILL = 0.35
+# Near a keyframe (`_refine_near_keyframe`): the horizontal part of a surface's normal from which it counts as
+# upright, and how close to the keyframe (m, °) the upright surfaces must put the car to call it standing.
+UPRIGHT_VOTE = 0.5
+STANDING_DISTANCE = 0.02
+STANDING_ANGLE_DEG = 0.1
 
 
 class SensorMismatchWarning(UserWarning):
@@ -83,6 +88,9 @@ class FrameDiagnostics:
     backward_inliers: int | None = None
     ndt_converged: bool | None = None
     ndt_degenerate_directions: int | None = None  # pose directions the map did not constrain (kept as DMLO's)
+    # with mapping: the horizontal motion and heading came from the scan's upright surfaces alone, the newest
+    # keyframe being near and its ground rings liable to hold the car in place (`mapping.ring_lock_distance`)
+    ndt_upright_only: bool | None = None
     map_keyframe: bool | None = None  # with mapping: the scan entered the map (it moved far enough from the last)
     ndt_start: str | None = None  # the NDT start that won: "dmlo", or "motion_model" when DMLO's pose was off
     # points the moving-object network left out (`moving_objects`); None when it did not run (labels given,
@@ -112,6 +120,7 @@ class FrameDiagnostics:
             "backward_inliers": self.backward_inliers,
             "ndt_converged": self.ndt_converged,
             "ndt_degenerate_directions": self.ndt_degenerate_directions,
+            "ndt_upright_only": self.ndt_upright_only,
             "map_keyframe": self.map_keyframe,
             "ndt_start": self.ndt_start,
             "num_moving_predicted": self.num_moving_predicted,
@@ -295,7 +304,7 @@ class Odometry:
             motion = self._motion_from_flow(previous, image, ranges, points, output, diagnostics, watch)
             pose = previous.pose @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
             if self._map is not None:
-                pose = self._refine_with_map(cloud, pose, diagnostics)
+                pose = self._refine_with_map(cloud, pose, diagnostics, self._upright_near_keyframe(points, pose, diagnostics))
                 watch.lap("ndt")
             self._update_velocity(previous.pose, pose, self._clock.frame - self._reference_frame)
         if self._map is not None:
@@ -902,6 +911,60 @@ class Odometry:
         c = self.config.mapping
         return dmlo_rs.NdtMap(voxel_size=c.voxel_size, max_scans=c.max_scans)
 
+    def _upright_near_keyframe(
+        self, points: npt.NDArray[np.float32], pose: Matrix4, diagnostics: FrameDiagnostics
+    ) -> npt.NDArray[np.float32] | None:
+        """Near the newest keyframe (`mapping.ring_lock_distance`), the scan's upright surfaces: each cell's
+        kept point of the point image `points` whose surface's normal is mostly horizontal (walls, poles,
+        trunks, car bodies); None farther away, where the whole scan is aligned as it is."""
+        near = self.config.mapping.ring_lock_distance
+        diagnostics.ndt_upright_only = False
+        if self._last_keyframe is None or pose_difference(self._last_keyframe, pose)[0] >= near:
+            return None
+        rows, cols = np.nonzero(np.isfinite(points[..., 0]))
+        voxel = self.config.mapping.downsample
+        if voxel > 0:  # one cell per voxel NDT aligns: a plane fit for every cell would cost more than NDT
+            keys = np.floor(points[rows, cols] / voxel).astype(np.int64) + (1 << 20)
+            # One integer a voxel (a sort of rows is many times slower); voxels a million apart may share it.
+            _, first = np.unique((keys[:, 0] << 42) + (keys[:, 1] << 21) + keys[:, 2], return_index=True)
+            rows, cols = rows[first], cols[first]
+        votes = dmlo_rs.horizontal_votes(points, rows, cols, self.cylinder, floor=UPRIGHT_VOTE / 2)
+        upright = votes >= UPRIGHT_VOTE
+        return points[rows[upright], cols[upright]]
+
+    def _refine_near_keyframe(
+        self, cloud: npt.NDArray[np.float32], upright: npt.NDArray[np.float32], pose: Matrix4,
+        diagnostics: FrameDiagnostics,
+    ) -> Matrix4 | None:
+        """NDT near the newest keyframe, where its ground rings would hold a creeping car in place.
+
+        The rings sit at fixed ranges from the sensor, so a keyframe taken where the car still is shows its
+        rings where the scan's own lie if the car stood still (in a stop-and-go queue, with the cars around
+        it left out, the road is most of what remains). The upright surfaces alone give the horizontal
+        motion and the heading; the whole scan, aligned from there, gives the height, roll and pitch, which
+        the road pins and the upright surfaces barely do (LeGO-LOAM's split). A car that the upright
+        surfaces find standing at the keyframe takes the whole scan's alignment, rings and all: they are
+        right then. None when the upright alignment fails (the caller aligns the whole scan).
+        """
+        assert self._last_keyframe is not None
+        try:
+            horizontal = self._align(upright, pose)
+            whole = self._align(cloud, np.asarray(horizontal.transform, dtype=np.float64))
+        except dmlo_rs.RegistrationError:
+            return None
+        if not (horizontal.converged and whole.converged):
+            return None
+        diagnostics.ndt_converged = True
+        diagnostics.ndt_start = "dmlo"
+        diagnostics.ndt_degenerate_directions = int(whole.degenerate_directions)
+        horizontal_pose = np.asarray(horizontal.transform, dtype=np.float64)
+        whole_pose = np.asarray(whole.transform, dtype=np.float64)
+        moved, turned = pose_difference(self._last_keyframe, horizontal_pose)
+        if moved < STANDING_DISTANCE and turned < STANDING_ANGLE_DEG:
+            return whole_pose
+        diagnostics.ndt_upright_only = True
+        return _heading_and_level(horizontal_pose, whole_pose)
+
     def _is_keyframe(self, pose: Matrix4) -> bool:
         """Whether the scan moved or turned far enough from the newest map scan to enter the map.
 
@@ -916,11 +979,17 @@ class Odometry:
         return moved >= c.keyframe_distance or turned >= c.keyframe_angle_deg
 
     def _refine_with_map(
-        self, cloud: npt.NDArray[np.float32], pose: Matrix4, diagnostics: FrameDiagnostics
+        self, cloud: npt.NDArray[np.float32], pose: Matrix4, diagnostics: FrameDiagnostics,
+        upright: npt.NDArray[np.float32] | None = None,
     ) -> Matrix4:
         """NDT from the DMLO pose and, when that pose leaves the motion model far behind, also from the
         constant-velocity prediction: a wrong RANSAC consensus (a metre off, seen on a simulated drive)
-        lies outside NDT's basin, and the start whose alignment scores higher wins."""
+        lies outside NDT's basin, and the start whose alignment scores higher wins. With `upright` (the
+        scan's upright surfaces, near the newest keyframe) `_refine_near_keyframe` first."""
+        if upright is not None:
+            refined = self._refine_near_keyframe(cloud, upright, pose, diagnostics)
+            if refined is not None:
+                return refined
         c = self.config.mapping
         starts = {"dmlo": pose}
         within_horizon = self._clock.frame - self._reference_frame <= self.config.motion_model.prediction_horizon
@@ -991,6 +1060,26 @@ def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> P
         inlier_votes=None if forward.inlier_votes is None or reverse.inlier_votes is None
         else forward.inlier_votes + reverse.inlier_votes,
     )
+
+
+def _heading_and_level(horizontal: Matrix4, level: Matrix4) -> Matrix4:
+    """A pose with the horizontal position and the heading (yaw) of `horizontal` and the height, roll and
+    pitch (Z-Y-X angles) of `level`."""
+
+    def angles(rotation: npt.NDArray[np.float64]) -> tuple[float, float, float]:
+        yaw = np.arctan2(rotation[1, 0], rotation[0, 0])
+        pitch = -np.arcsin(np.clip(rotation[2, 0], -1.0, 1.0))
+        roll = np.arctan2(rotation[2, 1], rotation[2, 2])
+        return yaw, pitch, roll
+
+    yaw, _, _ = angles(horizontal[:3, :3])
+    _, pitch, roll = angles(level[:3, :3])
+    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array(
+        [[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    pose[:3, 3] = (horizontal[0, 3], horizontal[1, 3], level[2, 3])
+    return pose
 
 
 def _voxel_crowding(points: npt.NDArray[np.float64], voxel: float) -> npt.NDArray[np.int64]:
