@@ -52,17 +52,39 @@ def test_the_maps_rings_no_longer_hold_a_creeping_car_in_place(queue: Path) -> N
     assert standing.sum() >= 5 and errors[standing].max() < 1.0, errors[standing]
 
 
+def test_a_creeping_pair_is_not_held_together_by_the_reference_scans_rings(queue: Path) -> None:
+    sequence = open_sequence(queue)
+
+    def errors_cm(config: OdometryConfig, pairs: tuple[int, ...]) -> list[float]:
+        odometry = Odometry.from_default(config)
+        errors = []
+        for k in pairs:
+            reference, target = sequence[k], sequence[k + 1]
+            truth = np.linalg.inv(target.pose) @ reference.pose
+            result = odometry.register_pair(reference.points, target.points)
+            assert result.map_refined
+            errors.append(float(np.linalg.norm((np.linalg.inv(truth) @ result.T_tgt_ref)[:3, 3]) * 100))
+        return errors
+
+    creeping, standing = (0, 6, 12), (30, 40)  # 10.8 cm a pair; none
+    locked = OdometryConfig()
+    locked.mapping.ring_lock_distance = 0.0
+    assert min(errors_cm(locked, creeping)) > 8.0  # reported as good as standing
+    errors = errors_cm(OdometryConfig(), creeping + standing)
+    assert max(errors[:3]) < 1.5 and max(errors[3:]) < 0.3, errors
+
+
 def test_heading_and_level_take_their_angles_and_position_from_either_pose() -> None:
     from scipy.spatial.transform import Rotation
 
-    from dmlo.odometry.pipeline import _heading_and_level
+    from dmlo.odometry.mapping import heading_and_level
 
     horizontal, level = np.eye(4), np.eye(4)
     horizontal[:3, :3] = Rotation.from_euler("ZYX", [2.9, 0.01, -0.02]).as_matrix()
     horizontal[:3, 3] = (10.0, -4.0, 0.3)
     level[:3, :3] = Rotation.from_euler("ZYX", [2.8, -0.05, 0.04]).as_matrix()
     level[:3, 3] = (10.2, -4.1, 0.5)
-    pose = _heading_and_level(horizontal, level)
+    pose = heading_and_level(horizontal, level)
     np.testing.assert_allclose(Rotation.from_matrix(pose[:3, :3]).as_euler("ZYX"), [2.9, -0.05, 0.04], atol=1e-12)
     np.testing.assert_allclose(pose[:3, 3], [10.0, -4.0, 0.5])
     np.testing.assert_allclose(pose[3], [0, 0, 0, 1])

@@ -159,8 +159,9 @@ class MotionModelConfig:
     match_from_prediction_m: Positive | None = 1.5
     # Matching rounds from the prediction at most (each projects, encodes and matches the moved reference
     # again): the first carries the pair within the window, later ones refine while the correction exceeds
-    # `large_motion.min_step`.
-    prediction_rounds: AtLeastOne = 2
+    # `large_motion.min_step`. None: 1 with mapping, whose NDT takes out what a second round would, and 2
+    # without.
+    prediction_rounds: AtLeastOne | None = None
 
 
 @with_config(_SCHEMA)

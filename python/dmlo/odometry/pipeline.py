@@ -23,7 +23,7 @@ from dmlo.poses import midpoint_motion
 from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
-from dmlo.odometry.mapping import refine_pair
+from dmlo.odometry.mapping import align_near_keyframe, near_keyframe, refine_pair, upright_points
 from dmlo.odometry.pair import PairResult
 from dmlo.odometry import reflectance
 from dmlo.odometry.reflectance import ReflectanceNotice
@@ -48,11 +48,6 @@ Matrix4 = npt.NDArray[np.float64]
 # VLP-32C 13 %. A network only knows the images it was trained on, so far emptier images mean a sensor
 # the model was not made for, and poses that cannot be trusted.
 LOW_IMAGE_FILL = 0.35
-# Near a keyframe (`_refine_near_keyframe`): the horizontal part of a surface's normal from which it counts as
-# upright, and how close to the keyframe (m, °) the upright surfaces must put the car to call it standing.
-UPRIGHT_VOTE = 0.5
-STANDING_DISTANCE = 0.02
-STANDING_ANGLE_DEG = 0.1
 
 
 class SensorMismatchWarning(UserWarning):
@@ -400,7 +395,9 @@ class Odometry:
         output = self.matcher.frame(tgt_image, ref_features)
         pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features, ref_points, tgt_points)
         if self.config.mapping.enabled and pair.num_inliers >= self.config.motion_model.min_inliers:
-            refined = refine_pair(reference_cloud, target_cloud, pair.T_tgt_ref, self.config.mapping)
+            near = near_keyframe(np.eye(4), np.linalg.inv(pair.T_tgt_ref), self.config.mapping)
+            upright = upright_points(tgt_points, self.cylinder, self.config.mapping.downsample) if near else None
+            refined = refine_pair(reference_cloud, target_cloud, pair.T_tgt_ref, self.config.mapping, upright)
             pair.map_refined = refined is not None
             pair.T_tgt_ref = pair.T_tgt_ref if refined is None else refined
         return pair
@@ -758,6 +755,10 @@ class Odometry:
         moved, _ = pose_difference(np.eye(4), self._predicted_motion(gap))
         return bool(moved > limit)
 
+    def _prediction_rounds(self) -> int:
+        rounds = self.config.motion_model.prediction_rounds
+        return rounds if rounds is not None else 1 if self.config.mapping.enabled else 2
+
     def _matched_from_prediction(
         self,
         previous: _Scan,
@@ -769,7 +770,7 @@ class Odometry:
         """The pair matched in rounds from the prediction (`_beyond_window`), its matches voted as for
         consecutive scans; no inliers when not one round kept `motion_model.min_inliers` of them."""
         again = rematch(
-            previous.cloud, predicted, tgt_range, tgt_features, rounds=range(1, self.config.motion_model.prediction_rounds + 1),
+            previous.cloud, predicted, tgt_range, tgt_features, rounds=range(1, self._prediction_rounds() + 1),
             last_correction=None, matcher=self.matcher, project=self._project, match=self._match,
             config=self.config.large_motion, min_inliers=self.config.motion_model.min_inliers, tilt_votes=True,
         )
@@ -914,56 +915,28 @@ class Odometry:
     def _upright_near_keyframe(
         self, points: npt.NDArray[np.float32], pose: Matrix4, diagnostics: FrameDiagnostics
     ) -> npt.NDArray[np.float32] | None:
-        """Near the newest keyframe (`mapping.ring_lock_distance`), the scan's upright surfaces: each cell's
-        kept point of the point image `points` whose surface's normal is mostly horizontal (walls, poles,
-        trunks, car bodies); None farther away, where the whole scan is aligned as it is."""
-        near = self.config.mapping.ring_lock_distance
+        """Near the newest keyframe (`mapping.ring_lock_distance`) the scan's upright surfaces
+        (`upright_points`); None farther away, where the whole scan is aligned as it is."""
         diagnostics.ndt_upright_only = False
-        if self._last_keyframe is None or pose_difference(self._last_keyframe, pose)[0] >= near:
+        if self._last_keyframe is None or not near_keyframe(self._last_keyframe, pose, self.config.mapping):
             return None
-        rows, cols = np.nonzero(np.isfinite(points[..., 0]))
-        voxel = self.config.mapping.downsample
-        if voxel > 0:  # one cell per voxel NDT aligns: a plane fit for every cell would cost more than NDT
-            keys = np.floor(points[rows, cols] / voxel).astype(np.int64) + (1 << 20)
-            # One integer a voxel (a sort of rows is many times slower); voxels a million apart may share it.
-            _, first = np.unique((keys[:, 0] << 42) + (keys[:, 1] << 21) + keys[:, 2], return_index=True)
-            rows, cols = rows[first], cols[first]
-        votes = dmlo_rs.horizontal_votes(points, rows, cols, self.cylinder, floor=UPRIGHT_VOTE / 2)
-        upright = votes >= UPRIGHT_VOTE
-        return points[rows[upright], cols[upright]]
+        return upright_points(points, self.cylinder, self.config.mapping.downsample)
 
     def _refine_near_keyframe(
         self, cloud: npt.NDArray[np.float32], upright: npt.NDArray[np.float32], pose: Matrix4,
         diagnostics: FrameDiagnostics,
     ) -> Matrix4 | None:
-        """NDT near the newest keyframe, where its ground rings would hold a creeping car in place.
-
-        The rings sit at fixed ranges from the sensor, so a keyframe taken where the car still is shows its
-        rings where the scan's own lie if the car stood still (in a stop-and-go queue, with the cars around
-        it left out, the road is most of what remains). The upright surfaces alone give the horizontal
-        motion and the heading; the whole scan, aligned from there, gives the height, roll and pitch, which
-        the road pins and the upright surfaces barely do (LeGO-LOAM's split). A car that the upright
-        surfaces find standing at the keyframe takes the whole scan's alignment, rings and all: they are
-        right then. None when the upright alignment fails (the caller aligns the whole scan).
-        """
+        """`align_near_keyframe` against the local map; None when an alignment fails (the caller aligns the
+        whole scan)."""
         assert self._last_keyframe is not None
-        try:
-            horizontal = self._align(upright, pose)
-            whole = self._align(cloud, np.asarray(horizontal.transform, dtype=np.float64))
-        except dmlo_rs.RegistrationError:
-            return None
-        if not (horizontal.converged and whole.converged):
+        near = align_near_keyframe(self._align, cloud, upright, pose, self._last_keyframe)
+        if near is None:
             return None
         diagnostics.ndt_converged = True
         diagnostics.ndt_start = "dmlo"
-        diagnostics.ndt_degenerate_directions = int(whole.degenerate_directions)
-        horizontal_pose = np.asarray(horizontal.transform, dtype=np.float64)
-        whole_pose = np.asarray(whole.transform, dtype=np.float64)
-        moved, turned = pose_difference(self._last_keyframe, horizontal_pose)
-        if moved < STANDING_DISTANCE and turned < STANDING_ANGLE_DEG:
-            return whole_pose
-        diagnostics.ndt_upright_only = True
-        return _heading_and_level(horizontal_pose, whole_pose)
+        diagnostics.ndt_degenerate_directions = near.degenerate_directions
+        diagnostics.ndt_upright_only = near.split
+        return near.pose
 
     def _is_keyframe(self, pose: Matrix4) -> bool:
         """Whether the scan moved or turned far enough from the newest map scan to enter the map.
@@ -1060,26 +1033,6 @@ def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> P
         inlier_votes=None if forward.inlier_votes is None or reverse.inlier_votes is None
         else forward.inlier_votes + reverse.inlier_votes,
     )
-
-
-def _heading_and_level(horizontal: Matrix4, level: Matrix4) -> Matrix4:
-    """A pose with the horizontal position and the heading (yaw) of `horizontal` and the height, roll and
-    pitch (Z-Y-X angles) of `level`."""
-
-    def angles(rotation: npt.NDArray[np.float64]) -> tuple[float, float, float]:
-        yaw = np.arctan2(rotation[1, 0], rotation[0, 0])
-        pitch = -np.arcsin(np.clip(rotation[2, 0], -1.0, 1.0))
-        roll = np.arctan2(rotation[2, 1], rotation[2, 2])
-        return yaw, pitch, roll
-
-    yaw, _, _ = angles(horizontal[:3, :3])
-    _, pitch, roll = angles(level[:3, :3])
-    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
-    pose = np.eye(4)
-    pose[:3, :3] = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array(
-        [[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    pose[:3, 3] = (horizontal[0, 3], horizontal[1, 3], level[2, 3])
-    return pose
 
 
 def _voxel_crowding(points: npt.NDArray[np.float64], voxel: float) -> npt.NDArray[np.int64]:
