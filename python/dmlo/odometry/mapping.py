@@ -146,10 +146,11 @@ def refine_pair(
             rotation_degeneracy_threshold=config.rotation_degeneracy_threshold,
         )
 
-    start = np.linalg.inv(T_tgt_ref)  # the map is the reference's frame: the target's pose in it
+    # The map is the reference's frame: the target's pose in it.
+    start: Matrix4 = np.asarray(np.linalg.inv(T_tgt_ref), dtype=np.float64)
     if target_upright is not None and near_keyframe(np.eye(4), start, config):
         near = align_near_keyframe(align, target, target_upright, start, np.eye(4))
-        return None if near is None else np.linalg.inv(near.pose)
+        return None if near is None else np.asarray(np.linalg.inv(near.pose), dtype=np.float64)
     try:
         result = align(target, start)
     except dmlo_rs.RegistrationError:

@@ -395,7 +395,8 @@ class Odometry:
         output = self.matcher.frame(tgt_image, ref_features)
         pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features, ref_points, tgt_points)
         if self.config.mapping.enabled and pair.num_inliers >= self.config.motion_model.min_inliers:
-            near = near_keyframe(np.eye(4), np.linalg.inv(pair.T_tgt_ref), self.config.mapping)
+            target_pose = np.asarray(np.linalg.inv(pair.T_tgt_ref), dtype=np.float64)
+            near = near_keyframe(np.eye(4), target_pose, self.config.mapping)
             upright = upright_points(tgt_points, self.cylinder, self.config.mapping.downsample) if near else None
             refined = refine_pair(reference_cloud, target_cloud, pair.T_tgt_ref, self.config.mapping, upright)
             pair.map_refined = refined is not None
