@@ -5,7 +5,8 @@ the horizontal motion and heading come from the scan's upright surfaces alone (`
 
 `Odometry.register` refines every pose by NDT against its local map of recent scans. A pair given to
 `Odometry.register_pair` has no drive behind it, so its map is the reference scan (`refine_pair`): the
-target is aligned to it by NDT from the motion DMLO found. The network's matches bring the pair within NDT's
+target is aligned to it by NDT from the motion DMLO found (a slow pair by `dmlo.odometry.projective`
+instead). The network's matches bring the pair within NDT's
 basin with no initial guess; NDT, fitting every point of both scans rather than a few hundred matches, then
 takes the error the matches leave (their bearing error grows with range).
 """
@@ -47,6 +48,13 @@ def near_keyframe(keyframe: Matrix4, pose: Matrix4, config: MappingConfig) -> bo
     return pose_difference(keyframe, pose)[0] < config.ring_lock_distance
 
 
+def standing(keyframe: Matrix4, pose: Matrix4) -> bool:
+    """Whether `pose` lies within `STANDING_DISTANCE` and `STANDING_ANGLE_DEG` of the `keyframe` pose: a car
+    that has not moved."""
+    moved, turned = pose_difference(keyframe, pose)
+    return moved < STANDING_DISTANCE and turned < STANDING_ANGLE_DEG
+
+
 def upright_points(points: npt.NDArray[np.float32], cylinder: Any, voxel: float) -> npt.NDArray[np.float32]:
     """The upright surfaces of a scan's point image `points` (`[H, W, 3]`, NaN where empty): each kept point
     whose surface's normal is mostly horizontal (`dmlo_rs.horizontal_votes`: walls, poles, trunks, car
@@ -82,14 +90,10 @@ def align_near_keyframe(
     are right then. None when an alignment fails or does not converge.
     """
 
-    def standing(pose: Matrix4) -> bool:
-        moved, turned = pose_difference(keyframe, pose)
-        return moved < STANDING_DISTANCE and turned < STANDING_ANGLE_DEG
-
     try:
         # The upright surfaces alone fix the pose less well than the whole scan (fewer points, a
         # corridor's walls): a car the DMLO estimate already puts at the keyframe is not moved by them.
-        horizontal = None if standing(start) else align(upright, start)
+        horizontal = None if standing(keyframe, start) else align(upright, start)
         if horizontal is not None and not horizontal.converged:
             return None
         horizontal_pose = start if horizontal is None else np.asarray(horizontal.transform, dtype=np.float64)
@@ -99,7 +103,7 @@ def align_near_keyframe(
     if not whole.converged:
         return None
     whole_pose = np.asarray(whole.transform, dtype=np.float64)
-    if standing(horizontal_pose):
+    if standing(keyframe, horizontal_pose):
         return NearKeyframe(whole_pose, int(whole.degenerate_directions), split=False)
     return NearKeyframe(heading_and_level(horizontal_pose, whole_pose), int(whole.degenerate_directions), split=True)
 
@@ -125,36 +129,23 @@ def heading_and_level(horizontal: Matrix4, level: Matrix4) -> Matrix4:
 
 
 def refine_pair(
-    reference: npt.NDArray[np.float32], target: npt.NDArray[np.float32], T_tgt_ref: Matrix4, config: MappingConfig,
-    target_upright: npt.NDArray[np.float32] | None = None,
+    reference: npt.NDArray[np.float32], target: npt.NDArray[np.float32], T_tgt_ref: Matrix4, config: MappingConfig
 ) -> Matrix4 | None:
     """`T_tgt_ref` refined by NDT of `target` against a map of `reference` (both N×3 or N×4, their own sensor
-    frames), with the local map's settings; None when NDT finds too few correspondences or does not converge.
-    Within `config.ring_lock_distance` of the reference, with the target's upright surfaces given
-    (`target_upright`, `upright_points`), the reference's rings would hold the pair together:
-    `align_near_keyframe`."""
+    frames), with the local map's settings; None when NDT finds too few correspondences or does not converge."""
     one_scan = dmlo_rs.NdtMap(voxel_size=config.voxel_size, max_scans=1)
     one_scan.insert(np.ascontiguousarray(reference[:, :3]))
-
-    def align(points: npt.NDArray[np.float32], start: Matrix4) -> Any:
-        return one_scan.align(
-            np.ascontiguousarray(points[:, :3]),
-            start,
+    try:
+        result = one_scan.align(
+            np.ascontiguousarray(target[:, :3]),
+            np.linalg.inv(T_tgt_ref),  # the map is the reference's frame: the target's pose in it
             max_iterations=config.max_iterations,
             source_voxel_size=config.downsample,
             degeneracy_threshold=config.degeneracy_threshold,
             rotation_degeneracy_threshold=config.rotation_degeneracy_threshold,
         )
-
-    # The map is the reference's frame: the target's pose in it.
-    start: Matrix4 = np.asarray(np.linalg.inv(T_tgt_ref), dtype=np.float64)
-    if target_upright is not None and near_keyframe(np.eye(4), start, config):
-        near = align_near_keyframe(align, target, target_upright, start, np.eye(4))
-        return None if near is None else np.asarray(np.linalg.inv(near.pose), dtype=np.float64)
-    try:
-        result = align(target, start)
     except dmlo_rs.RegistrationError:
         return None
     if not result.converged:
         return None
-    return np.linalg.inv(np.asarray(result.transform, dtype=np.float64))
+    return np.asarray(np.linalg.inv(np.asarray(result.transform, dtype=np.float64)), dtype=np.float64)
