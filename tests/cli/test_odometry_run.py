@@ -276,7 +276,7 @@ def test_register_refines_a_consecutive_pair_by_ndt_unless_no_mapping(drive: Pat
     assert reports["--no-mapping"]["map_refined"] is None and reports["--large-motion"]["map_refined"] is None
     assert reports[""]["inliers"] == reports["--no-mapping"]["inliers"]  # the same matches, the motion refined
     assert dmlo_main(["register", str(tmp_path / "a.bin"), str(tmp_path / "b.bin")]) == 0
-    assert "refined by NDT against A (mapping)" in capsys.readouterr().out
+    assert "refined against A (mapping: NDT" in capsys.readouterr().out
 
 
 def test_deskew_flag_reaches_the_config_and_the_diagnostics(drive: Path, tmp_path: Path) -> None:
