@@ -13,6 +13,7 @@
 //! | [`nms`] | §III-D-a | greedy non-maximum suppression on the cylinder grid |
 //! | [`rigid`] | Eq. 12–14 | closed-form weighted rigid solve (faer SVD, reflection fixed) |
 //! | [`surface`] | — | the tilt of the surface under a match: its vote for a horizontal motion |
+//! | [`projective`] | — | projective point-to-plane ICP of a pair that barely moved |
 //! | [`ransac`] | §III-D-b | seeded RANSAC with rayon-parallel hypothesis scoring |
 //! | [`ray_noise`] | — | Gauss–Newton refit weighing each match by its ray's bearing and range noise |
 //! | [`ndt`] | §III-D-c | scan-to-map NDT refinement |
@@ -34,6 +35,7 @@ pub mod matches;
 pub mod ndt;
 pub mod nms;
 pub mod projection;
+pub mod projective;
 pub mod ransac;
 pub mod ray_noise;
 pub mod raycast;

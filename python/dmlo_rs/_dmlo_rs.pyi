@@ -30,6 +30,7 @@ __all__ += [
     "ray_noise_refit",
     "refit_rigid",
     "horizontal_votes",
+    "point_to_plane",
     "nms",
     "decode_matches",
     "coherent_confidence",
@@ -239,6 +240,24 @@ def refit_rigid(
 ) -> npt.NDArray[np.float64]:
     """The motion (4×4 float64, dst ≈ T·src) of pairs taken as inliers, solved as one of `ransac_rigid`'s
     refits: the closed-form solve (Eq. 12-14), then for "ray_noise" `ray_noise_refit` from it."""
+
+def point_to_plane(
+    reference: npt.NDArray[np.floating],
+    target: npt.NDArray[np.floating],
+    start: npt.NDArray[np.floating],
+    config: CylinderConfig,
+    *,
+    iterations: int = 10,
+    max_distance: float = 0.3,
+    huber: float = 0.02,
+    min_information: float = 1e-5,
+    edge_range_ratio: float = 0.1,
+    num_threads: int | None = None,
+) -> npt.NDArray[np.float64] | None:
+    """`T_tgt_ref` refined by projective point-to-plane ICP of the `target` point image's points against the
+    `reference` point image (both [H, W, 3] of `config`'s image, NaN where empty), from `start` (4x4):
+    each target point against the plane of the reference cell it falls in. None when the first round finds
+    fewer than six correspondences."""
 
 def horizontal_votes(
     points: npt.NDArray[np.floating],

@@ -13,6 +13,7 @@ mod matches;
 mod ndt;
 mod pool;
 mod projection;
+mod projective;
 mod registration;
 mod sim;
 mod surface;
@@ -54,5 +55,6 @@ fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     sim::register(m)?;
     ndt::register(m)?;
     surface::register(m)?;
+    projective::register(m)?;
     Ok(())
 }

@@ -5,7 +5,7 @@ the horizontal motion and heading come from the scan's upright surfaces alone (`
 
 `Odometry.register` refines every pose by NDT against its local map of recent scans. A pair given to
 `Odometry.register_pair` has no drive behind it, so its map is the reference scan (`refine_pair`): the
-target is aligned to it by NDT from the motion DMLO found (a slow pair by `dmlo.odometry.projective`
+target is aligned to it by NDT from the motion DMLO found (a slow pair by `dmlo_rs.point_to_plane`
 instead). The network's matches bring the pair within NDT's
 basin with no initial guess; NDT, fitting every point of both scans rather than a few hundred matches, then
 takes the error the matches leave (their bearing error grows with range).

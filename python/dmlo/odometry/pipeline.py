@@ -24,7 +24,6 @@ from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
 from dmlo.odometry.mapping import align_near_keyframe, near_keyframe, refine_pair, upright_points
-from dmlo.odometry.projective import point_to_plane
 from dmlo.odometry.pair import PairResult
 from dmlo.odometry import reflectance
 from dmlo.odometry.reflectance import ReflectanceNotice
@@ -376,7 +375,7 @@ class Odometry:
         against the reference scan as its map (`dmlo.odometry.mapping.refine_pair`), when RANSAC found at
         least `motion_model.min_inliers` inliers; `map_refined` says whether it converged. A pair that moved
         less than `mapping.ring_lock_distance` is aligned by projective point-to-plane ICP instead
-        (`dmlo.odometry.projective`): the reference's ground rings hold a slow pair together in NDT, and NDT's
+        (`dmlo_rs.point_to_plane`): the reference's ground rings hold a slow pair together in NDT, and NDT's
         voxels leave millimetres where the planes are exact (a scan with itself is the identity). `large_motion`
         matches with the model's wide-window graph (the paper's D = 40 at inference,
         §IV-D) for scans far apart, e.g. several frames or metres, and then again with the reference moved
@@ -402,7 +401,7 @@ class Odometry:
             target_pose = np.asarray(np.linalg.inv(pair.T_tgt_ref), dtype=np.float64)
             if near_keyframe(np.eye(4), target_pose, self.config.mapping):
                 # The reference's ground rings would hold a slow pair together in NDT; planes do not.
-                refined = point_to_plane(ref_points, tgt_points, pair.T_tgt_ref, self.cylinder)
+                refined = dmlo_rs.point_to_plane(ref_points, tgt_points, pair.T_tgt_ref, self.cylinder)
             else:
                 refined = refine_pair(reference_cloud, target_cloud, pair.T_tgt_ref, self.config.mapping)
             pair.map_refined = refined is not None
