@@ -246,7 +246,6 @@ def test_a_wrong_dmlo_pose_is_caught_by_aligning_from_the_motion_model_too(strai
         config.mapping.enabled = True
         config.mapping.motion_model_start_distance = distance
         config.mapping.motion_model_start_angle_deg = np.inf
-        config.mapping.ring_lock_distance = 0.0  # NDT's starts alone, never the keyframe's ICP
         odometry = OneWrongPair.from_default(config)
         for frame in frames:
             odometry.register(frame.points, moving=(frame.labels & 0xFFFF) >= 252)

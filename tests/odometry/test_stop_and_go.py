@@ -1,6 +1,5 @@
 """A car creeping in a stop-and-go queue (`scene="stop-and-go"`, issue 22): the map's ground rings must not
-hold it in place (`mapping.ring_lock_distance`: near a keyframe, projective point-to-plane ICP against it
-instead of NDT), and it must not drift while it stands."""
+hold it in place (`mapping.ring_lock_distance`), and it must not drift while it stands."""
 
 from __future__ import annotations
 
@@ -46,11 +45,11 @@ def test_the_maps_rings_no_longer_hold_a_creeping_car_in_place(queue: Path) -> N
     assert np.all(locked[creeping][:10] > 0.8 * steps[creeping][:10]), locked
 
     errors, steps, odometry = _pair_errors_cm(queue, OdometryConfig())
-    assert errors.max() < 1.0 and errors.mean() < 0.3, errors
-    near = [d.aligned_to_keyframe for d in odometry.diagnostics[1:]]
-    assert all(near[:4]) and all(flag is not None for flag in near)  # within half a metre of the first scan
+    assert errors.max() < 1.5 and errors.mean() < 0.5, errors
+    upright = [d.ndt_upright_only for d in odometry.diagnostics[1:]]
+    assert all(upright[:4]) and all(flag is not None for flag in upright)  # within half a metre of the first scan
     standing = steps < 1e-3
-    assert standing.sum() >= 5 and errors[standing].max() < 0.5, errors[standing]
+    assert standing.sum() >= 5 and errors[standing].max() < 1.0, errors[standing]
 
 
 def test_a_creeping_pair_is_not_held_together_by_the_reference_scans_rings(queue: Path) -> None:
@@ -75,3 +74,19 @@ def test_a_creeping_pair_is_not_held_together_by_the_reference_scans_rings(queue
     assert min(errors_cm(locked, creeping)) > 8.0  # reported as good as standing
     errors = errors_cm(OdometryConfig(), creeping + standing)
     assert max(errors) < 0.5, errors
+
+
+def test_heading_and_level_take_their_angles_and_position_from_either_pose() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from dmlo.odometry.mapping import heading_and_level
+
+    horizontal, level = np.eye(4), np.eye(4)
+    horizontal[:3, :3] = Rotation.from_euler("ZYX", [2.9, 0.01, -0.02]).as_matrix()
+    horizontal[:3, 3] = (10.0, -4.0, 0.3)
+    level[:3, :3] = Rotation.from_euler("ZYX", [2.8, -0.05, 0.04]).as_matrix()
+    level[:3, 3] = (10.2, -4.1, 0.5)
+    pose = heading_and_level(horizontal, level)
+    np.testing.assert_allclose(Rotation.from_matrix(pose[:3, :3]).as_euler("ZYX"), [2.9, -0.05, 0.04], atol=1e-12)
+    np.testing.assert_allclose(pose[:3, 3], [10.0, -4.0, 0.5])
+    np.testing.assert_allclose(pose[3], [0, 0, 0, 1])

@@ -23,7 +23,7 @@ from dmlo.poses import midpoint_motion
 from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
-from dmlo.odometry.mapping import near_keyframe, refine_pair
+from dmlo.odometry.mapping import align_near_keyframe, near_keyframe, refine_pair, upright_points
 from dmlo.odometry.pair import PairResult
 from dmlo.odometry import reflectance
 from dmlo.odometry.reflectance import ReflectanceNotice
@@ -83,9 +83,9 @@ class FrameDiagnostics:
     backward_inliers: int | None = None
     ndt_converged: bool | None = None
     ndt_degenerate_directions: int | None = None  # pose directions the map did not constrain (kept as DMLO's)
-    # with mapping: near the newest keyframe, aligned to it by projective point-to-plane ICP instead of NDT
-    # (`mapping.ring_lock_distance`)
-    aligned_to_keyframe: bool | None = None
+    # with mapping: the horizontal motion and heading came from the scan's upright surfaces alone, the newest
+    # keyframe being near and its ground rings liable to hold the car in place (`mapping.ring_lock_distance`)
+    ndt_upright_only: bool | None = None
     map_keyframe: bool | None = None  # with mapping: the scan entered the map (it moved far enough from the last)
     ndt_start: str | None = None  # the NDT start that won: "dmlo", or "motion_model" when DMLO's pose was off
     # points the moving-object network left out (`moving_objects`); None when it did not run (labels given,
@@ -115,7 +115,7 @@ class FrameDiagnostics:
             "backward_inliers": self.backward_inliers,
             "ndt_converged": self.ndt_converged,
             "ndt_degenerate_directions": self.ndt_degenerate_directions,
-            "aligned_to_keyframe": self.aligned_to_keyframe,
+            "ndt_upright_only": self.ndt_upright_only,
             "map_keyframe": self.map_keyframe,
             "ndt_start": self.ndt_start,
             "num_moving_predicted": self.num_moving_predicted,
@@ -134,12 +134,6 @@ class _Scan:
     pose: Matrix4
     deskewed: bool = False  # motion-compensated (`deskew.enabled`)
     times: npt.NDArray[np.float64] | None = None  # the points' sweep times given to `register`, if any
-
-
-@dataclass
-class _Keyframe:
-    pose: Matrix4
-    points: npt.NDArray[np.float32]  # [H, W, 3] its point image, as `_Scan.points`
 
 
 class _Stopwatch:
@@ -191,7 +185,7 @@ class Odometry:
         self._velocity_measured = False  # until then the prediction is "standing still", a guess
         self._gated_last = False  # the previous matched frame's motion was replaced as implausible
         self._map = self._make_map() if self.config.mapping.enabled else None
-        self._keyframe: _Keyframe | None = None  # the newest scan in the map
+        self._last_keyframe: Matrix4 | None = None  # pose of the newest scan in the map
         self._wide: Matcher | None = None  # loaded on the first large-motion pair
         self._warned_sensor = False
         self._rematch_gap = self._available_rematch_gap()
@@ -305,14 +299,14 @@ class Odometry:
             motion = self._motion_from_flow(previous, image, ranges, points, output, diagnostics, watch)
             pose = previous.pose @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
             if self._map is not None:
-                pose = self._refine_with_map(cloud, points, pose, diagnostics)
+                pose = self._refine_with_map(cloud, pose, diagnostics, self._upright_near_keyframe(points, pose, diagnostics))
                 watch.lap("ndt")
             self._update_velocity(previous.pose, pose, self._clock.frame - self._reference_frame)
         if self._map is not None:
             diagnostics.map_keyframe = self._is_keyframe(pose)
             if diagnostics.map_keyframe:
                 self._map.insert_scan(cloud, pose)
-                self._keyframe = _Keyframe(pose, points)
+                self._last_keyframe = pose
             watch.lap("map_update")
 
         self._reference = _Scan(
@@ -344,7 +338,7 @@ class Odometry:
         if self._map is not None:
             self._map.clear()
             self._map.insert_scan(reference.cloud, reference.pose)
-            self._keyframe = _Keyframe(reference.pose, reference.points)
+            self._last_keyframe = reference.pose
 
     def _encode(self, image: npt.NDArray[np.float32]) -> Features:
         """A scan's features alone: `encoder.onnx`, or for a model without one the frame graph matched
@@ -924,28 +918,31 @@ class Odometry:
         c = self.config.mapping
         return dmlo_rs.NdtMap(voxel_size=c.voxel_size, max_scans=c.max_scans)
 
-    def _aligned_to_keyframe(
+    def _upright_near_keyframe(
         self, points: npt.NDArray[np.float32], pose: Matrix4, diagnostics: FrameDiagnostics
-    ) -> Matrix4 | None:
-        """Near the newest keyframe (`mapping.ring_lock_distance`), the pose from projective point-to-plane
-        ICP of the scan's point image `points` against the keyframe's (`dmlo_rs.point_to_plane`); None
-        farther away, or when too few points meet the keyframe's surfaces.
+    ) -> npt.NDArray[np.float32] | None:
+        """Near the newest keyframe (`mapping.ring_lock_distance`) the scan's upright surfaces
+        (`upright_points`); None farther away, where the whole scan is aligned as it is."""
+        diagnostics.ndt_upright_only = False
+        if self._last_keyframe is None or not near_keyframe(self._last_keyframe, pose, self.config.mapping):
+            return None
+        return upright_points(points, self.cylinder, self.config.mapping.downsample)
 
-        The ground rings sit at fixed ranges from the sensor, so a keyframe taken where the car still is
-        shows its rings where the scan's own lie if the car stood still, and NDT against the map holds a
-        creeping car in place (in a stop-and-go queue, with the cars around it left out, the road is most of
-        what remains). A point's distance to the plane of the keyframe's surface lets a ring point slide
-        along the road, and has no voxel bias: a standing car stays within millimetres.
-        """
-        diagnostics.aligned_to_keyframe = False
-        if self._keyframe is None or not near_keyframe(self._keyframe.pose, pose, self.config.mapping):
+    def _refine_near_keyframe(
+        self, cloud: npt.NDArray[np.float32], upright: npt.NDArray[np.float32], pose: Matrix4,
+        diagnostics: FrameDiagnostics,
+    ) -> Matrix4 | None:
+        """`align_near_keyframe` against the local map; None when an alignment fails (the caller aligns the
+        whole scan)."""
+        assert self._last_keyframe is not None
+        near = align_near_keyframe(self._align, cloud, upright, pose, self._last_keyframe)
+        if near is None:
             return None
-        start = np.linalg.inv(pose) @ self._keyframe.pose  # the keyframe's points into this scan's frame
-        refined = dmlo_rs.point_to_plane(self._keyframe.points, points, start, self.cylinder)
-        if refined is None:
-            return None
-        diagnostics.aligned_to_keyframe = True
-        return np.asarray(self._keyframe.pose @ np.linalg.inv(refined), dtype=np.float64)
+        diagnostics.ndt_converged = True
+        diagnostics.ndt_start = "dmlo"
+        diagnostics.ndt_degenerate_directions = near.degenerate_directions
+        diagnostics.ndt_upright_only = near.split
+        return near.pose
 
     def _is_keyframe(self, pose: Matrix4) -> bool:
         """Whether the scan moved or turned far enough from the newest map scan to enter the map.
@@ -954,23 +951,24 @@ class Odometry:
         the next scan, and NDT then pulls that scan's rings back onto them (a standing or slow car
         drifted backwards); keyframes spaced in distance keep the map's samples spread out.
         """
-        if self._keyframe is None:
+        if self._last_keyframe is None:
             return True
         c = self.config.mapping
-        moved, turned = pose_difference(self._keyframe.pose, pose)
+        moved, turned = pose_difference(self._last_keyframe, pose)
         return moved >= c.keyframe_distance or turned >= c.keyframe_angle_deg
 
     def _refine_with_map(
-        self, cloud: npt.NDArray[np.float32], points: npt.NDArray[np.float32], pose: Matrix4,
-        diagnostics: FrameDiagnostics,
+        self, cloud: npt.NDArray[np.float32], pose: Matrix4, diagnostics: FrameDiagnostics,
+        upright: npt.NDArray[np.float32] | None = None,
     ) -> Matrix4:
         """NDT from the DMLO pose and, when that pose leaves the motion model far behind, also from the
         constant-velocity prediction: a wrong RANSAC consensus (a metre off, seen on a simulated drive)
-        lies outside NDT's basin, and the start whose alignment scores higher wins. Near the newest
-        keyframe, ICP against it instead (`_aligned_to_keyframe`; `points` is the scan's point image)."""
-        near = self._aligned_to_keyframe(points, pose, diagnostics)
-        if near is not None:
-            return near
+        lies outside NDT's basin, and the start whose alignment scores higher wins. With `upright` (the
+        scan's upright surfaces, near the newest keyframe) `_refine_near_keyframe` first."""
+        if upright is not None:
+            refined = self._refine_near_keyframe(cloud, upright, pose, diagnostics)
+            if refined is not None:
+                return refined
         c = self.config.mapping
         starts = {"dmlo": pose}
         within_horizon = self._clock.frame - self._reference_frame <= self.config.motion_model.prediction_horizon
