@@ -208,3 +208,14 @@ def test_point_to_plane_refuses_bad_input_by_name() -> None:
     infinite[0, 0] = np.inf
     with pytest.raises(ValueError, match="infinite"):
         dmlo_rs.point_to_plane(infinite, image, np.eye(4), cylinder)
+
+
+def test_a_standing_car_stays_within_millimetres_in_a_drive(shared_data: Path) -> None:
+    """`Odometry.register` with mapping: a car the DMLO estimate puts at its keyframe is aligned to it by
+    the planes (NDT against the map jittered 1-10 mm a frame)."""
+    sequence = open_sequence(shared_data / "kitti_raw_static")
+    odometry = Odometry.from_default(OdometryConfig())
+    poses = [odometry.register(sequence[k].points) for k in range(len(sequence))]
+    steps = [pose_difference(a, b)[0] for a, b in zip(poses, poses[1:])]
+    assert max(steps) < 0.004 and pose_difference(poses[0], poses[-1])[0] < 0.003, steps
+    assert sum(d.ndt_start == "standing" for d in odometry.diagnostics[1:]) >= 8

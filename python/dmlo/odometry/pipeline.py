@@ -23,7 +23,7 @@ from dmlo.poses import midpoint_motion
 from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
-from dmlo.odometry.mapping import align_near_keyframe, near_keyframe, refine_pair, upright_points
+from dmlo.odometry.mapping import align_near_keyframe, near_keyframe, refine_pair, standing, upright_points
 from dmlo.odometry.pair import PairResult
 from dmlo.odometry import reflectance
 from dmlo.odometry.reflectance import ReflectanceNotice
@@ -186,6 +186,7 @@ class Odometry:
         self._gated_last = False  # the previous matched frame's motion was replaced as implausible
         self._map = self._make_map() if self.config.mapping.enabled else None
         self._last_keyframe: Matrix4 | None = None  # pose of the newest scan in the map
+        self._keyframe_points: npt.NDArray[np.float32] | None = None  # and its point image
         self._wide: Matcher | None = None  # loaded on the first large-motion pair
         self._warned_sensor = False
         self._rematch_gap = self._available_rematch_gap()
@@ -299,14 +300,15 @@ class Odometry:
             motion = self._motion_from_flow(previous, image, ranges, points, output, diagnostics, watch)
             pose = previous.pose @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
             if self._map is not None:
-                pose = self._refine_with_map(cloud, pose, diagnostics, self._upright_near_keyframe(points, pose, diagnostics))
+                upright = self._upright_near_keyframe(points, pose, diagnostics)
+                pose = self._refine_with_map(cloud, points, pose, diagnostics, upright)
                 watch.lap("ndt")
             self._update_velocity(previous.pose, pose, self._clock.frame - self._reference_frame)
         if self._map is not None:
             diagnostics.map_keyframe = self._is_keyframe(pose)
             if diagnostics.map_keyframe:
                 self._map.insert_scan(cloud, pose)
-                self._last_keyframe = pose
+                self._last_keyframe, self._keyframe_points = pose, points
             watch.lap("map_update")
 
         self._reference = _Scan(
@@ -338,7 +340,7 @@ class Odometry:
         if self._map is not None:
             self._map.clear()
             self._map.insert_scan(reference.cloud, reference.pose)
-            self._last_keyframe = reference.pose
+            self._last_keyframe, self._keyframe_points = reference.pose, reference.points
 
     def _encode(self, image: npt.NDArray[np.float32]) -> Features:
         """A scan's features alone: `encoder.onnx`, or for a model without one the frame graph matched
@@ -929,12 +931,23 @@ class Odometry:
         return upright_points(points, self.cylinder, self.config.mapping.downsample)
 
     def _refine_near_keyframe(
-        self, cloud: npt.NDArray[np.float32], upright: npt.NDArray[np.float32], pose: Matrix4,
-        diagnostics: FrameDiagnostics,
+        self, cloud: npt.NDArray[np.float32], points: npt.NDArray[np.float32], upright: npt.NDArray[np.float32],
+        pose: Matrix4, diagnostics: FrameDiagnostics,
     ) -> Matrix4 | None:
         """`align_near_keyframe` against the local map; None when an alignment fails (the caller aligns the
-        whole scan)."""
+        whole scan). A car that the DMLO estimate puts at the keyframe (`mapping.standing`) is aligned to the
+        keyframe by projective point-to-plane ICP instead (`dmlo_rs.point_to_plane`): NDT's voxels leave
+        millimetres there. Only then: a car creeping in a queue that the moving-object network missed would
+        be held in place by the cars around it, which stand still in its frame."""
         assert self._last_keyframe is not None
+        if self._keyframe_points is not None and standing(self._last_keyframe, pose):
+            start = np.linalg.inv(pose) @ self._last_keyframe  # the keyframe's points into this scan's frame
+            refined = dmlo_rs.point_to_plane(self._keyframe_points, points, start, self.cylinder)
+            if refined is not None:
+                diagnostics.ndt_converged = True
+                diagnostics.ndt_start = "standing"
+                diagnostics.ndt_degenerate_directions = 0
+                return np.asarray(self._last_keyframe @ np.linalg.inv(refined), dtype=np.float64)
         near = align_near_keyframe(self._align, cloud, upright, pose, self._last_keyframe)
         if near is None:
             return None
@@ -958,15 +971,15 @@ class Odometry:
         return moved >= c.keyframe_distance or turned >= c.keyframe_angle_deg
 
     def _refine_with_map(
-        self, cloud: npt.NDArray[np.float32], pose: Matrix4, diagnostics: FrameDiagnostics,
-        upright: npt.NDArray[np.float32] | None = None,
+        self, cloud: npt.NDArray[np.float32], points: npt.NDArray[np.float32], pose: Matrix4,
+        diagnostics: FrameDiagnostics, upright: npt.NDArray[np.float32] | None = None,
     ) -> Matrix4:
         """NDT from the DMLO pose and, when that pose leaves the motion model far behind, also from the
         constant-velocity prediction: a wrong RANSAC consensus (a metre off, seen on a simulated drive)
         lies outside NDT's basin, and the start whose alignment scores higher wins. With `upright` (the
         scan's upright surfaces, near the newest keyframe) `_refine_near_keyframe` first."""
         if upright is not None:
-            refined = self._refine_near_keyframe(cloud, upright, pose, diagnostics)
+            refined = self._refine_near_keyframe(cloud, points, upright, pose, diagnostics)
             if refined is not None:
                 return refined
         c = self.config.mapping
