@@ -53,8 +53,8 @@ def test_the_maps_rings_no_longer_hold_a_creeping_car_in_place(queue: Path) -> N
 
 
 def test_a_creeping_pair_is_not_held_together_by_the_reference_scans_rings(queue: Path) -> None:
-    """`register_pair`: NDT against the reference alone reports a creeping pair standing; the planes of
-    projective point-to-plane ICP do not."""
+    """`register_pair`: NDT against the reference alone reports a creeping pair standing; the split near the
+    reference (`align_near_keyframe`) does not, and a standing pair comes out within a millimetre."""
     sequence = open_sequence(queue)
 
     def errors_cm(config: OdometryConfig, pairs: tuple[int, ...]) -> list[float]:
@@ -73,7 +73,7 @@ def test_a_creeping_pair_is_not_held_together_by_the_reference_scans_rings(queue
     locked.mapping.ring_lock_distance = 0.0
     assert min(errors_cm(locked, creeping)) > 8.0  # reported as good as standing
     errors = errors_cm(OdometryConfig(), creeping + standing)
-    assert max(errors) < 0.5, errors
+    assert max(errors[:3]) < 1.0 and max(errors[3:]) < 0.1, errors
 
 
 def test_heading_and_level_take_their_angles_and_position_from_either_pose() -> None:

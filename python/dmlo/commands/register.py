@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"{result.num_inliers} of {result.num_matches} matches are RANSAC inliers; "
           f"{result.rounds} matching round(s), {seconds:.2f} s")
     if result.map_refined is not None:
-        print("refined against A (mapping: NDT, or point-to-plane ICP for a pair that barely moved)" if result.map_refined
+        print("refined against A (mapping: NDT, or point-to-plane ICP for a pair that stands still)" if result.map_refined
               else "warning: the alignment against A did not converge; the matches' motion is kept")
     if result.num_inliers < odometry.config.motion_model.min_inliers:
         print(f"warning: fewer than {odometry.config.motion_model.min_inliers} inliers, the motion is not to be trusted"

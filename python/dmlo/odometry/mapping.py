@@ -5,7 +5,7 @@ the horizontal motion and heading come from the scan's upright surfaces alone (`
 
 `Odometry.register` refines every pose by NDT against its local map of recent scans. A pair given to
 `Odometry.register_pair` has no drive behind it, so its map is the reference scan (`refine_pair`): the
-target is aligned to it by NDT from the motion DMLO found (a slow pair by `dmlo_rs.point_to_plane`
+target is aligned to it by NDT from the motion DMLO found (a standing pair by `dmlo_rs.point_to_plane`
 instead). The network's matches bring the pair within NDT's
 basin with no initial guess; NDT, fitting every point of both scans rather than a few hundred matches, then
 takes the error the matches leave (their bearing error grows with range).
@@ -129,21 +129,34 @@ def heading_and_level(horizontal: Matrix4, level: Matrix4) -> Matrix4:
 
 
 def refine_pair(
-    reference: npt.NDArray[np.float32], target: npt.NDArray[np.float32], T_tgt_ref: Matrix4, config: MappingConfig
+    reference: npt.NDArray[np.float32], target: npt.NDArray[np.float32], T_tgt_ref: Matrix4, config: MappingConfig,
+    target_upright: npt.NDArray[np.float32] | None = None,
 ) -> Matrix4 | None:
     """`T_tgt_ref` refined by NDT of `target` against a map of `reference` (both N×3 or N×4, their own sensor
-    frames), with the local map's settings; None when NDT finds too few correspondences or does not converge."""
+    frames), with the local map's settings; None when NDT finds too few correspondences or does not converge.
+    Within `config.ring_lock_distance` of the reference, with the target's upright surfaces given
+    (`target_upright`, `upright_points`), the reference's rings would hold the pair together:
+    `align_near_keyframe`."""
     one_scan = dmlo_rs.NdtMap(voxel_size=config.voxel_size, max_scans=1)
     one_scan.insert(np.ascontiguousarray(reference[:, :3]))
-    try:
-        result = one_scan.align(
-            np.ascontiguousarray(target[:, :3]),
-            np.linalg.inv(T_tgt_ref),  # the map is the reference's frame: the target's pose in it
+
+    def align(points: npt.NDArray[np.float32], start: Matrix4) -> Any:
+        return one_scan.align(
+            np.ascontiguousarray(points[:, :3]),
+            start,
             max_iterations=config.max_iterations,
             source_voxel_size=config.downsample,
             degeneracy_threshold=config.degeneracy_threshold,
             rotation_degeneracy_threshold=config.rotation_degeneracy_threshold,
         )
+
+    # The map is the reference's frame: the target's pose in it.
+    start: Matrix4 = np.asarray(np.linalg.inv(T_tgt_ref), dtype=np.float64)
+    if target_upright is not None and near_keyframe(np.eye(4), start, config):
+        near = align_near_keyframe(align, target, target_upright, start, np.eye(4))
+        return None if near is None else np.asarray(np.linalg.inv(near.pose), dtype=np.float64)
+    try:
+        result = align(target, start)
     except dmlo_rs.RegistrationError:
         return None
     if not result.converged:

@@ -376,9 +376,10 @@ class Odometry:
         With `mapping.enabled` (the default), a consecutive pair's motion is refined by NDT of the target
         against the reference scan as its map (`dmlo.odometry.mapping.refine_pair`), when RANSAC found at
         least `motion_model.min_inliers` inliers; `map_refined` says whether it converged. A pair that moved
-        less than `mapping.ring_lock_distance` is aligned by projective point-to-plane ICP instead
-        (`dmlo_rs.point_to_plane`): the reference's ground rings hold a slow pair together in NDT, and NDT's
-        voxels leave millimetres where the planes are exact (a scan with itself is the identity). `large_motion`
+        less than `mapping.ring_lock_distance` is aligned as a scan near its keyframe is
+        (`dmlo.odometry.mapping.align_near_keyframe`: the reference's ground rings would hold it together),
+        and a pair that stands still by projective point-to-plane ICP (`dmlo_rs.point_to_plane`: NDT's voxels
+        leave millimetres where the planes are exact; a scan with itself is the identity). `large_motion`
         matches with the model's wide-window graph (the paper's D = 40 at inference,
         §IV-D) for scans far apart, e.g. several frames or metres, and then again with the reference moved
         by the estimate (`config.large_motion`); it matches one way only, whatever `matching.symmetric`
@@ -401,11 +402,12 @@ class Odometry:
         pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features, ref_points, tgt_points)
         if self.config.mapping.enabled and pair.num_inliers >= self.config.motion_model.min_inliers:
             target_pose = np.asarray(np.linalg.inv(pair.T_tgt_ref), dtype=np.float64)
-            if near_keyframe(np.eye(4), target_pose, self.config.mapping):
-                # The reference's ground rings would hold a slow pair together in NDT; planes do not.
+            if standing(np.eye(4), target_pose):  # NDT's voxels leave millimetres; the planes do not
                 refined = dmlo_rs.point_to_plane(ref_points, tgt_points, pair.T_tgt_ref, self.cylinder)
-            else:
-                refined = refine_pair(reference_cloud, target_cloud, pair.T_tgt_ref, self.config.mapping)
+            else:  # near the reference, its rings would hold the pair together: `align_near_keyframe`
+                near = near_keyframe(np.eye(4), target_pose, self.config.mapping)
+                upright = upright_points(tgt_points, self.cylinder, self.config.mapping.downsample) if near else None
+                refined = refine_pair(reference_cloud, target_cloud, pair.T_tgt_ref, self.config.mapping, upright)
             pair.map_refined = refined is not None
             pair.T_tgt_ref = pair.T_tgt_ref if refined is None else refined
         return pair
