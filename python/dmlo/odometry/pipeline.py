@@ -300,8 +300,7 @@ class Odometry:
             motion = self._motion_from_flow(previous, image, ranges, points, output, diagnostics, watch)
             pose = previous.pose @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
             if self._map is not None:
-                upright = self._upright_near_keyframe(points, pose, diagnostics)
-                pose = self._refine_with_map(cloud, points, pose, diagnostics, upright)
+                pose = self._refine_with_map(cloud, points, pose, diagnostics)
                 watch.lap("ndt")
             self._update_velocity(previous.pose, pose, self._clock.frame - self._reference_frame)
         if self._map is not None:
@@ -922,35 +921,33 @@ class Odometry:
         c = self.config.mapping
         return dmlo_rs.NdtMap(voxel_size=c.voxel_size, max_scans=c.max_scans)
 
-    def _upright_near_keyframe(
-        self, points: npt.NDArray[np.float32], pose: Matrix4, diagnostics: FrameDiagnostics
-    ) -> npt.NDArray[np.float32] | None:
-        """Near the newest keyframe (`mapping.ring_lock_distance`) the scan's upright surfaces
-        (`upright_points`); None farther away, where the whole scan is aligned as it is."""
-        diagnostics.ndt_upright_only = False
-        if self._last_keyframe is None or not near_keyframe(self._last_keyframe, pose, self.config.mapping):
-            return None
-        return upright_points(points, self.cylinder, self.config.mapping.downsample)
-
     def _refine_near_keyframe(
-        self, cloud: npt.NDArray[np.float32], points: npt.NDArray[np.float32], upright: npt.NDArray[np.float32],
-        pose: Matrix4, diagnostics: FrameDiagnostics,
+        self, cloud: npt.NDArray[np.float32], points: npt.NDArray[np.float32], pose: Matrix4,
+        diagnostics: FrameDiagnostics,
     ) -> Matrix4 | None:
-        """`align_near_keyframe` against the local map; None when an alignment fails (the caller aligns the
-        whole scan). A car that the DMLO estimate puts at the keyframe (`mapping.standing`) is aligned to the
-        keyframe by projective point-to-plane ICP instead (`dmlo_rs.point_to_plane`): NDT's voxels leave
-        millimetres there. Only then: a car creeping in a queue that the moving-object network missed would
-        be held in place by the cars around it, which stand still in its frame."""
-        assert self._last_keyframe is not None
-        if self._keyframe_points is not None and standing(self._last_keyframe, pose):
-            start = np.linalg.inv(pose) @ self._last_keyframe  # the keyframe's points into this scan's frame
+        """Near the newest keyframe (`mapping.ring_lock_distance`), `align_near_keyframe` of the scan's
+        upright surfaces (`upright_points` of its point image `points`) and of the whole scan against the
+        local map; None farther away, or when an alignment fails (the caller aligns the whole scan).
+
+        A car that the DMLO estimate puts at the keyframe (`mapping.standing`) is aligned to the keyframe
+        by projective point-to-plane ICP instead (`dmlo_rs.point_to_plane`): NDT's voxels leave millimetres
+        there. Only then: a car creeping in a queue that the moving-object network missed would be held in
+        place by the cars around it, which stand still in its frame.
+        """
+        diagnostics.ndt_upright_only = False
+        keyframe = self._last_keyframe
+        if keyframe is None or not near_keyframe(keyframe, pose, self.config.mapping):
+            return None
+        if self._keyframe_points is not None and standing(keyframe, pose):
+            start = np.linalg.inv(pose) @ keyframe  # the keyframe's points into this scan's frame
             refined = dmlo_rs.point_to_plane(self._keyframe_points, points, start, self.cylinder)
             if refined is not None:
                 diagnostics.ndt_converged = True
                 diagnostics.ndt_start = "standing"
                 diagnostics.ndt_degenerate_directions = 0
-                return np.asarray(self._last_keyframe @ np.linalg.inv(refined), dtype=np.float64)
-        near = align_near_keyframe(self._align, cloud, upright, pose, self._last_keyframe)
+                return np.asarray(keyframe @ np.linalg.inv(refined), dtype=np.float64)
+        upright = upright_points(points, self.cylinder, self.config.mapping.downsample)
+        near = align_near_keyframe(self._align, cloud, upright, pose, keyframe)
         if near is None:
             return None
         diagnostics.ndt_converged = True
@@ -974,16 +971,15 @@ class Odometry:
 
     def _refine_with_map(
         self, cloud: npt.NDArray[np.float32], points: npt.NDArray[np.float32], pose: Matrix4,
-        diagnostics: FrameDiagnostics, upright: npt.NDArray[np.float32] | None = None,
+        diagnostics: FrameDiagnostics,
     ) -> Matrix4:
         """NDT from the DMLO pose and, when that pose leaves the motion model far behind, also from the
         constant-velocity prediction: a wrong RANSAC consensus (a metre off, seen on a simulated drive)
-        lies outside NDT's basin, and the start whose alignment scores higher wins. With `upright` (the
-        scan's upright surfaces, near the newest keyframe) `_refine_near_keyframe` first."""
-        if upright is not None:
-            refined = self._refine_near_keyframe(cloud, points, upright, pose, diagnostics)
-            if refined is not None:
-                return refined
+        lies outside NDT's basin, and the start whose alignment scores higher wins. Near the newest keyframe
+        `_refine_near_keyframe` first (`points`: the scan's point image)."""
+        refined = self._refine_near_keyframe(cloud, points, pose, diagnostics)
+        if refined is not None:
+            return refined
         c = self.config.mapping
         starts = {"dmlo": pose}
         within_horizon = self._clock.frame - self._reference_frame <= self.config.motion_model.prediction_horizon
