@@ -219,3 +219,15 @@ def test_a_standing_car_stays_within_millimetres_in_a_drive(shared_data: Path) -
     steps = [pose_difference(a, b)[0] for a, b in zip(poses, poses[1:])]
     assert max(steps) < 0.004 and pose_difference(poses[0], poses[-1])[0] < 0.003, steps
     assert sum(d.ndt_start == "standing" for d in odometry.diagnostics[1:]) >= 8
+
+
+def test_dmlo_register_of_a_file_with_itself_prints_the_identity(shared_data: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    from dmlo.cli import main
+
+    scan = sorted((shared_data / "kitti_real" / "raw_drive_22").rglob("*.bin"))[3]
+    assert main(["register", str(scan), str(scan), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    moved, turned = pose_difference(np.eye(4), np.array(report["T_b_a"]))
+    assert report["map_refined"] and moved <= 0.001 and turned <= 0.005, report
