@@ -87,7 +87,8 @@ class FrameDiagnostics:
     # keyframe being near and its ground rings liable to hold the car in place (`mapping.ring_lock_distance`)
     ndt_upright_only: bool | None = None
     map_keyframe: bool | None = None  # with mapping: the scan entered the map (it moved far enough from the last)
-    ndt_start: str | None = None  # the NDT start that won: "dmlo", or "motion_model" when DMLO's pose was off
+    ndt_start: str | None = None  # the NDT start that won: "dmlo", or "motion_model" when DMLO's pose was off;
+    # "standing": the car stood at the newest keyframe and was aligned to it by point-to-plane ICP
     # points the moving-object network left out (`moving_objects`); None when it did not run (labels given,
     # detection off, or a model without the network)
     num_moving_predicted: int | None = None
