@@ -198,6 +198,23 @@ impl Floats<'_> {
     }
 }
 
+/// A point image of `cylinder` (`[H, W, 3]` floats, each cell's kept point, NaN where empty).
+pub(super) fn point_image<'py>(
+    name: &str,
+    obj: &Bound<'py, PyAny>,
+    cylinder: &CylinderConfig,
+) -> PyResult<Floats<'py>> {
+    let points = floats(name, obj)?;
+    if points.shape() != [cylinder.height, cylinder.width, 3] {
+        let expected = format!(
+            "({}, {}, 3) (the config's image)",
+            cylinder.height, cylinder.width
+        );
+        return Err(shape_error(name, &expected, points.shape()));
+    }
+    Ok(points)
+}
+
 pub(super) fn shape_error(name: &str, expected: &str, shape: &[usize]) -> PyErr {
     PyValueError::new_err(format!("{name}: expected shape {expected}, got {shape:?}"))
 }

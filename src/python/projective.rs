@@ -5,7 +5,7 @@ use pyo3::prelude::*;
 
 use crate::projective::{self, PointToPlaneConfig};
 
-use super::convert::{floats, matrix_to_numpy, shape_error, transform};
+use super::convert::{matrix_to_numpy, point_image, transform};
 use super::pool::run;
 use super::projection::PyCylinderConfig;
 
@@ -35,18 +35,8 @@ fn point_to_plane<'py>(
     num_threads: Option<i64>,
 ) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
     let cylinder = config.inner;
-    let expected = format!(
-        "({}, {}, 3) (the config's image)",
-        cylinder.height, cylinder.width
-    );
-    let reference = floats("reference", reference)?;
-    if reference.shape() != [cylinder.height, cylinder.width, 3] {
-        return Err(shape_error("reference", &expected, reference.shape()));
-    }
-    let target = floats("target", target)?;
-    if target.shape() != [cylinder.height, cylinder.width, 3] {
-        return Err(shape_error("target", &expected, target.shape()));
-    }
+    let reference = point_image("reference", reference, &cylinder)?;
+    let target = point_image("target", target, &cylinder)?;
     let start = transform("start", start)?;
     let settings = PointToPlaneConfig {
         iterations,

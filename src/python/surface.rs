@@ -7,7 +7,7 @@ use pyo3::prelude::*;
 
 use crate::surface;
 
-use super::convert::{floats, shape_error, vector_i64};
+use super::convert::{point_image, vector_i64};
 use super::pool::run;
 use super::projection::PyCylinderConfig;
 
@@ -26,17 +26,7 @@ fn horizontal_votes<'py>(
     floor: f64,
 ) -> PyResult<Bound<'py, PyArray1<f64>>> {
     let cylinder = config.inner;
-    let points = floats("points", points)?;
-    if points.shape() != [cylinder.height, cylinder.width, 3] {
-        return Err(shape_error(
-            "points",
-            &format!(
-                "({}, {}, 3) (the config's image)",
-                cylinder.height, cylinder.width
-            ),
-            points.shape(),
-        ));
-    }
+    let points = point_image("points", points, &cylinder)?;
     let (rows, cols) = (vector_i64("rows", rows)?, vector_i64("cols", cols)?);
     if rows.len() != cols.len() {
         return Err(PyValueError::new_err(format!(

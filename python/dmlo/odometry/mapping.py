@@ -6,9 +6,9 @@ the horizontal motion and heading come from the scan's upright surfaces alone (`
 `Odometry.register` refines every pose by NDT against its local map of recent scans. A pair given to
 `Odometry.register_pair` has no drive behind it, so its map is the reference scan (`refine_pair`): the
 target is aligned to it by NDT from the motion DMLO found (a standing pair by `dmlo_rs.point_to_plane`
-instead). The network's matches bring the pair within NDT's
-basin with no initial guess; NDT, fitting every point of both scans rather than a few hundred matches, then
-takes the error the matches leave (their bearing error grows with range).
+instead). The network's matches bring the pair within NDT's basin with no initial guess; NDT, fitting every
+point of both scans rather than a few hundred matches, then takes the error the matches leave (their
+bearing error grows with range).
 """
 
 from __future__ import annotations
@@ -41,6 +41,19 @@ class NearKeyframe:
     pose: Matrix4
     degenerate_directions: int
     split: bool
+
+
+def align_to_map(ndt_map: Any, points: npt.NDArray[np.float32], start: Matrix4, config: MappingConfig) -> Any:
+    """NDT of `points` (N×3 or more columns, sensor frame) against `ndt_map` (`dmlo_rs.NdtMap`) from the pose
+    `start`, with the mapping settings of `config` → `NdtResult` (raises `dmlo_rs.RegistrationError`)."""
+    return ndt_map.align(
+        np.ascontiguousarray(points[:, :3]),
+        start,
+        max_iterations=config.max_iterations,
+        source_voxel_size=config.downsample,
+        degeneracy_threshold=config.degeneracy_threshold,
+        rotation_degeneracy_threshold=config.rotation_degeneracy_threshold,
+    )
 
 
 def near_keyframe(keyframe: Matrix4, pose: Matrix4, config: MappingConfig) -> bool:
@@ -141,14 +154,7 @@ def refine_pair(
     one_scan.insert(np.ascontiguousarray(reference[:, :3]))
 
     def align(points: npt.NDArray[np.float32], start: Matrix4) -> Any:
-        return one_scan.align(
-            np.ascontiguousarray(points[:, :3]),
-            start,
-            max_iterations=config.max_iterations,
-            source_voxel_size=config.downsample,
-            degeneracy_threshold=config.degeneracy_threshold,
-            rotation_degeneracy_threshold=config.rotation_degeneracy_threshold,
-        )
+        return align_to_map(one_scan, points, start, config)
 
     # The map is the reference's frame: the target's pose in it.
     start: Matrix4 = np.asarray(np.linalg.inv(T_tgt_ref), dtype=np.float64)

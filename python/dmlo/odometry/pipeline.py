@@ -23,7 +23,9 @@ from dmlo.poses import midpoint_motion
 from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
-from dmlo.odometry.mapping import align_near_keyframe, near_keyframe, refine_pair, standing, upright_points
+from dmlo.odometry.mapping import (
+    align_near_keyframe, align_to_map, near_keyframe, refine_pair, standing, upright_points,
+)
 from dmlo.odometry.pair import PairResult
 from dmlo.odometry import reflectance
 from dmlo.odometry.reflectance import ReflectanceNotice
@@ -1010,15 +1012,7 @@ class Odometry:
 
     def _align(self, cloud: npt.NDArray[np.float32], start: Matrix4) -> Any:
         assert self._map is not None
-        c = self.config.mapping
-        return self._map.align(
-            cloud[:, :3],
-            start,
-            max_iterations=c.max_iterations,
-            source_voxel_size=c.downsample,
-            degeneracy_threshold=c.degeneracy_threshold,
-            rotation_degeneracy_threshold=c.rotation_degeneracy_threshold,
-        )
+        return align_to_map(self._map, cloud, start, self.config.mapping)
 
 
 def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> PairResult:

@@ -200,7 +200,7 @@ def simulate_sequence(
         "traffic": traffic,
         "scene": scene,
         "laser_gain_spread": laser_gain_spread,
-        "escorts": escorts or scene == "stop-and-go",
+        "escorts": bool(street.escort_cars),  # a stop-and-go scene brings its own
         "moving_cars": len(street.moving_cars) + len(street.path_cars) + len(street.escort_cars),
         "motion_distortion": motion_distortion,
     }

@@ -176,8 +176,9 @@ def generate_stop_and_go(frames: int, seed: int, rate_hz: float = FRAME_RATE_HZ)
     0.5–3 m/s for 2–5 s, braking to a standstill, standing 2–5 s, pulling away again, along a gently
     curving street; the first stop comes within the first 3 s so that short drives stand too.
 
-    The speeds and accelerations (braking at 1.2, pulling away at 1 m/s²) are those of stop-and-go traffic, where a car creeps
-    a few centimetres to a few decimetres a frame and the scene's moving cars outnumber its motion.
+    The speeds and accelerations (braking at 1.2, pulling away at 1 m/s²) are those of stop-and-go traffic,
+    where a car creeps a few centimetres to a few decimetres a frame and the scene's moving cars outnumber
+    its motion.
     """
     if frames < 1:
         raise ValueError(f"frames: must be at least 1, got {frames}")
