@@ -96,3 +96,25 @@ def test_the_recipe_fine_tunes_the_bundled_final_weights_with_sensor_variety(
     assert float(argv[argv.index("--laser-gain-spread") + 1]) > 0 and float(argv[argv.index("--row-dropout") + 1]) > 0
     with pytest.raises(SystemExit):
         default_recipe.main(["--data", str(tmp_path), "--out", str(tmp_path / "run"), "--sensor-variety", "--range-only"])
+
+
+def test_the_pose_stage_with_sensor_variety_trains_whole_images_with_the_pose_loss(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    calls: list[list[str]] = []
+    monkeypatch.setattr(default_recipe, "simulate_drives", lambda data, poses: ([tmp_path / "t"], [tmp_path / "v"]))
+    import dmlo.train.__main__ as train_entry
+
+    monkeypatch.setattr(train_entry, "main", lambda argv: calls.append(list(argv)) or 0)
+    run = tmp_path / "run"
+    assert default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--sensor-variety-pose"]) == 0
+    (argv,) = calls
+    assert argv[argv.index("--init") + 1] == str(default_recipe.BUNDLED_FINAL)
+    assert argv[argv.index("--out") + 1] == str(run / "sensor_variety_pose")
+    assert argv[argv.index("--crop-width") + 1] == "0"  # whole images, as the bundled model's last stage
+    assert float(argv[argv.index("--pose-loss-weight") + 1]) > 0
+    assert float(argv[argv.index("--laser-gain-spread") + 1]) > 0 and float(argv[argv.index("--row-dropout") + 1]) > 0
+    with pytest.raises(SystemExit):
+        default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--sensor-variety-pose", "--finetune"])
+    with pytest.raises(SystemExit):
+        default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--sensor-variety-pose", "--init", str(tmp_path / "none.pt")])

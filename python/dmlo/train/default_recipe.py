@@ -1,7 +1,7 @@
 """The recipe of the bundled default model: its simulated drives and its training command, in one place.
 
     python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR]
-        [--finetune | --range-only | --sensor-variety]
+        [--finetune | --range-only | --sensor-variety | --sensor-variety-pose]
 
 simulates the drives (skipping those already written; deterministic per seed) and then trains, resuming
 from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. `--finetune` runs
@@ -22,6 +22,11 @@ artefacts — per-laser reflectance gains and partly empty rows (`Augmentation`)
 `RUN_DIR/sensor_variety`: the simulator's even, equally bright lasers taught the matcher to follow the
 stripes of a real sensor's rings, which stay in their rows and pull the vertical flow towards zero. Sized
 like the range-only stage; export it as the bundled model with the same `dmlo export` options.
+
+`--sensor-variety-pose` is the bundled model's last stage again (whole images, the pose loss) with the same
+row artefacts, from the final weights (or `--init CKPT`), into `RUN_DIR/sensor_variety_pose`: the crop stage
+above loses what the whole-image pose-loss stage taught. One epoch; on 2 CPU cores it spans sessions
+(`--resume` continues it), on one GPU it is a single run.
 """
 
 from __future__ import annotations
@@ -66,6 +71,11 @@ SENSOR_VARIETY_ARGUMENTS = (
     "--laser-gain-spread 0.6 --row-dropout 0.4 --optimizer adam --lr 1e-4 --lr-step 1 --epochs 2 --batch-size 4 "
     "--crop-width 448 --val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume --mirror"
 ).split()
+# The sensor-variety pose stage: the second stage's whole images and pose loss, with the row artefacts.
+SENSOR_VARIETY_POSE_ARGUMENTS = (
+    "--laser-gain-spread 0.6 --row-dropout 0.4 --pose-loss-weight 0.2 --optimizer adam --lr 1e-4 --lr-step 1 "
+    "--epochs 1 --batch-size 2 --crop-width 0 --val-max-pairs 32 --val-width 0 --checkpoint-every 25 --resume --mirror"
+).split()
 BUNDLED_FINAL = Path(__file__).resolve().parents[1] / "models" / "default" / "training" / "finetune" / "best.pt"
 
 
@@ -103,19 +113,25 @@ def main(argv: list[str] | None = None) -> int:
                         help="fine-tune the range-only model (reflectance zeroed) from --init into OUT/range_only")
     parser.add_argument("--sensor-variety", action="store_true",
                         help="fine-tune --init on pairs with per-laser gains and partly empty rows into OUT/sensor_variety")
+    parser.add_argument("--sensor-variety-pose", action="store_true",
+                        help="fine-tune --init on whole images with the pose loss and the same row artefacts into "
+                        "OUT/sensor_variety_pose")
     parser.add_argument("--init", type=Path, default=BUNDLED_FINAL,
-                        help="with --range-only or --sensor-variety: the weights to start from (default: the bundled "
+                        help="with --range-only or --sensor-variety(-pose): the weights to start from (default: the bundled "
                         "model's final ones)")
     args = parser.parse_args(argv)
-    if args.finetune + args.range_only + args.sensor_variety > 1:
-        parser.error("--finetune, --range-only and --sensor-variety are separate stages: choose one")
+    if args.finetune + args.range_only + args.sensor_variety + args.sensor_variety_pose > 1:
+        parser.error("--finetune, --range-only, --sensor-variety and --sensor-variety-pose are separate stages: choose one")
     train, val = simulate_drives(args.data, args.poses if args.poses.is_dir() else None)
 
     from dmlo.train.__main__ import main as train_main
 
     data = ["--data", *map(str, train), "--val", *map(str, val)]
-    if args.range_only or args.sensor_variety:
-        stage, arguments = ("range_only", RANGE_ONLY_ARGUMENTS) if args.range_only else ("sensor_variety", SENSOR_VARIETY_ARGUMENTS)
+    stages = {"range_only": RANGE_ONLY_ARGUMENTS, "sensor_variety": SENSOR_VARIETY_ARGUMENTS,
+              "sensor_variety_pose": SENSOR_VARIETY_POSE_ARGUMENTS}
+    stage = next((name for name in stages if getattr(args, name)), None)
+    if stage is not None:
+        arguments = stages[stage]
         if not args.init.is_file():
             parser.error(f"--{stage.replace('_', '-')} starts from {args.init}, which does not exist")
         return train_main([*data, "--out", str(args.out / stage), "--init", str(args.init), *arguments])
