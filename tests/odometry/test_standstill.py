@@ -231,3 +231,32 @@ def test_dmlo_register_of_a_file_with_itself_prints_the_identity(shared_data: Pa
     report = json.loads(capsys.readouterr().out)
     moved, turned = pose_difference(np.eye(4), np.array(report["T_b_a"]))
     assert report["map_refined"] and moved <= 0.001 and turned <= 0.005, report
+
+
+def test_a_ring_lock_distance_of_0_turns_the_keyframe_alignments_off_for_pairs_and_drives(
+    shared_data: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One decision (`mapping.near_keyframe_alignment`) for the single pair and the drive: with
+    `ring_lock_distance` 0 neither the standing ICP nor the upright split runs, NDT aligns every scan."""
+    from dmlo.odometry import mapping
+
+    calls: list[str] = []
+    real_icp, real_split = dmlo_rs.point_to_plane, mapping.align_near_keyframe
+    monkeypatch.setattr(dmlo_rs, "point_to_plane", lambda *a, **k: calls.append("standing") or real_icp(*a, **k))
+    monkeypatch.setattr("dmlo.odometry.pipeline.align_near_keyframe",
+                        lambda *a, **k: calls.append("near") or real_split(*a, **k))
+    sequence = open_sequence(shared_data / "kitti_raw_static")
+    scans = [sequence[k].points for k in range(4)]
+
+    def run(ring_lock_distance: float) -> list[str]:
+        calls.clear()
+        config = OdometryConfig()
+        config.mapping.ring_lock_distance = ring_lock_distance
+        odometry = Odometry.from_default(config)
+        odometry.register_pair(scans[0], scans[0].copy())
+        for scan in scans:
+            odometry.register(scan)
+        return list(calls)
+
+    assert run(0.5).count("standing") >= 3  # the pair and the standing drive's frames
+    assert run(0.0) == []

@@ -207,7 +207,8 @@ class MappingConfig:
     # Within this distance (m) of the newest keyframe the horizontal motion and heading come from the scan's
     # upright surfaces alone: the ground rings sit at fixed ranges from the sensor, so the rings of a keyframe
     # taken nearby lie where the scan's own would if the car stood still, and they hold a creeping car in
-    # place (`register_pair` treats a pair that moved less the same way). 0 turns it off.
+    # place (`register_pair` treats a pair that moved less the same way); a car standing at the keyframe is
+    # aligned to it by point-to-plane ICP. 0 turns both off.
     ring_lock_distance: Limit = 0.5
     # When the DMLO pose is this far (m, °) from the constant-velocity prediction, NDT also starts from the
     # prediction and the better-scoring alignment wins (a wrong RANSAC consensus is caught by the map).

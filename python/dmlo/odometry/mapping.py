@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -66,6 +66,16 @@ def standing(keyframe: Matrix4, pose: Matrix4) -> bool:
     that has not moved."""
     moved, turned = pose_difference(keyframe, pose)
     return moved < STANDING_DISTANCE and turned < STANDING_ANGLE_DEG
+
+
+def near_keyframe_alignment(keyframe: Matrix4, pose: Matrix4, config: MappingConfig) -> Literal["standing", "near"] | None:
+    """How a scan at `pose` is aligned next to a keyframe (or a pair's reference) at `keyframe`, one decision for
+    the drive and the single pair: "standing" (`standing`: projective point-to-plane ICP against the keyframe's
+    point image), "near" (`near_keyframe`: `align_near_keyframe`'s split), None beyond `config.ring_lock_distance`
+    (NDT of the whole scan). A `ring_lock_distance` of 0 turns both off."""
+    if not near_keyframe(keyframe, pose, config):
+        return None
+    return "standing" if standing(keyframe, pose) else "near"
 
 
 def upright_points(points: npt.NDArray[np.float32], cylinder: Any, voxel: float) -> npt.NDArray[np.float32]:

@@ -24,7 +24,7 @@ from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
 from dmlo.odometry.mapping import (
-    align_near_keyframe, align_to_map, near_keyframe, refine_pair, standing, upright_points,
+    align_near_keyframe, align_to_map, near_keyframe_alignment, refine_pair, upright_points,
 )
 from dmlo.odometry.pair import PairResult
 from dmlo.odometry import reflectance
@@ -404,10 +404,11 @@ class Odometry:
         pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features, ref_points, tgt_points)
         if self.config.mapping.enabled and pair.num_inliers >= self.config.motion_model.min_inliers:
             target_pose = np.asarray(np.linalg.inv(pair.T_tgt_ref), dtype=np.float64)
-            if standing(np.eye(4), target_pose):  # NDT's voxels leave millimetres; the planes do not
+            alignment = near_keyframe_alignment(np.eye(4), target_pose, self.config.mapping)
+            if alignment == "standing":  # NDT's voxels leave millimetres; the planes do not
                 refined = dmlo_rs.point_to_plane(ref_points, tgt_points, pair.T_tgt_ref, self.cylinder)
             else:  # near the reference, its rings would hold the pair together: `align_near_keyframe`
-                near = near_keyframe(np.eye(4), target_pose, self.config.mapping)
+                near = alignment == "near"
                 upright = upright_points(tgt_points, self.cylinder, self.config.mapping.downsample) if near else None
                 refined = refine_pair(reference_cloud, target_cloud, pair.T_tgt_ref, self.config.mapping, upright)
             pair.map_refined = refined is not None
@@ -939,9 +940,12 @@ class Odometry:
         """
         diagnostics.ndt_upright_only = False
         keyframe = self._last_keyframe
-        if keyframe is None or not near_keyframe(keyframe, pose, self.config.mapping):
+        if keyframe is None:
             return None
-        if self._keyframe_points is not None and standing(keyframe, pose):
+        alignment = near_keyframe_alignment(keyframe, pose, self.config.mapping)
+        if alignment is None:
+            return None
+        if self._keyframe_points is not None and alignment == "standing":
             start = np.linalg.inv(pose) @ keyframe  # the keyframe's points into this scan's frame
             refined = dmlo_rs.point_to_plane(self._keyframe_points, points, start, self.cylinder)
             if refined is not None:
