@@ -1,4 +1,5 @@
-"""The sensor-variety augmentations: per-laser reflectance gains and partly empty rows, as on a real sensor."""
+"""The sensor-variety augmentations: per-laser reflectance gains, partly empty rows and scans without their
+reflectance, as on real sensors."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 
 from dmlo.train import default_recipe
 from dmlo.train.config import TrainConfig
-from dmlo.train.dataset import Augmentation, drop_row_cells, scale_row_reflectance
+from dmlo.train.dataset import Augmentation, drop_row_cells, scale_row_reflectance, without_reflectance
 
 HEIGHT, WIDTH = 16, 256
 
@@ -57,9 +58,30 @@ def test_dropout_empties_cells_row_by_row_apart_in_the_two_scans_and_drops_their
     np.testing.assert_array_equal(dropped["flow"], original["flow"])
 
 
+def test_reflectance_dropout_zeroes_both_scans_reflectance_in_its_share_of_the_pairs() -> None:
+    original = sample()
+    zeroed = without_reflectance(original)
+    for key in ("ref", "tgt"):
+        assert not zeroed[key][1].any()
+        np.testing.assert_array_equal(zeroed[key][0], original[key][0])
+    np.testing.assert_array_equal(zeroed["flow"], original["flow"])
+    assert original["ref"][1].any()  # the input is not changed
+    half = Augmentation(yaw_roll=False, reflectance_dropout=0.5)
+    without = [not half(sample(), np.random.default_rng(seed))["ref"][1].any() for seed in range(200)]
+    assert 0.35 < np.mean(without) < 0.65
+    assert all(not Augmentation(yaw_roll=False, reflectance_dropout=1.0)(sample(), np.random.default_rng(s))["tgt"][1].any()
+               for s in range(5))
+    assert Augmentation(reflectance_dropout=1.0, random=False)(sample(), np.random.default_rng(0))["ref"][1].any()
+    config = TrainConfig(reflectance_dropout=0.5)
+    assert TrainConfig.from_dict(config.to_dict()) == config
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="reflectance_dropout"):
+            Augmentation(reflectance_dropout=bad)
+
+
 def test_the_augmentations_are_drawn_after_the_crop_so_runs_without_them_are_unchanged() -> None:
     plain = Augmentation(crop_width=128, mirror=True)
-    varied = Augmentation(crop_width=128, mirror=True, laser_gain_spread=0.6, row_dropout=0.4)
+    varied = Augmentation(crop_width=128, mirror=True, laser_gain_spread=0.6, row_dropout=0.4, reflectance_dropout=0.5)
     for seed in range(6):
         a, b = plain(sample(), np.random.default_rng(seed)), varied(sample(), np.random.default_rng(seed))
         np.testing.assert_array_equal(a["flow"], b["flow"])  # the same roll, mirror and crop

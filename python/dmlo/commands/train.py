@@ -30,6 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--row-dropout", type=float, default=0.0, metavar="P",
                       help="in half of the pairs each row loses up to this share of its cells, as a real sensor's rows "
                       "are partly empty (default 0: off)")
+    data.add_argument("--reflectance-dropout", type=float, default=0.0, metavar="P",
+                      help="this share of the pairs has its reflectance zeroed in both scans, so that the matcher learns "
+                      "to match by range where brightness misleads (default 0: off)")
     data.add_argument("--max-gap", type=int, default=2, help="pairs 1..N frames apart (default 2: the paper's triplets)")
     data.add_argument("--val-max-pairs", type=int, default=64, help="held-out pairs validated after each epoch, evenly spaced")
     data.add_argument("--val-width", type=int, default=0, help="centred validation crop; 0 = full width")
@@ -125,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
             weight_decay=args.weight_decay, lr_step_epochs=args.lr_step, lr_gamma=args.lr_gamma,
             crop_height=args.crop_height or None, crop_width=args.crop_width or None, yaw_roll=not args.no_yaw_roll,
             mirror=args.mirror, laser_gain_spread=args.laser_gain_spread, row_dropout=args.row_dropout,
+            reflectance_dropout=args.reflectance_dropout,
             max_gap=args.max_gap, val_max_pairs=args.val_max_pairs, val_width=args.val_width or None,
             seed=args.seed, workers=args.workers, device=args.device, checkpoint_every=args.checkpoint_every,
             max_steps=args.max_steps, pose_loss_weight=args.pose_loss_weight,
@@ -137,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
         augmentation = Augmentation(
             config.crop_height, config.crop_width, config.yaw_roll, mirror=config.mirror,
             laser_gain_spread=config.laser_gain_spread, row_dropout=config.row_dropout,
+            reflectance_dropout=config.reflectance_dropout,
         )
         train_set = PairDataset.from_paths(
             config.data, augmentation=augmentation, max_gap=config.max_gap, seed=config.seed, pose_jacobian=pose_jacobian

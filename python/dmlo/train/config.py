@@ -35,6 +35,8 @@ class TrainConfig:
     """Per-row reflectance gains of up to ± this, the same in both scans (`Augmentation`); 0: off."""
     row_dropout: float = 0.0
     """Rows losing up to this share of their cells (`Augmentation`); 0: off."""
+    reflectance_dropout: float = 0.0
+    """Share of the pairs trained without their reflectance (`Augmentation`); 0: off."""
     max_gap: int = 2
     """Pairs 1 … max_gap frames apart (2: the paper's triplets)."""
     val_max_pairs: int = 64

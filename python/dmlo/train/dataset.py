@@ -97,12 +97,17 @@ class Augmentation:
     Drawn after the crop, as is the row dropout, so runs without them are unchanged."""
     row_dropout: float = 0.0
     """Largest share of a row's cells dropped: half the samples draw each row's share in [0, row_dropout]."""
+    reflectance_dropout: float = 0.0
+    """Share of the samples whose reflectance is zeroed in both scans (the range-only model's input), so that
+    the matcher cannot lean on brightness alone; drawn last, so runs without it are unchanged."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.laser_gain_spread < 1.0:
             raise ValueError(f"laser_gain_spread must be in [0, 1), got {self.laser_gain_spread}")
         if not 0.0 <= self.row_dropout < 1.0:
             raise ValueError(f"row_dropout must be in [0, 1), got {self.row_dropout}")
+        if not 0.0 <= self.reflectance_dropout <= 1.0:
+            raise ValueError(f"reflectance_dropout must be in [0, 1], got {self.reflectance_dropout}")
         if self.crop_height is not None and (self.crop_height <= 0 or self.crop_height % 4):
             raise ValueError(f"crop_height must be a positive multiple of 4, got {self.crop_height}")
         if self.crop_width is not None and (self.crop_width <= 0 or self.crop_width % 8):
@@ -129,7 +134,19 @@ class Augmentation:
             sample = scale_row_reflectance(sample, rng.uniform(0.0, self.laser_gain_spread), rng)
         if self.random and self.row_dropout > 0 and rng.random() < 0.5:
             sample = drop_row_cells(sample, self.row_dropout, rng)
+        if self.random and self.reflectance_dropout > 0 and rng.random() < self.reflectance_dropout:
+            sample = without_reflectance(sample)
         return sample
+
+
+def without_reflectance(sample: Sample) -> Sample:
+    """Both scans with their reflectance channel zeroed, as the range-only model sees every scan."""
+    zeroed = dict(sample)
+    for key in ("ref", "tgt"):
+        image = sample[key].copy()
+        image[1] = 0.0
+        zeroed[key] = image
+    return zeroed
 
 
 def scale_row_reflectance(sample: Sample, spread: float, rng: np.random.Generator) -> Sample:
