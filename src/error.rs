@@ -23,6 +23,10 @@ pub enum Error {
     /// The points do not determine a unique solution (e.g. all collinear).
     #[error("degenerate input: {0}")]
     Degenerate(String),
+    /// A model file is missing, unreadable or not what was asked for (`inference`); the message names the
+    /// file.
+    #[error("model: {0}")]
+    Model(String),
 }
 
 /// `Result` with the crate's [`Error`].

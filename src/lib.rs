@@ -18,6 +18,7 @@
 //! | [`ray_noise`] | — | Gauss–Newton refit weighing each match by its ray's bearing and range noise |
 //! | [`ndt`] | §III-D-c | scan-to-map NDT refinement |
 //! | [`raycast`] | — | the LiDAR simulator's ray casting |
+//! | `inference` | §III-C | the network's encoder run by tract, and the learned matcher (feature `inference`) |
 //!
 //! Conventions: LiDAR frame x forward, y left, z up; a scan is `N×4` `f32` (x, y, z, reflectance);
 //! transforms are named by frames, `T_tgt_ref` maps reference points into the target frame
@@ -31,6 +32,8 @@ pub mod dense_match;
 pub mod deskew;
 pub mod error;
 pub mod ground_truth;
+#[cfg(feature = "inference")]
+pub mod inference;
 pub mod matches;
 pub mod ndt;
 pub mod nms;

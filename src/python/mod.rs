@@ -35,7 +35,9 @@ pyo3::create_exception!(
 impl From<Error> for PyErr {
     fn from(err: Error) -> PyErr {
         match err {
-            Error::InvalidArgument { .. } => PyValueError::new_err(err.to_string()),
+            Error::InvalidArgument { .. } | Error::Model(_) => {
+                PyValueError::new_err(err.to_string())
+            }
             Error::TooFewPoints { .. } | Error::Degenerate(_) => {
                 RegistrationError::new_err(err.to_string())
             }

@@ -1,0 +1,134 @@
+#![forbid(unsafe_code)]
+//! The settings `dmlo export` writes into a graph's metadata (`metadata_props`), read back.
+
+use std::collections::HashMap;
+
+use serde_json::Value;
+
+use crate::dense_match::{DenseMatchConfig, OffsetRule};
+use crate::error::{Error, Result};
+
+/// The network's coarse stride (rows, columns): one coarse cell covers 4 × 8 pixels.
+pub const NETWORK_STRIDE: [usize; 2] = [4, 8];
+
+/// What a dmlo graph's metadata says about the model: its input size, which graph it is, and the
+/// settings of the matching stage.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelMetadata {
+    /// `dmlo.graph`: "encoder", "frame", "match", …
+    pub graph: String,
+    /// Image rows (`dmlo.height`).
+    pub height: usize,
+    /// Image columns (`dmlo.width`).
+    pub width: usize,
+    /// Coarse window D (`dmlo.model_config.coarse_window`).
+    pub coarse_window: usize,
+    /// Refine window (`dmlo.model_config.refine_window`).
+    pub refine_window: usize,
+    /// `dmlo.model_config.refine_offset`: "window" (the paper's Eq. 11) or "peak_centroid".
+    pub refine_offset: String,
+    /// The learned softmax scales (`dmlo.similarity_scales`: coarse, refine); None in graphs exported
+    /// before they were written.
+    pub similarity_scales: Option<[f32; 2]>,
+}
+
+impl ModelMetadata {
+    /// Reads the metadata entries (`key → value`) of the graph at `path` (named in errors).
+    pub fn from_entries(entries: &HashMap<String, String>, path: &str) -> Result<Self> {
+        let missing = |key: &str| {
+            Error::Model(format!(
+                "{path}: no {key} in the graph's metadata: not a dmlo export"
+            ))
+        };
+        let text = |key: &str| entries.get(key).ok_or_else(|| missing(key));
+        let json = |key: &str| -> Result<Value> {
+            serde_json::from_str(text(key)?)
+                .map_err(|e| Error::Model(format!("{path}: {key} is not JSON: {e}")))
+        };
+        let count = |key: &str, value: Option<&Value>| -> Result<usize> {
+            value
+                .and_then(Value::as_u64)
+                .and_then(|v| usize::try_from(v).ok())
+                .filter(|&v| v > 0)
+                .ok_or_else(|| Error::Model(format!("{path}: {key} must be a positive integer")))
+        };
+        let size = |key: &str| -> Result<usize> {
+            let value = text(key)?;
+            value
+                .trim()
+                .parse::<usize>()
+                .ok()
+                .filter(|&v| v > 0)
+                .ok_or_else(|| {
+                    Error::Model(format!(
+                        "{path}: {key} = {value:?} is not a positive integer"
+                    ))
+                })
+        };
+        let config = json("dmlo.model_config")?;
+        let refine_offset = config
+            .get("refine_offset")
+            .and_then(Value::as_str)
+            .unwrap_or("window")
+            .to_string();
+        let similarity_scales = match entries.get("dmlo.similarity_scales") {
+            None => None,
+            Some(_) => {
+                let scales = json("dmlo.similarity_scales")?;
+                let scale = |stage: &str| -> Result<f32> {
+                    scales
+                        .get(stage)
+                        .and_then(Value::as_f64)
+                        .filter(|v| v.is_finite() && *v > 0.0)
+                        .map(|v| v as f32)
+                        .ok_or_else(|| {
+                            Error::Model(format!(
+                                "{path}: dmlo.similarity_scales.{stage} must be a number > 0"
+                            ))
+                        })
+                };
+                Some([scale("coarse")?, scale("refine")?])
+            }
+        };
+        Ok(ModelMetadata {
+            graph: text("dmlo.graph")?.clone(),
+            height: size("dmlo.height")?,
+            width: size("dmlo.width")?,
+            coarse_window: count(
+                "dmlo.model_config.coarse_window",
+                config.get("coarse_window"),
+            )?,
+            refine_window: count(
+                "dmlo.model_config.refine_window",
+                config.get("refine_window"),
+            )?,
+            refine_offset,
+            similarity_scales,
+        })
+    }
+
+    /// The matching stage's settings for this model. Errors when the graph has no similarity scales
+    /// (export the model again) or names an unknown `refine_offset`.
+    pub fn dense_match_config(&self) -> Result<DenseMatchConfig> {
+        let [coarse_scale, refine_scale] = self.similarity_scales.ok_or_else(|| {
+            Error::Model("the graph has no dmlo.similarity_scales: export the model again with `dmlo export`".into())
+        })?;
+        let refine_offset = match self.refine_offset.as_str() {
+            "window" => OffsetRule::BestWindow,
+            "peak_centroid" => OffsetRule::PeakCentroid,
+            other => {
+                return Err(Error::Model(format!(
+                    "dmlo.model_config.refine_offset: expected \"window\" or \"peak_centroid\", got {other:?}"
+                )))
+            }
+        };
+        Ok(DenseMatchConfig {
+            coarse_window: self.coarse_window,
+            refine_window: self.refine_window,
+            stride: NETWORK_STRIDE,
+            coarse_scale,
+            refine_scale,
+            refine_offset,
+        })
+    }
+}

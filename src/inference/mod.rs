@@ -1,0 +1,142 @@
+#![forbid(unsafe_code)]
+//! The learned matcher from Rust (feature `inference`): the network's encoder run by
+//! [tract](https://github.com/sonos/tract) (pure Rust, no C/C++ runtime, cross-compiles to ARM
+//! robots) on the exported `encoder.onnx`, and the crate's own matching stage
+//! ([`crate::dense_match`]) on its features — the flow and confidence of every reference cell,
+//! as `dmlo run` computes them, without Python.
+//!
+//! The model is found by an explicit path (nothing is downloaded); its settings travel in the graph's
+//! metadata, written by `dmlo export`: the input size, the windows of the matching stage
+//! (`dmlo.model_config`) and its two learned softmax scales (`dmlo.similarity_scales`).
+//!
+//! ```no_run
+//! use dmlo_rs::inference::{Encoder, LearnedMatcher, TractEncoder};
+//!
+//! # fn main() -> dmlo_rs::error::Result<()> {
+//! let matcher = LearnedMatcher::new(TractEncoder::open("python/dmlo/models/default/encoder.onnx")?)?;
+//! let [height, width] = matcher.encoder().input_size();
+//! // Two scans' images: range (m) then reflectance ([0, 1]), channel-major, 0 where empty
+//! // (`projection::project`).
+//! let (reference, target) = (vec![0.0f32; 2 * height * width], vec![0.0f32; 2 * height * width]);
+//! let reference = matcher.encoder().encode(&reference)?;
+//! let target = matcher.encoder().encode(&target)?;
+//! let flow = matcher.flow(&reference, &target)?; // then `matches::decode_matches`, NMS, RANSAC
+//! # let _ = flow;
+//! # Ok(())
+//! # }
+//! ```
+
+mod metadata;
+mod tract;
+
+pub use metadata::ModelMetadata;
+pub use tract::TractEncoder;
+
+use crate::dense_match::{self, DenseFlow, DenseMatchConfig, FeatureMap, ScanFeatures};
+use crate::error::{Error, Result};
+
+/// One scan encoded by the network: coarse features `(C, H / stride, W / stride)` and refine features
+/// `(Cr, H, W)`, channel-major as the graph writes them. Cache it: a scan is the target of one pair and
+/// the reference of the next.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EncodedScan {
+    /// Coarse features, `coarse_shape[0] · coarse_shape[1] · coarse_shape[2]` values.
+    pub coarse: Vec<f32>,
+    /// `(channels, rows, columns)` of the coarse features.
+    pub coarse_shape: [usize; 3],
+    /// Refine features at full resolution.
+    pub refine: Vec<f32>,
+    /// `(channels, rows, columns)` of the refine features.
+    pub refine_shape: [usize; 3],
+}
+
+impl EncodedScan {
+    /// The features as the matching stage reads them.
+    pub fn features(&self) -> ScanFeatures<'_> {
+        ScanFeatures {
+            coarse: feature_map(&self.coarse, self.coarse_shape),
+            refine: feature_map(&self.refine, self.refine_shape),
+        }
+    }
+}
+
+fn feature_map(data: &[f32], [channels, height, width]: [usize; 3]) -> FeatureMap<'_> {
+    FeatureMap {
+        data,
+        channels,
+        height,
+        width,
+    }
+}
+
+/// A network's encoder: a scan's image in, its features out. [`TractEncoder`] runs the exported graph;
+/// another runtime (onnxruntime, a GPU) plugs in behind the same trait.
+pub trait Encoder {
+    /// `[rows, columns]` of the images the encoder takes.
+    fn input_size(&self) -> [usize; 2];
+    /// The settings the graph was exported with.
+    fn metadata(&self) -> &ModelMetadata;
+    /// Encodes one image, `(2, rows, columns)` channel-major: range in metres, then reflectance in
+    /// [0, 1]; 0 where a cell is empty. Errors name a wrong length or a non-finite value.
+    fn encode(&self, image: &[f32]) -> Result<EncodedScan>;
+}
+
+/// The learned matcher: an [`Encoder`] and the crate's matching stage with the model's windows and scales.
+#[derive(Debug)]
+pub struct LearnedMatcher<E: Encoder> {
+    encoder: E,
+    config: DenseMatchConfig,
+}
+
+impl<E: Encoder> LearnedMatcher<E> {
+    /// The matcher of `encoder`'s model, its matching stage set from the graph's metadata.
+    pub fn new(encoder: E) -> Result<Self> {
+        let config = encoder.metadata().dense_match_config()?;
+        Ok(LearnedMatcher { encoder, config })
+    }
+
+    /// The encoder, to encode scans (and cache their features).
+    pub fn encoder(&self) -> &E {
+        &self.encoder
+    }
+
+    /// The matching stage's settings (windows, stride, softmax scales).
+    pub fn config(&self) -> &DenseMatchConfig {
+        &self.config
+    }
+
+    /// The flow of every `reference` cell into `target` and its confidence (paper §III-C).
+    pub fn flow(&self, reference: &EncodedScan, target: &EncodedScan) -> Result<DenseFlow> {
+        dense_match::match_features(&reference.features(), &target.features(), &self.config)
+    }
+}
+
+/// Checks an image for [`Encoder::encode`]: `2 · rows · columns` finite values.
+pub(crate) fn check_image(image: &[f32], [rows, columns]: [usize; 2]) -> Result<()> {
+    let expected = 2 * rows * columns;
+    if image.len() != expected {
+        return Err(Error::invalid(
+            "image",
+            format!(
+                "expected 2 × {rows} × {columns} = {expected} values (range, then reflectance), got {}",
+                image.len()
+            ),
+        ));
+    }
+    if let Some(i) = image.iter().position(|v| !v.is_finite()) {
+        let (channel, cell) = (i / (rows * columns), i % (rows * columns));
+        return Err(Error::invalid(
+            "image",
+            format!(
+                "value {} at channel {channel}, row {}, column {} is not finite",
+                image[i],
+                cell / columns,
+                cell % columns
+            ),
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests;
