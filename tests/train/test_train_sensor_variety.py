@@ -103,16 +103,22 @@ def test_the_training_command_records_the_augmentations(tmp_path: Path) -> None:
         main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--laser-gain-spread", "x"])
 
 
-def test_the_recipe_fine_tunes_the_bundled_final_weights_with_sensor_variety(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
-) -> None:
+def recipe_training_command(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, stage: str) -> list[str]:
+    """The training command `default_recipe` runs for `stage` (its drives and the training stubbed out)."""
     calls: list[list[str]] = []
     monkeypatch.setattr(default_recipe, "simulate_drives", lambda data, poses: ([tmp_path / "t"], [tmp_path / "v"]))
     import dmlo.train.__main__ as train_entry
 
     monkeypatch.setattr(train_entry, "main", lambda argv: calls.append(list(argv)) or 0)
-    assert default_recipe.main(["--data", str(tmp_path), "--out", str(tmp_path / "run"), "--sensor-variety"]) == 0
+    assert default_recipe.main(["--data", str(tmp_path), "--out", str(tmp_path / "run"), stage]) == 0
     (argv,) = calls
+    return argv
+
+
+def test_the_recipe_fine_tunes_the_bundled_final_weights_with_sensor_variety(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    argv = recipe_training_command(monkeypatch, tmp_path, "--sensor-variety")
     assert argv[argv.index("--init") + 1] == str(default_recipe.BUNDLED_FINAL)
     assert argv[argv.index("--out") + 1] == str(tmp_path / "run" / "sensor_variety")
     assert float(argv[argv.index("--laser-gain-spread") + 1]) > 0 and float(argv[argv.index("--row-dropout") + 1]) > 0
@@ -123,14 +129,8 @@ def test_the_recipe_fine_tunes_the_bundled_final_weights_with_sensor_variety(
 def test_the_pose_stage_with_sensor_variety_trains_whole_images_with_the_pose_loss(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    calls: list[list[str]] = []
-    monkeypatch.setattr(default_recipe, "simulate_drives", lambda data, poses: ([tmp_path / "t"], [tmp_path / "v"]))
-    import dmlo.train.__main__ as train_entry
-
-    monkeypatch.setattr(train_entry, "main", lambda argv: calls.append(list(argv)) or 0)
+    argv = recipe_training_command(monkeypatch, tmp_path, "--sensor-variety-pose")
     run = tmp_path / "run"
-    assert default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--sensor-variety-pose"]) == 0
-    (argv,) = calls
     assert argv[argv.index("--init") + 1] == str(default_recipe.BUNDLED_FINAL)
     assert argv[argv.index("--out") + 1] == str(run / "sensor_variety_pose")
     assert argv[argv.index("--crop-width") + 1] == "0"  # whole images, as the bundled model's last stage
