@@ -157,9 +157,8 @@ def refine_pair(
 ) -> Matrix4 | None:
     """`T_tgt_ref` refined by NDT of `target` against a map of `reference` (both N×3 or N×4, their own sensor
     frames), with the local map's settings; None when NDT finds too few correspondences or does not converge.
-    Within `config.ring_lock_distance` of the reference, with the target's upright surfaces given
-    (`target_upright`, `upright_points`), the reference's rings would hold the pair together:
-    `align_near_keyframe`."""
+    With the target's upright surfaces given (`target_upright`, `upright_points`: the caller found the pair
+    near, `near_keyframe_alignment`), the reference's rings would hold the pair together: `align_near_keyframe`."""
     one_scan = dmlo_rs.NdtMap(voxel_size=config.voxel_size, max_scans=1)
     one_scan.insert(np.ascontiguousarray(reference[:, :3]))
 
@@ -168,7 +167,7 @@ def refine_pair(
 
     # The map is the reference's frame: the target's pose in it.
     start: Matrix4 = np.asarray(np.linalg.inv(T_tgt_ref), dtype=np.float64)
-    if target_upright is not None and near_keyframe(np.eye(4), start, config):
+    if target_upright is not None:
         near = align_near_keyframe(align, target, target_upright, start, np.eye(4))
         return None if near is None else np.asarray(np.linalg.inv(near.pose), dtype=np.float64)
     try:
