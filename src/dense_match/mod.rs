@@ -23,6 +23,10 @@ pub use window::{decode, OffsetRule, WindowLayout, WindowMatch};
 
 use crate::error::{Error, Result};
 
+/// The network's coarse stride (rows, columns): one coarse cell covers 4 × 8 pixels
+/// (`MatcherConfig.coarse_stride`).
+pub const NETWORK_STRIDE: [usize; 2] = [4, 8];
+
 /// One scan's features at one stage, channel-major `(channels, height, width)` as the network outputs
 /// them.
 #[derive(Debug, Clone, Copy)]

@@ -28,6 +28,17 @@ pub enum OffsetRule {
     PeakCentroid,
 }
 
+impl OffsetRule {
+    /// The rule a model's `refine_offset` names: "window" (Eq. 11) or "peak_centroid"; None for any other.
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "window" => Some(OffsetRule::BestWindow),
+            "peak_centroid" => Some(OffsetRule::PeakCentroid),
+            _ => None,
+        }
+    }
+}
+
 /// Shape of a window's logits in memory: `size × size` cells, rows `row_stride` ≥ `size` apart.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct WindowLayout {

@@ -5,11 +5,8 @@ use std::collections::HashMap;
 
 use serde_json::Value;
 
-use crate::dense_match::{DenseMatchConfig, OffsetRule};
+use crate::dense_match::{DenseMatchConfig, OffsetRule, NETWORK_STRIDE};
 use crate::error::{Error, Result};
-
-/// The network's coarse stride (rows, columns): one coarse cell covers 4 × 8 pixels.
-pub const NETWORK_STRIDE: [usize; 2] = [4, 8];
 
 /// What a dmlo graph's metadata says about the model: its input size, which graph it is, and the
 /// settings of the matching stage.
@@ -113,15 +110,12 @@ impl ModelMetadata {
         let [coarse_scale, refine_scale] = self.similarity_scales.ok_or_else(|| {
             Error::Model("the graph has no dmlo.similarity_scales: export the model again with `dmlo export`".into())
         })?;
-        let refine_offset = match self.refine_offset.as_str() {
-            "window" => OffsetRule::BestWindow,
-            "peak_centroid" => OffsetRule::PeakCentroid,
-            other => {
-                return Err(Error::Model(format!(
-                    "dmlo.model_config.refine_offset: expected \"window\" or \"peak_centroid\", got {other:?}"
-                )))
-            }
-        };
+        let refine_offset = OffsetRule::from_name(&self.refine_offset).ok_or_else(|| {
+            Error::Model(format!(
+                "dmlo.model_config.refine_offset: expected \"window\" or \"peak_centroid\", got {:?}",
+                self.refine_offset
+            ))
+        })?;
         Ok(DenseMatchConfig {
             coarse_window: self.coarse_window,
             refine_window: self.refine_window,

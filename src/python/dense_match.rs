@@ -4,16 +4,15 @@ use numpy::{IntoPyArray, PyArray2, PyArray3};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-use crate::dense_match::{self, DenseMatchConfig, FeatureMap, OffsetRule, ScanFeatures};
+use crate::dense_match::{
+    self, DenseMatchConfig, FeatureMap, OffsetRule, ScanFeatures, NETWORK_STRIDE,
+};
 
 use super::convert::{count, floats, flow_array, image_array, shape_error, Floats, Int};
 use super::pool::{run, threads};
 
 /// Flow `[2, H, W]` and confidence `[H, W]` as numpy arrays.
 type FlowArrays<'py> = (Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<f32>>);
-
-/// The coarse encoder's stride (rows, cols): `MatcherConfig.coarse_stride`.
-const NETWORK_STRIDE: [usize; 2] = [4, 8];
 
 pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(match_features, m)?)?;
@@ -32,13 +31,11 @@ fn feature_array<'py>(name: &str, obj: &Bound<'py, PyAny>) -> PyResult<(Floats<'
 }
 
 fn offset_rule(name: &str) -> PyResult<OffsetRule> {
-    match name {
-        "window" => Ok(OffsetRule::BestWindow),
-        "peak_centroid" => Ok(OffsetRule::PeakCentroid),
-        other => Err(PyValueError::new_err(format!(
-            "refine_offset: expected 'window' or 'peak_centroid', got {other:?}"
-        ))),
-    }
+    OffsetRule::from_name(name).ok_or_else(|| {
+        PyValueError::new_err(format!(
+            "refine_offset: expected 'window' or 'peak_centroid', got {name:?}"
+        ))
+    })
 }
 
 /// The network's matching stage on the CPU: the flow of every reference cell into the target and its
