@@ -204,15 +204,28 @@ pub(super) fn point_image<'py>(
     obj: &Bound<'py, PyAny>,
     cylinder: &CylinderConfig,
 ) -> PyResult<Floats<'py>> {
-    let points = floats(name, obj)?;
-    if points.shape() != [cylinder.height, cylinder.width, 3] {
-        let expected = format!(
-            "({}, {}, 3) (the config's image)",
-            cylinder.height, cylinder.width
-        );
-        return Err(shape_error(name, &expected, points.shape()));
+    config_image(name, obj, cylinder, &[3])
+}
+
+/// A float array shaped as `config`'s image, `[H, W]` followed by `per_cell` (e.g. `[3]` for a point a cell).
+fn config_image<'py>(
+    name: &str,
+    obj: &Bound<'py, PyAny>,
+    config: &CylinderConfig,
+    per_cell: &[usize],
+) -> PyResult<Floats<'py>> {
+    let array = floats(name, obj)?;
+    let expected: Vec<usize> = [config.height, config.width]
+        .iter()
+        .chain(per_cell)
+        .copied()
+        .collect();
+    if array.shape() != expected.as_slice() {
+        let dims: Vec<String> = expected.iter().map(usize::to_string).collect();
+        let expected = format!("({}) (the config's image)", dims.join(", "));
+        return Err(shape_error(name, &expected, array.shape()));
     }
-    Ok(points)
+    Ok(array)
 }
 
 pub(super) fn shape_error(name: &str, expected: &str, shape: &[usize]) -> PyErr {
@@ -291,16 +304,7 @@ pub(super) fn image<'py>(
     obj: &Bound<'py, PyAny>,
     config: &CylinderConfig,
 ) -> PyResult<Floats<'py>> {
-    let array = floats(name, obj)?;
-    let shape = array.shape();
-    if shape != [config.height, config.width] {
-        return Err(shape_error(
-            name,
-            &format!("({}, {}) (the config's image)", config.height, config.width),
-            shape,
-        ));
-    }
-    Ok(array)
+    config_image(name, obj, config, &[])
 }
 
 /// A `2 × height × width` flow (Δrow, Δcol) over the config's image.
