@@ -84,8 +84,8 @@ fn a_scan_matched_with_itself_stays_in_place() {
         .iter()
         .filter(|&&i| dense.flow[i].abs() < 1.0 && dense.flow[cells + i].abs() < 1.0)
         .count();
-    // The 2×2 window's centroid (Eq. 11) sits up to half a pixel off a sharp peak; onnxruntime's features
-    // through the same stage leave 86 % of this scan's cells within a pixel.
+    // The 2×2 window's centroid (Eq. 11) sits up to half a pixel off a sharp peak, so "in place" is within a
+    // pixel, and not every cell: flat, featureless patches match loosely even against themselves.
     assert!(
         still as f64 > 0.8 * filled.len() as f64,
         "{still} of {} filled cells stay within a pixel",
