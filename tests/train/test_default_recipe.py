@@ -88,3 +88,57 @@ def test_committed_range_only_state_was_made_by_the_recipe() -> None:
     assert config.crop_width == int(option(arguments, "--crop-width")) and config.mirror
     assert config.lr == float(option(arguments, "--lr")) and config.epochs == int(option(arguments, "--epochs"))
     assert config.batch_size == int(option(arguments, "--batch-size"))
+
+
+def test_scenes_stage_fine_tunes_on_the_recipes_drives_and_the_scene_drives(
+    captured: list[list[str]], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    scenes = ([tmp_path / "scenes_highway"], [tmp_path / "val_scenes_jam"])
+    monkeypatch.setattr(default_recipe, "simulate_scene_drives", lambda data, poses: scenes)
+    run = tmp_path / "run"
+    assert default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--scenes"]) == 0
+    (argv,) = captured
+    assert option(argv, "--init") == str(default_recipe.BUNDLED_FINAL)
+    assert option(argv, "--out") == str(run / "scenes")
+    data, val = argv[argv.index("--data") + 1 : argv.index("--val")], argv[argv.index("--val") + 1 : argv.index("--out")]
+    assert data == [str(tmp_path / "train_00"), str(tmp_path / "scenes_highway")]
+    assert val == [str(tmp_path / "val_07"), str(tmp_path / "val_scenes_jam")]
+    assert option(argv, "--crop-width") == "448" and "--resume" in argv
+    with pytest.raises(SystemExit):
+        default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--scenes", "--range-only"])
+
+
+def test_scene_drives_cover_the_failing_scenes_and_stay_off_the_benchmarks_drives() -> None:
+    options = [drive[5] for drive in default_recipe.SCENE_DRIVES if not drive[0].startswith("val")]
+    assert any(o.get("scene") == "highway" and float(o.get("laser_gain_spread", 0)) >= 0.4 for o in options)  # type: ignore[arg-type]
+    assert any(o.get("escorts") for o in options) and any(o.get("scene") == "stop-and-go" for o in options)
+    seeds = [drive[2] for drive in default_recipe.SCENE_DRIVES]
+    assert len(set(seeds)) == len(seeds) and not set(seeds) & {1, 2, 3, 31, 32, 33, 41, 42}
+    for name, sequence, _, start, _, _ in default_recipe.SCENE_DRIVES:
+        if sequence == "01":  # the odometry benchmark's highway drives KITTI 01's first 300 poses
+            assert start >= 300, name
+    names = [drive[0] for drive in (*default_recipe.DRIVES, *default_recipe.SCENE_DRIVES)]
+    assert len(set(names)) == len(names)
+
+
+def test_scene_drives_without_kitti_poses_keep_only_the_generated_routes(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import dmlo.simulator
+
+    written: list[tuple[Path, dict[str, object]]] = []
+
+    def simulate(out: Path, **kwargs: object) -> None:
+        written.append((out, kwargs))
+        out.mkdir(parents=True)
+        (out / "poses.txt").write_text("")
+
+    monkeypatch.setattr(dmlo.simulator, "simulate_sequence", simulate)
+    train, val = default_recipe.simulate_scene_drives(tmp_path, None)
+    generated = [d for d in default_recipe.SCENE_DRIVES if d[1] is None]
+    assert [out.name for out, _ in written] == [d[0] for d in generated]
+    assert all(kwargs["trajectory"] is None for _, kwargs in written)
+    assert len(train) + len(val) == len(generated) and all(p.name.startswith("val") for p in val)
+    written.clear()
+    assert default_recipe.simulate_scene_drives(tmp_path, None) == (train, val)  # written once
+    assert written == []

@@ -1,7 +1,7 @@
 """The recipe of the bundled default model: its simulated drives and its training command, in one place.
 
     python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR]
-        [--finetune | --range-only | --sensor-variety | --sensor-variety-pose]
+        [--finetune | --range-only | --sensor-variety | --sensor-variety-pose | --scenes]
 
 simulates the drives (skipping those already written; deterministic per seed) and then trains, resuming
 from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. `--finetune` runs
@@ -27,6 +27,11 @@ like the range-only stage; export it as the bundled model with the same `dmlo ex
 row artefacts, from the final weights (or `--init CKPT`), into `RUN_DIR/sensor_variety_pose`: the crop stage
 above loses what the whole-image pose-loss stage taught. One epoch; on 2 CPU cores it spans sessions
 (`--resume` continues it), on one GPU it is a single run.
+
+`--scenes` fine-tunes the final weights (or `--init CKPT`) on the recipe's drives and the scenes where real
+drives failed (`SCENE_DRIVES`: feature-poor highways with per-laser gains, traffic keeping pace around the
+ego, stop-and-go queues, mixed traffic), into `RUN_DIR/scenes`: two epochs on 448-column crops, held out
+on the recipe's validation drives and a highway and a jam of its own. Sized like the range-only stage.
 """
 
 from __future__ import annotations
@@ -46,6 +51,20 @@ DRIVES = (
     ("train_gen", None, 17, 0, 150),
     ("val_07", "07", 21, 0, 60),
     ("val_04", "04", 22, 0, 60),
+)
+
+# The scenes the real-drive issue added to the simulator, for the `--scenes` stage: (name, KITTI trajectory
+# or None for a generated route, seed, first pose, frames, simulator options). The highways follow KITTI 01
+# from pose 400 on, away from the odometry benchmark's highway (its first 300 poses); no seed is one of
+# the benchmark's drives.
+SCENE_DRIVES: tuple[tuple[str, str | None, int, int, int, dict[str, object]], ...] = (
+    ("scenes_highway", "01", 51, 400, 100, {"scene": "highway", "laser_gain_spread": 0.6}),
+    ("scenes_highway_escorts", "01", 52, 600, 100, {"scene": "highway", "escorts": True, "laser_gain_spread": 0.4}),
+    ("scenes_jam", None, 53, 0, 100, {"escorts": True, "traffic": "mixed"}),
+    ("scenes_stop_and_go", None, 54, 0, 100, {"scene": "stop-and-go", "traffic": "mixed"}),
+    ("scenes_street_gains", "08", 55, 2500, 100, {"traffic": "mixed", "laser_gain_spread": 0.4}),
+    ("val_scenes_highway", "01", 61, 900, 40, {"scene": "highway", "laser_gain_spread": 0.6}),
+    ("val_scenes_jam", None, 62, 0, 40, {"escorts": True, "traffic": "mixed"}),
 )
 
 TRAIN_ARGUMENTS = (
@@ -76,6 +95,11 @@ SENSOR_VARIETY_POSE_ARGUMENTS = (
     "--laser-gain-spread 0.6 --row-dropout 0.4 --pose-loss-weight 0.2 --optimizer adam --lr 1e-4 --lr-step 1 "
     "--epochs 1 --batch-size 2 --crop-width 0 --val-max-pairs 32 --val-width 0 --checkpoint-every 25 --resume --mirror"
 ).split()
+# The scenes stage: the flow loss on 448-column crops of the recipe's drives and the scene drives.
+SCENES_ARGUMENTS = (
+    "--optimizer adam --lr 1e-4 --lr-step 1 --epochs 2 --batch-size 4 --crop-width 448 --val-max-pairs 48 "
+    "--val-width 896 --checkpoint-every 25 --resume --mirror"
+).split()
 BUNDLED_FINAL = Path(__file__).resolve().parents[1] / "models" / "default" / "training" / "finetune" / "best.pt"
 
 
@@ -91,6 +115,25 @@ def simulate_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Pa
             trajectory = None  # without KITTI's poses the simulator drives a generated route instead
         if not (out / "poses.txt").is_file():
             simulate_sequence(out, frames=frames, seed=seed, trajectory=trajectory, start=start if trajectory else 0)
+        (val if name.startswith("val") else train).append(out)
+    return train, val
+
+
+def simulate_scene_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Path]]:
+    """`SCENE_DRIVES` under `data` (written once), as training and held-out folders; without KITTI's poses
+    the drives that follow a KITTI trajectory are left out (a generated route is no highway)."""
+    from dmlo.simulator import simulate_sequence
+
+    train: list[Path] = []
+    val: list[Path] = []
+    for name, sequence, seed, start, frames, options in SCENE_DRIVES:
+        trajectory = poses / f"{sequence}.txt" if poses is not None and sequence is not None else None
+        if sequence is not None and (trajectory is None or not trajectory.is_file()):
+            continue
+        out = data / name
+        if not (out / "poses.txt").is_file():
+            simulate_sequence(out, frames=frames, seed=seed, trajectory=trajectory, start=start, progress=False,
+                              **options)  # type: ignore[arg-type]
         (val if name.startswith("val") else train).append(out)
     return train, val
 
@@ -116,19 +159,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sensor-variety-pose", action="store_true",
                         help="fine-tune --init on whole images with the pose loss and the same row artefacts into "
                         "OUT/sensor_variety_pose")
+    parser.add_argument("--scenes", action="store_true",
+                        help="fine-tune --init on the recipe's drives and the highway, traffic and stop-and-go scenes "
+                        "(SCENE_DRIVES) into OUT/scenes")
     parser.add_argument("--init", type=Path, default=BUNDLED_FINAL,
-                        help="with --range-only or --sensor-variety(-pose): the weights to start from (default: the bundled "
+                        help="with --range-only, --sensor-variety(-pose) or --scenes: the weights to start from (default: the bundled "
                         "model's final ones)")
     args = parser.parse_args(argv)
-    if args.finetune + args.range_only + args.sensor_variety + args.sensor_variety_pose > 1:
-        parser.error("--finetune, --range-only, --sensor-variety and --sensor-variety-pose are separate stages: choose one")
-    train, val = simulate_drives(args.data, args.poses if args.poses.is_dir() else None)
+    if args.finetune + args.range_only + args.sensor_variety + args.sensor_variety_pose + args.scenes > 1:
+        parser.error("--finetune, --range-only, --sensor-variety, --sensor-variety-pose and --scenes are separate stages: "
+                     "choose one")
+    poses = args.poses if args.poses.is_dir() else None
+    train, val = simulate_drives(args.data, poses)
+    if args.scenes:
+        scene_train, scene_val = simulate_scene_drives(args.data, poses)
+        train, val = train + scene_train, val + scene_val
 
     from dmlo.train.__main__ import main as train_main
 
     data = ["--data", *map(str, train), "--val", *map(str, val)]
     stages = {"range_only": RANGE_ONLY_ARGUMENTS, "sensor_variety": SENSOR_VARIETY_ARGUMENTS,
-              "sensor_variety_pose": SENSOR_VARIETY_POSE_ARGUMENTS}
+              "sensor_variety_pose": SENSOR_VARIETY_POSE_ARGUMENTS, "scenes": SCENES_ARGUMENTS}
     stage = next((name for name in stages if getattr(args, name)), None)
     if stage is not None:
         arguments = stages[stage]
