@@ -14,6 +14,7 @@
 //! | [`rigid`] | Eq. 12–14 | closed-form weighted rigid solve (faer SVD, reflection fixed) |
 //! | [`surface`] | — | the tilt of the surface under a match: its vote for a horizontal motion |
 //! | [`projective`] | — | projective point-to-plane ICP of a pair that barely moved |
+//! | [`pair`] | §III-D | one pair's motion from the flow: coherence, decoding with NMS, votes, RANSAC |
 //! | [`ransac`] | §III-D-b | seeded RANSAC with rayon-parallel hypothesis scoring |
 //! | [`ray_noise`] | — | Gauss–Newton refit weighing each match by its ray's bearing and range noise |
 //! | [`ndt`] | §III-D-c | scan-to-map NDT refinement |
@@ -37,6 +38,7 @@ pub mod inference;
 pub mod matches;
 pub mod ndt;
 pub mod nms;
+pub mod pair;
 pub mod projection;
 pub mod projective;
 pub mod ransac;

@@ -111,7 +111,9 @@ pub(super) mod counts {
         max_iterations,
         refine_iterations,
         radius,
+        coherence_radius,
         nms_radius,
+        max_matches,
         max_scans,
         min_points_per_voxel,
         min_correspondences,
@@ -305,6 +307,27 @@ pub(super) fn image<'py>(
     config: &CylinderConfig,
 ) -> PyResult<Floats<'py>> {
     config_image(name, obj, config, &[])
+}
+
+/// A boolean `height × width` image over the config's image (a mask of cells), as a row-major vector.
+pub(super) fn bool_image(
+    name: &str,
+    obj: &Bound<'_, PyAny>,
+    config: &CylinderConfig,
+) -> PyResult<Vec<bool>> {
+    let array = as_array(name, obj)?;
+    if !is_dtype::<bool>(array) {
+        return Err(PyTypeError::new_err(format!(
+            "{name}: expected bool, got {}",
+            dtype_name(array)
+        )));
+    }
+    let (h, w) = (config.height, config.width);
+    if array.shape() != [h, w] {
+        return Err(shape_error(name, &format!("({h}, {w})"), array.shape()));
+    }
+    let values: PyReadonlyArrayDyn<'_, bool> = array.extract()?;
+    Ok(values.as_array().iter().copied().collect())
 }
 
 /// A `2 × height × width` flow (Δrow, Δcol) over the config's image.

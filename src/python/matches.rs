@@ -2,8 +2,8 @@
 //! neighbours.
 
 use numpy::ndarray::{Array1, Array2};
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};
-use pyo3::exceptions::{PyTypeError, PyValueError};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyUntypedArrayMethods};
+use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use crate::coherence::{self, CoherenceConfig};
@@ -11,8 +11,8 @@ use crate::matches::{self, DecodeConfig};
 use crate::nms;
 
 use super::convert::{
-    as_array, count, counts, dtype_name, floats, flow_image, image, image_array, is_dtype,
-    points_to_numpy, shape_error, vector_i64, Int,
+    bool_image, count, counts, floats, flow_image, image, image_array, points_to_numpy,
+    shape_error, vector_i64, Int,
 };
 use super::pool::{run, threads};
 use super::projection::PyCylinderConfig;
@@ -125,7 +125,6 @@ fn decode_matches(
 ) -> PyResult<PyMatches> {
     let top_n = top_n.map(|n| count("top_n", n)).transpose()?;
     let cylinder = config.inner;
-    let (h, w) = (cylinder.height, cylinder.width);
     let reference = image("ref_range", ref_range, &cylinder)?;
     let target = image("tgt_range", tgt_range, &cylinder)?;
     let confidence = image("confidence", confidence, &cylinder)?;
@@ -138,23 +137,9 @@ fn decode_matches(
     );
     let (reference, target, confidence, flow): (&[f32], &[f32], &[f32], &[f32]) =
         (&reference, &target, &confidence, &flow);
-    let mask = match mask {
-        None => None,
-        Some(obj) => {
-            let array = as_array("mask", obj)?;
-            if !is_dtype::<bool>(array) {
-                return Err(PyTypeError::new_err(format!(
-                    "mask: expected bool, got {}",
-                    dtype_name(array)
-                )));
-            }
-            if array.shape() != [h, w] {
-                return Err(shape_error("mask", &format!("({h}, {w})"), array.shape()));
-            }
-            let a: PyReadonlyArrayDyn<'_, bool> = array.extract()?;
-            Some(a.as_array().iter().copied().collect::<Vec<bool>>())
-        }
-    };
+    let mask = mask
+        .map(|obj| bool_image("mask", obj, &cylinder))
+        .transpose()?;
     let decode = DecodeConfig {
         min_confidence,
         max_relative_range_spread,

@@ -11,6 +11,7 @@ mod dense_match;
 mod deskew;
 mod matches;
 mod ndt;
+mod pair;
 mod pool;
 mod projection;
 mod projective;
@@ -57,6 +58,7 @@ fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     sim::register(m)?;
     ndt::register(m)?;
     surface::register(m)?;
+    pair::register(m)?;
     projective::register(m)?;
     Ok(())
 }

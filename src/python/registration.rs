@@ -67,7 +67,11 @@ impl PyRansacResult {
 
 /// The refit `refit` names: "point_to_point" or "ray_noise" (with `range_ratio` and
 /// `bearing_threshold_deg`).
-fn refit_kind(refit: &str, range_ratio: f64, bearing_threshold_deg: f64) -> PyResult<Refit> {
+pub(super) fn refit_kind(
+    refit: &str,
+    range_ratio: f64,
+    bearing_threshold_deg: f64,
+) -> PyResult<Refit> {
     match refit {
         "point_to_point" => Ok(Refit::PointToPoint),
         "ray_noise" => Ok(Refit::RayNoise {

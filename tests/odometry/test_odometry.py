@@ -43,7 +43,7 @@ def test_first_pose_is_the_world_and_every_scan_gets_a_pose(scans: list[np.ndarr
         assert np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-6)
     later = odometry.diagnostics[1]
     assert 0 < later.num_matches <= frame_to_frame().matching.max_matches
-    assert {"network", "coherence", "decode_nms", "ransac"} <= set(later.timings_ms)
+    assert {"network", "pair"} <= set(later.timings_ms)
 
 
 def test_same_scans_give_identical_poses(scans: list[np.ndarray]) -> None:
@@ -536,3 +536,20 @@ def test_scans_of_the_trained_sensor_are_not_flagged(scans: list[np.ndarray]) ->
     fill = odometry.diagnostics[0].image_fill
     assert fill is not None and fill > 0.7
     assert odometry.diagnostics[0].to_dict()["image_fill"] == round(fill, 4)
+
+
+def test_a_scan_moved_by_a_transform_keeps_its_reflectance_and_float32_precision() -> None:
+    from dmlo.odometry.large_motion import moved
+
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    cloud = np.hstack([rng.uniform(-120, 120, (5000, 3)), rng.uniform(0, 1, (5000, 1))]).astype(np.float32)
+    transform = np.eye(4)
+    transform[:3, :3] = Rotation.from_euler("zyx", [12.0, -1.5, 0.7], degrees=True).as_matrix()
+    transform[:3, 3] = [1.6, -0.3, 0.05]
+    out = moved(cloud, transform)
+    expected = cloud[:, :3].astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]
+    assert out.dtype == np.float32 and np.array_equal(out[:, 3], cloud[:, 3])
+    assert np.abs(out[:, :3] - expected).max() < 1e-4  # a few float32 steps at 170 m
+    assert moved(cloud, np.eye(4)) is cloud

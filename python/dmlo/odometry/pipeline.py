@@ -97,7 +97,8 @@ class FrameDiagnostics:
     image_fill: float | None = None  # fraction of the cylinder image's cells holding a point
     deskewed: bool = False  # with deskew.enabled: the sweep was motion-compensated (from the 3rd scan on)
     # ms per stage, each once: "network" (projection and onnxruntime), "matching" (the crate's matching
-    # stage, when it ran there), "coherence", "decode_nms", "ransac", and the optional ones' own stages
+    # stage, when it ran there), "pair" (the crate's back end of the pair: coherence, decoding with NMS,
+    # votes, RANSAC), and the optional ones' own stages
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def count_matches(self, pair: PairResult) -> None:
@@ -594,65 +595,31 @@ class Odometry:
         None: the virtual points of `ref_range`'s cells. `tilt_votes`: RANSAC weighs matches by the tilt of their
         surface as `ransac.vote_by_tilt` says; False: one vote each."""
         m, r = self.config.matching, self.config.ransac
-        if m.coherence_px is not None:
-            confidence = dmlo_rs.coherent_confidence(
-                flow, confidence, ref_range, self.cylinder, radius=m.coherence_radius, scale_px=m.coherence_px
-            )
-            if watch:
-                watch.lap("coherence")
-        # Network output → 3D pairs (p'_r, p̂_t), sampling D_t at the sub-pixel match (§III-D), with NMS
-        # fused in: the most confident match of every radius-r neighbourhood, top N (§III-D-a); only
-        # those are lifted to 3D.
-        matches = dmlo_rs.decode_matches(
-            ref_range, tgt_range, flow, confidence, self.cylinder, min_confidence=m.min_confidence,
-            mask=leave_out, top_n=m.max_matches, nms_radius=m.nms_radius,
+        # The crate's back end of a pair (`dmlo_rs.match_pair`): the confidence weighted by the flow's
+        # coherence; the flow decoded into 3D pairs (p'_r, p̂_t), sampling D_t at the sub-pixel match
+        # (§III-D), with NMS fused in (§III-D-a); each match's vote; RANSAC around the closed-form SVD solve
+        # (Eq. 12–14, §III-D-b), its refits as `ransac.refit` says. Road matches cannot tell horizontal
+        # motions apart, so with tilt votes they vote less; a nearby car fills much of the image, so crowded
+        # matches vote less (`ransac.vote_voxel`).
+        pair = dmlo_rs.match_pair(
+            ref_range, tgt_range, flow, confidence, self.cylinder, ref_points=ref_points, leave_out=leave_out,
+            tilt_votes=tilt_votes, min_confidence=m.min_confidence, nms_radius=m.nms_radius,
+            max_matches=m.max_matches, coherence_px=m.coherence_px, coherence_radius=m.coherence_radius,
+            threshold=r.threshold, confidence_level=r.confidence, max_iterations=r.max_iterations, seed=r.seed,
+            refit=r.refit, range_ratio=r.ray_range_ratio, bearing_threshold_deg=r.ray_bearing_threshold_deg,
+            tilt_vote_floor=r.min_vote if r.vote_by_tilt else None, vote_voxel=r.vote_voxel,
         )
-        src, dst = matches.source, matches.target
         if watch:
-            watch.lap("decode_nms")
-        transform, inliers, num_inliers, inlier_votes = np.eye(4), np.zeros(len(src), dtype=bool), 0, None
-        if len(src) >= 3:
-            votes = tilt = None
-            if tilt_votes and r.vote_by_tilt:  # road matches cannot tell horizontal motions apart: they vote less
-                if ref_points is None:
-                    ref_points = self._virtual_points(ref_range)
-                cells = matches.cells
-                votes = tilt = dmlo_rs.horizontal_votes(
-                    ref_points, cells[:, 0], cells[:, 1], self.cylinder, floor=r.min_vote
-                )
-            if tilt_votes and r.vote_voxel is not None:  # a nearby car fills much of the image: it votes less
-                votes = (1.0 if votes is None else votes) / np.sqrt(_voxel_crowding(src, r.vote_voxel))
-            try:
-                # RANSAC around the closed-form SVD solve, Eq. 12–14 (§III-D-b); refits as `ransac.refit` says.
-                ransac = dmlo_rs.ransac_rigid(
-                    src, dst, threshold=r.threshold, confidence=r.confidence,
-                    max_iterations=r.max_iterations, seed=r.seed, refit=r.refit, range_ratio=r.ray_range_ratio,
-                    bearing_threshold_deg=r.ray_bearing_threshold_deg, votes=votes,
-                )
-                transform, inliers, num_inliers = ransac.transform, ransac.inliers, ransac.num_inliers
-                if tilt is not None:  # above the floor: how much of the consensus stands on upright surfaces
-                    inlier_votes = float((tilt[inliers] - r.min_vote).sum())
-            except dmlo_rs.RegistrationError:  # degenerate or all-outlier matches: no motion from this pair
-                pass
-        if watch:
-            watch.lap("ransac")
+            watch.lap("pair")
         return PairResult(
-            T_tgt_ref=np.asarray(transform, dtype=np.float64),
-            num_matches=len(src),
-            num_inliers=int(num_inliers),
-            source_points=src,
-            target_points=dst,
-            inliers=np.asarray(inliers, dtype=bool),
-            inlier_votes=inlier_votes,
+            T_tgt_ref=np.asarray(pair.transform, dtype=np.float64),
+            num_matches=len(pair.source),
+            num_inliers=int(pair.num_inliers),
+            source_points=pair.source,
+            target_points=pair.target,
+            inliers=np.asarray(pair.inliers, dtype=bool),
+            inlier_votes=pair.inlier_votes,
         )
-
-    def _virtual_points(self, ranges: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
-        """The point image of a range image alone: Φ⁻¹ at each cell's centre (Eq. 4), NaN where empty."""
-        height, width = ranges.shape
-        rows, cols = np.divmod(np.arange(height * width, dtype=np.float64), width)
-        points = dmlo_rs.unproject(rows, cols, ranges.reshape(-1).astype(np.float64), self.cylinder)
-        points[ranges.reshape(-1) <= 0] = np.nan
-        return points.astype(np.float32).reshape(height, width, 3)
 
     def _pair(
         self,
@@ -1049,13 +1016,6 @@ def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> P
         inlier_votes=None if forward.inlier_votes is None or reverse.inlier_votes is None
         else forward.inlier_votes + reverse.inlier_votes,
     )
-
-
-def _voxel_crowding(points: npt.NDArray[np.float64], voxel: float) -> npt.NDArray[np.int64]:
-    """For each point, how many of `points` share its cube of `voxel` metres."""
-    keys = np.floor(points / voxel).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    return counts[inverse.ravel()]
 
 
 def _round_trip_error(
