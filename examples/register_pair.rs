@@ -1,89 +1,29 @@
-//! Registers two KITTI `.bin` scans with the `dmlo_rs` core alone (no Python, no network).
+//! Registers two KITTI `.bin` scans with DMLO from Rust alone, no Python (feature `inference`): the
+//! network's encoder run by tract on the exported `encoder.onnx`, the crate's matching stage on its
+//! features (the flow and confidence of every cell), and the back end of a pair
+//! ([`dmlo_rs::pair::match_pair`]: coherence, decoding with NMS, tilt and crowding votes, RANSAC around
+//! the SVD solve) — the pure DMLO of `dmlo register --no-mapping` for one pair of consecutive scans.
 //!
 //! ```text
-//! cargo run --release --example register_pair -- A.bin B.bin [--move-b YAW_DEG TX TY TZ]
+//! cargo run --release --features inference --example register_pair -- \
+//!     python/dmlo/models/default/encoder.onnx A.bin B.bin [--move-b YAW_DEG TX TY TZ]
 //! ```
 //!
-//! Without the learned matcher, a stand-in makes the per-cell flow and confidence the network would:
-//! each cell of A, moved by the current motion estimate, is matched to the nearest 3D point among the
-//! cells of B in a window around where it lands (±2 rows, ±24 columns). The flow is decoded into 3D
-//! matches, thinned by NMS and solved by RANSAC + the SVD rigid solve, for 24 ICP-like rounds from
-//! the identity. This stand-in has ICP's small basin (it recovers 1° of yaw and 0.3 m, not 3° and
-//! 1 m); the learned matcher is what makes DMLO global.
-//! `--move-b` first moves B's points by a known motion (yaw about z, then translation), so the printed
-//! estimate can be checked against it (for two scans of a standing car it should equal that motion).
+//! The learned matcher needs no initial guess within the network's window (the paper's point); pairs
+//! farther apart (`dmlo register`'s large-motion search) are not this example's. `--move-b` first moves
+//! B's points by a known motion (yaw about z, then translation), so the printed estimate can be checked
+//! against it.
 
 use std::process::ExitCode;
 
-use dmlo_rs::matches::{decode_matches, DecodeConfig};
-use dmlo_rs::nms::nms;
-use dmlo_rs::projection::{project, CylinderConfig, Projection};
-use dmlo_rs::ransac::{ransac_rigid, RansacConfig};
+use dmlo_rs::inference::{Encoder, LearnedMatcher, TractEncoder};
+use dmlo_rs::pair::{match_pair, PairConfig, PairImages};
+use dmlo_rs::projection::{project_flat, CylinderConfig, Projection};
 use nalgebra::{Isometry3, Point3, Vector3};
-use rayon::prelude::*;
 
-/// The matcher's stand-in: per cell of A, `(flow [2·H·W], confidence [H·W])` towards the cell of B whose
-/// point is nearest to `t_b_a · p'_A` within the search window; a pseudo-random confidence above 0.5
-/// for a match within `gate` metres, 0 otherwise.
-fn nearest_cell_flow(
-    a: &Projection,
-    b: &Projection,
-    t_b_a: &Isometry3<f64>,
-    config: &CylinderConfig,
-    gate: f64,
-) -> (Vec<f32>, Vec<f32>) {
-    let (h, w) = (config.height as i64, config.width as i64);
-    let points_b: Vec<Option<Point3<f64>>> = (0..b.range.len())
-        .map(|i| {
-            let range = b.range[i] as f64;
-            (range > 0.0)
-                .then(|| config.unproject((i as i64 / w) as f64, (i as i64 % w) as f64, range))
-        })
-        .collect();
-    let per_cell: Vec<(f32, f32, f32)> = (0..a.range.len())
-        .into_par_iter()
-        .map(|i| {
-            let (row, col) = (i as i64 / w, i as i64 % w);
-            if a.range[i] <= 0.0 {
-                return (0.0, 0.0, 0.0);
-            }
-            let moved = t_b_a * config.unproject(row as f64, col as f64, a.range[i] as f64);
-            let Some((row_p, col_p)) = config.locate(&moved) else {
-                return (0.0, 0.0, 0.0);
-            };
-            let (row_p, col_p) = (row_p.round() as i64, col_p.round() as i64);
-            let mut best = (gate * gate, None);
-            for r in (row_p - 2).max(0)..=(row_p + 2).min(h - 1) {
-                for c in (col_p - 24).max(0)..=(col_p + 24).min(w - 1) {
-                    if let Some(q) = points_b[(r * w + c) as usize] {
-                        let d = (q - moved).norm_squared();
-                        if d < best.0 {
-                            best = (d, Some((r, c)));
-                        }
-                    }
-                }
-            }
-            match best {
-                // A pseudo-random confidence in (0.5, 1] (a hash of the cell): NMS then thins the
-                // matches uniformly instead of favouring the first rows.
-                (_, Some((r, c))) => {
-                    let hash = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
-                    (
-                        (r - row) as f32,
-                        (c - col) as f32,
-                        0.5 + 0.5 * (hash as f32 + 1.0) / (1u64 << 24) as f32,
-                    )
-                }
-                _ => (0.0, 0.0, 0.0),
-            }
-        })
-        .collect();
-    let mut flow: Vec<f32> = per_cell.iter().map(|c| c.0).collect();
-    flow.extend(per_cell.iter().map(|c| c.1));
-    (flow, per_cell.iter().map(|c| c.2).collect())
-}
+const USAGE: &str = "usage: register_pair ENCODER.onnx A.bin B.bin [--move-b YAW_DEG TX TY TZ]";
 
-fn read_scan(path: &str) -> Result<Vec<[f32; 4]>, String> {
+fn read_scan(path: &str) -> Result<Vec<f32>, String> {
     let bytes = std::fs::read(path).map_err(|e| format!("{path}: {e}"))?;
     if bytes.len() % 16 != 0 {
         return Err(format!(
@@ -92,12 +32,8 @@ fn read_scan(path: &str) -> Result<Vec<[f32; 4]>, String> {
         ));
     }
     Ok(bytes
-        .chunks_exact(16)
-        .map(|p| {
-            let value =
-                |k: usize| f32::from_le_bytes([p[4 * k], p[4 * k + 1], p[4 * k + 2], p[4 * k + 3]]);
-            [value(0), value(1), value(2), value(3)]
-        })
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
         .collect())
 }
 
@@ -117,80 +53,74 @@ fn parse_motion(args: &[String]) -> Result<Option<Isometry3<f64>>, String> {
                 Vector3::z() * v[0].to_radians(),
             )))
         }
-        _ => Err("usage: register_pair A.bin B.bin [--move-b YAW_DEG TX TY TZ]".into()),
+        _ => Err(USAGE.into()),
     }
 }
 
+/// Each cell's kept point (`H × W × 3`, NaN where empty): the surfaces under the matches, for the votes.
+fn point_image(points: &[f32], projection: &Projection) -> Vec<f32> {
+    projection
+        .index
+        .iter()
+        .flat_map(|&i| match usize::try_from(i) {
+            Ok(i) => [points[4 * i], points[4 * i + 1], points[4 * i + 2]],
+            Err(_) => [f32::NAN; 3],
+        })
+        .collect()
+}
+
 fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error>> {
-    let [a_path, b_path, rest @ ..] = args else {
-        return Err("usage: register_pair A.bin B.bin [--move-b YAW_DEG TX TY TZ]".into());
+    let [encoder, a_path, b_path, rest @ ..] = args else {
+        return Err(USAGE.into());
     };
     let known_motion = parse_motion(rest)?;
     let scan_a = read_scan(a_path)?;
     let mut scan_b = read_scan(b_path)?;
     if let Some(motion) = &known_motion {
-        for p in scan_b.iter_mut() {
+        for p in scan_b.chunks_exact_mut(4) {
             let q = motion * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-            *p = [q.x as f32, q.y as f32, q.z as f32, p[3]];
+            p[..3].copy_from_slice(&[q.x as f32, q.y as f32, q.z as f32]);
         }
     }
 
-    let config = CylinderConfig::kitti();
-    let image_a = project(&scan_a, &config)?;
-    let image_b = project(&scan_b, &config)?;
+    let matcher = LearnedMatcher::new(TractEncoder::open(encoder)?)?;
+    let cylinder = matcher
+        .encoder()
+        .metadata()
+        .cylinder
+        .unwrap_or_else(CylinderConfig::kitti);
+    let image_a = project_flat(&scan_a, 4, &cylinder)?;
+    let image_b = project_flat(&scan_b, 4, &cylinder)?;
     println!(
         "A: {} points → {} cells; B: {} points → {} cells",
-        scan_a.len(),
+        scan_a.len() / 4,
         image_a.num_valid(),
-        scan_b.len(),
+        scan_b.len() / 4,
         image_b.num_valid()
     );
+    let start = std::time::Instant::now();
+    let encoded_a = matcher
+        .encoder()
+        .encode(&[&image_a.range[..], &image_a.reflectance].concat())?;
+    let encoded_b = matcher
+        .encoder()
+        .encode(&[&image_b.range[..], &image_b.reflectance].concat())?;
+    let flow = matcher.flow(&encoded_a, &encoded_b)?;
+    let points_a = point_image(&scan_a, &image_a);
+    let images = PairImages {
+        ref_points: Some(&points_a),
+        ..PairImages::new(&image_a.range, &image_b.range, &flow.flow, &flow.confidence)
+    };
+    let pair = match_pair(&images, &cylinder, &PairConfig::default(), true)?;
+    println!(
+        "{} matches, {} RANSAC inliers, {:.0} ms (two encodes, the matching stage and the back end)",
+        pair.source.len(),
+        pair.num_inliers,
+        start.elapsed().as_secs_f64() * 1e3
+    );
 
-    let cells = config.height * config.width;
-    let mut t_b_a = Isometry3::identity();
-    // Like ICP, the association improves with the estimate: many rounds, the gate shrinking from 1 m
-    // to 0.2 m.
-    let gates = [1.0; 12].into_iter().chain([0.5; 6]).chain([0.2; 6]);
-    for (round, gate) in gates.enumerate() {
-        let (flow, confidence) = nearest_cell_flow(&image_a, &image_b, &t_b_a, &config, gate);
-        let decode = DecodeConfig {
-            min_confidence: f32::MIN_POSITIVE,
-            ..Default::default()
-        };
-        let matches = decode_matches(
-            &image_a.range,
-            &image_b.range,
-            &flow,
-            &confidence,
-            None,
-            &config,
-            &decode,
-        )?;
-        let rows: Vec<i64> = matches.cells.iter().map(|c| c[0] as i64).collect();
-        let cols: Vec<i64> = matches.cells.iter().map(|c| c[1] as i64).collect();
-        let kept = nms(&rows, &cols, &matches.confidence, 1, Some(3000))?;
-        let src: Vec<Point3<f64>> = kept.iter().map(|&i| matches.source[i]).collect();
-        let dst: Vec<Point3<f64>> = kept.iter().map(|&i| matches.target[i]).collect();
-        let result = ransac_rigid(
-            &src,
-            &dst,
-            &RansacConfig {
-                threshold: (gate / 2.0).max(0.1),
-                ..Default::default()
-            },
-        )?;
-        t_b_a = result.transform;
-        println!(
-            "round {round}: {} of {} cells matched, {} after NMS, {} inliers, rmse {:.3} m, {} hypotheses",
-            matches.len(),
-            cells,
-            src.len(),
-            result.num_inliers,
-            result.rmse,
-            result.iterations
-        );
-    }
-
+    // p_B = T · p_A.
+    let t_b_a = pair.transform;
     println!("T_B_A (p_B = T · p_A):\n{}", t_b_a.to_homogeneous());
     let (roll, pitch, yaw) = t_b_a.rotation.euler_angles();
     println!(

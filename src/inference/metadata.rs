@@ -7,6 +7,7 @@ use serde_json::Value;
 
 use crate::dense_match::{DenseMatchConfig, OffsetRule, NETWORK_STRIDE};
 use crate::error::{Error, Result};
+use crate::projection::CylinderConfig;
 
 /// What a dmlo graph's metadata says about the model: its input size, which graph it is, and the
 /// settings of the matching stage.
@@ -27,6 +28,9 @@ pub struct ModelMetadata {
     /// The learned softmax scales (`dmlo.similarity_scales`: coarse, refine); None in graphs exported
     /// before they were written.
     pub similarity_scales: Option<[f32; 2]>,
+    /// The cylinder image the model was trained on (`dmlo.cylinder_config`), whose size is the input's;
+    /// None in graphs exported before it was written.
+    pub cylinder: Option<CylinderConfig>,
 }
 
 impl ModelMetadata {
@@ -87,10 +91,23 @@ impl ModelMetadata {
                 Some([scale("coarse")?, scale("refine")?])
             }
         };
+        let (height, width) = (size("dmlo.height")?, size("dmlo.width")?);
+        let cylinder = match entries.get("dmlo.cylinder_config") {
+            None => None,
+            Some(_) => Some(cylinder_config(&json("dmlo.cylinder_config")?, path)?),
+        };
+        if let Some(cylinder) = &cylinder {
+            if (cylinder.height, cylinder.width) != (height, width) {
+                return Err(Error::Model(format!(
+                    "{path}: dmlo.cylinder_config is {} × {}, the input {height} × {width}",
+                    cylinder.height, cylinder.width
+                )));
+            }
+        }
         Ok(ModelMetadata {
             graph: text("dmlo.graph")?.clone(),
-            height: size("dmlo.height")?,
-            width: size("dmlo.width")?,
+            height,
+            width,
             coarse_window: count(
                 "dmlo.model_config.coarse_window",
                 config.get("coarse_window"),
@@ -101,6 +118,7 @@ impl ModelMetadata {
             )?,
             refine_offset,
             similarity_scales,
+            cylinder,
         })
     }
 
@@ -125,4 +143,39 @@ impl ModelMetadata {
             refine_offset,
         })
     }
+}
+
+/// The cylinder of `dmlo.cylinder_config` (the fields `CylinderConfig` has; the derived ones it also
+/// holds, such as the crop, follow from them), checked as the projection checks it.
+fn cylinder_config(value: &Value, path: &str) -> Result<CylinderConfig> {
+    let number = |key: &str| -> Result<f64> {
+        value.get(key).and_then(Value::as_f64).ok_or_else(|| {
+            Error::Model(format!(
+                "{path}: dmlo.cylinder_config.{key} must be a number"
+            ))
+        })
+    };
+    let count = |key: &str| -> Result<usize> {
+        value
+            .get(key)
+            .and_then(Value::as_u64)
+            .and_then(|v| usize::try_from(v).ok())
+            .ok_or_else(|| {
+                Error::Model(format!(
+                    "{path}: dmlo.cylinder_config.{key} must be a count"
+                ))
+            })
+    };
+    let cylinder = CylinderConfig {
+        fov_up_deg: number("fov_up_deg")?,
+        fov_down_deg: number("fov_down_deg")?,
+        vertical_resolution_deg: number("vertical_resolution_deg")?,
+        horizontal_resolution_deg: number("horizontal_resolution_deg")?,
+        height: count("height")?,
+        width: count("width")?,
+    };
+    cylinder
+        .validate()
+        .map_err(|e| Error::Model(format!("{path}: dmlo.cylinder_config: {e}")))?;
+    Ok(cylinder)
 }

@@ -154,6 +154,7 @@ fn metadata_is_read_and_checked() {
         ),
     ];
     let metadata = ModelMetadata::from_entries(&entries(&good), "m.onnx").unwrap();
+    assert_eq!(metadata.cylinder, None); // exported before the cylinder was written
     let config = metadata.dense_match_config().unwrap();
     assert_eq!(
         (config.coarse_window, config.refine_window, config.stride),
@@ -208,5 +209,116 @@ fn metadata_is_read_and_checked() {
     let odd = ModelMetadata::from_entries(&offset, "m.onnx").unwrap();
     assert!(
         matches!(odd.dense_match_config(), Err(Error::Model(m)) if m.contains("refine_offset"))
+    );
+}
+
+#[test]
+fn the_cylinder_is_read_from_the_metadata_and_checked() {
+    let kitti = r#"{"col_of_zero_azimuth": 896.0, "crop_left": 4, "fov_down_deg": -24.9, "fov_up_deg": 2.0,
+        "height": 64, "horizontal_resolution_deg": 0.2, "vertical_resolution_deg": 0.4, "width": 1792}"#;
+    let with = |cylinder: &str, width: &str| {
+        entries(&[
+            ("dmlo.graph", "encoder"),
+            ("dmlo.height", "64"),
+            ("dmlo.width", width),
+            (
+                "dmlo.model_config",
+                r#"{"coarse_window": 15, "refine_window": 7}"#,
+            ),
+            ("dmlo.cylinder_config", cylinder),
+        ])
+    };
+    let metadata = ModelMetadata::from_entries(&with(kitti, "1792"), "m.onnx").unwrap();
+    assert_eq!(metadata.cylinder, Some(CylinderConfig::kitti()));
+    let named = |entries: HashMap<String, String>, what: &str| {
+        let err = ModelMetadata::from_entries(&entries, "m.onnx").unwrap_err();
+        assert!(matches!(&err, Error::Model(m) if m.contains(what)), "{err}");
+    };
+    named(with(kitti, "896"), "the input 64 × 896");
+    named(
+        with(&kitti.replace("0.4,", "\"x\","), "1792"),
+        "vertical_resolution_deg",
+    );
+    named(
+        with(&kitti.replace("0.4,", "-0.4,"), "1792"),
+        "dmlo.cylinder_config",
+    );
+    let bundled = TractEncoder::open(bundled_encoder()).unwrap();
+    assert_eq!(bundled.metadata().cylinder, Some(CylinderConfig::kitti()));
+}
+
+/// The point image of a real scan under `../shared/data` (each cell's kept point, NaN where empty) and
+/// its network image (range, then reflectance).
+fn real_scan_images(name: &str) -> Option<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+    let bytes = std::fs::read(root().join("../shared/data").join(name)).ok()?;
+    let points: Vec<f32> = bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    let projection = project_flat(&points, 4, &CylinderConfig::kitti()).unwrap();
+    let cell_points = projection
+        .index
+        .iter()
+        .flat_map(|&i| match usize::try_from(i) {
+            Ok(i) => [points[4 * i], points[4 * i + 1], points[4 * i + 2]],
+            Err(_) => [f32::NAN; 3],
+        })
+        .collect();
+    let image = [&projection.range[..], &projection.reflectance].concat();
+    Some((image, projection.range, cell_points))
+}
+
+#[test]
+fn the_learned_pair_from_rust_equals_the_python_odometrys() {
+    use crate::pair::{match_pair, PairConfig, PairImages};
+
+    let fixture: Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join("tests/fixtures/pair_motion.json")).unwrap(),
+    )
+    .unwrap();
+    let scans = fixture["scans"].as_array().unwrap();
+    let (Some(reference), Some(target)) = (
+        real_scan_images(scans[0].as_str().unwrap()),
+        real_scan_images(scans[1].as_str().unwrap()),
+    ) else {
+        eprintln!("no shared KITTI scans: skipped");
+        return;
+    };
+    let matcher = LearnedMatcher::new(TractEncoder::open(bundled_encoder()).unwrap()).unwrap();
+    let flow = matcher
+        .flow(
+            &matcher.encoder().encode(&reference.0).unwrap(),
+            &matcher.encoder().encode(&target.0).unwrap(),
+        )
+        .unwrap();
+    let images = PairImages {
+        ref_points: Some(&reference.2),
+        ..PairImages::new(&reference.1, &target.1, &flow.flow, &flow.confidence)
+    };
+    let cylinder = CylinderConfig::kitti();
+    let pair = match_pair(&images, &cylinder, &PairConfig::default(), true).unwrap();
+    let expected: Vec<f64> = fixture["T_tgt_ref"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|row| row.as_array().unwrap().iter().map(|v| v.as_f64().unwrap()))
+        .collect();
+    let expected = nalgebra::Matrix4::from_row_slice(&expected);
+    let got = pair.transform.to_homogeneous();
+    // tract's features differ from onnxruntime's in the last float32 digits: the same matches, the same
+    // consensus, the motion within a micrometre and a microradian.
+    let translation = (got.fixed_view::<3, 1>(0, 3) - expected.fixed_view::<3, 1>(0, 3)).norm();
+    let rotation = (got.fixed_view::<3, 3>(0, 0) - expected.fixed_view::<3, 3>(0, 0)).norm();
+    assert!(
+        translation < 1e-6 && rotation < 1e-6,
+        "{translation} m, {rotation}"
+    );
+    assert_eq!(
+        pair.source.len() as u64,
+        fixture["num_matches"].as_u64().unwrap()
+    );
+    assert_eq!(
+        pair.num_inliers as u64,
+        fixture["num_inliers"].as_u64().unwrap()
     );
 }
