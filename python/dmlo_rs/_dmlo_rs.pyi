@@ -492,3 +492,58 @@ class NdtMap:
     def voxel_size(self) -> float: ...
     @property
     def max_scans(self) -> int: ...
+
+__all__ += ["PairMotion", "match_pair"]
+
+@_final
+class PairMotion:
+    """A pair's motion from `match_pair` and the matches it rests on."""
+
+    @property
+    def transform(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def source(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def target(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def cells(self) -> npt.NDArray[np.int64]: ...
+    @property
+    def inliers(self) -> npt.NDArray[np.bool_]: ...
+    @property
+    def num_inliers(self) -> int: ...
+    @property
+    def inlier_votes(self) -> float | None: ...
+
+def match_pair(
+    ref_range: npt.NDArray[np.floating],
+    tgt_range: npt.NDArray[np.floating],
+    flow: npt.NDArray[np.floating],
+    confidence: npt.NDArray[np.floating],
+    config: CylinderConfig,
+    *,
+    ref_points: npt.NDArray[np.floating] | None = None,
+    leave_out: npt.NDArray[np.bool_] | None = None,
+    tilt_votes: bool = True,
+    min_confidence: float = 0.0,
+    nms_radius: int = 1,
+    max_matches: int = 1000,
+    coherence_px: float | None = ...,  # 0.5
+    coherence_radius: int = 2,
+    threshold: float = 0.1,
+    confidence_level: float = 0.999,
+    max_iterations: int = 1000,
+    seed: int = 0,
+    refit: Literal["point_to_point", "ray_noise"] = "ray_noise",
+    range_ratio: float = 4.0,
+    bearing_threshold_deg: float = 0.2,
+    tilt_vote_floor: float | None = ...,  # 0.05
+    vote_voxel: float | None = ...,  # 2.0
+    num_threads: int | None = None,
+) -> PairMotion:
+    """A pair's motion `T_tgt_ref` from the matcher's `flow` [2, H, W] and `confidence` [H, W] (§III-D), the
+    chain `dmlo.Odometry` runs on every pair: the confidence weighted by the flow's coherence
+    (`coherence_px` None: not), the matches decoded to 3D with NMS fused in (`leave_out` [H, W] cells left
+    out), with `tilt_votes` each match's vote from the tilt of the surface under it in `ref_points`
+    [H, W, 3] (None: the cells' virtual points; at least `tilt_vote_floor`, None: one vote each) divided by
+    the square root of its `vote_voxel` cube's crowding (None: not), and RANSAC as `ransac_rigid`. Matches
+    that give no motion: the identity with no inliers."""
