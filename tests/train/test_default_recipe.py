@@ -112,9 +112,9 @@ def test_scene_drives_cover_the_failing_scenes_and_stay_off_the_benchmarks_drive
     options = [drive[5] for drive in default_recipe.SCENE_DRIVES if not drive[0].startswith("val")]
     assert any(o.get("scene") == "highway" and float(o.get("laser_gain_spread", 0)) >= 0.4 for o in options)  # type: ignore[arg-type]
     assert any(o.get("escorts") for o in options) and any(o.get("scene") == "stop-and-go" for o in options)
-    seeds = [drive[2] for drive in default_recipe.SCENE_DRIVES]
+    seeds = [drive[3] for drive in default_recipe.SCENE_DRIVES]
     assert len(set(seeds)) == len(seeds) and not set(seeds) & {1, 2, 3, 31, 32, 33, 41, 42}
-    for name, sequence, _, start, _, _ in default_recipe.SCENE_DRIVES:
+    for name, sequence, start, _, _, _ in default_recipe.SCENE_DRIVES:
         if sequence == "01":  # the odometry benchmark's highway drives KITTI 01's first 300 poses
             assert start >= 300, name
     names = [drive[0] for drive in (*default_recipe.DRIVES, *default_recipe.SCENE_DRIVES)]

@@ -54,17 +54,17 @@ DRIVES = (
 )
 
 # The scenes the real-drive issue added to the simulator, for the `--scenes` stage: (name, KITTI trajectory
-# or None for a generated route, seed, first pose, frames, simulator options). The highways follow KITTI 01
+# or None for a generated route, first pose, seed, frames, simulator options), as `moving_recipe.DRIVES`. The highways follow KITTI 01
 # from pose 400 on, away from the odometry benchmark's highway (its first 300 poses); no seed is one of
 # the benchmark's drives.
 SCENE_DRIVES: tuple[tuple[str, str | None, int, int, int, dict[str, object]], ...] = (
-    ("scenes_highway", "01", 51, 400, 100, {"scene": "highway", "laser_gain_spread": 0.6}),
-    ("scenes_highway_escorts", "01", 52, 600, 100, {"scene": "highway", "escorts": True, "laser_gain_spread": 0.4}),
-    ("scenes_jam", None, 53, 0, 100, {"escorts": True, "traffic": "mixed"}),
-    ("scenes_stop_and_go", None, 54, 0, 100, {"scene": "stop-and-go", "traffic": "mixed"}),
-    ("scenes_street_gains", "08", 55, 2500, 100, {"traffic": "mixed", "laser_gain_spread": 0.4}),
-    ("val_scenes_highway", "01", 61, 900, 40, {"scene": "highway", "laser_gain_spread": 0.6}),
-    ("val_scenes_jam", None, 62, 0, 40, {"escorts": True, "traffic": "mixed"}),
+    ("scenes_highway", "01", 400, 51, 100, {"scene": "highway", "laser_gain_spread": 0.6}),
+    ("scenes_highway_escorts", "01", 600, 52, 100, {"scene": "highway", "escorts": True, "laser_gain_spread": 0.4}),
+    ("scenes_jam", None, 0, 53, 100, {"escorts": True, "traffic": "mixed"}),
+    ("scenes_stop_and_go", None, 0, 54, 100, {"scene": "stop-and-go", "traffic": "mixed"}),
+    ("scenes_street_gains", "08", 2500, 55, 100, {"traffic": "mixed", "laser_gain_spread": 0.4}),
+    ("val_scenes_highway", "01", 900, 61, 40, {"scene": "highway", "laser_gain_spread": 0.6}),
+    ("val_scenes_jam", None, 0, 62, 40, {"escorts": True, "traffic": "mixed"}),
 )
 
 TRAIN_ARGUMENTS = (
@@ -120,13 +120,21 @@ def simulate_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Pa
 
 
 def simulate_scene_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Path]]:
-    """`SCENE_DRIVES` under `data` (written once), as training and held-out folders; without KITTI's poses
-    the drives that follow a KITTI trajectory are left out (a generated route is no highway)."""
+    """`SCENE_DRIVES` under `data` (written once), as training and held-out folders."""
+    return simulate_listed_drives(data, poses, SCENE_DRIVES)
+
+
+def simulate_listed_drives(
+    data: Path, poses: Path | None, drives: tuple[tuple[str, str | None, int, int, int, dict[str, object]], ...]
+) -> tuple[list[Path], list[Path]]:
+    """`drives` (name, KITTI trajectory or None, first pose, seed, frames, simulator options) under `data`,
+    each written once, as training and held-out (`val…`) folders. Without KITTI's poses the drives that
+    follow a KITTI trajectory are left out (a generated route is no highway)."""
     from dmlo.simulator import simulate_sequence
 
     train: list[Path] = []
     val: list[Path] = []
-    for name, sequence, seed, start, frames, options in SCENE_DRIVES:
+    for name, sequence, start, seed, frames, options in drives:
         trajectory = poses / f"{sequence}.txt" if poses is not None and sequence is not None else None
         if sequence is not None and (trajectory is None or not trajectory.is_file()):
             continue

@@ -15,7 +15,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from dmlo.train.default_recipe import recipe_parser
+from dmlo.train.default_recipe import recipe_parser, simulate_listed_drives
 
 # (name, KITTI trajectory or None for a generated route, first pose, seed, frames, simulator options)
 DRIVES: tuple[tuple[str, str | None, int, int, int, dict[str, object]], ...] = (
@@ -52,20 +52,7 @@ TRAIN_ARGUMENTS = "--steps 5000 --batch 16 --crop 512 --lr 3e-3 --pos-weight 3 -
 def simulate_drives(data: Path, poses: Path) -> tuple[list[Path], list[Path]]:
     """The recipe's drives under `data` (written once), as training and held-out folders. A highway drive
     needs KITTI 01's trajectory; without `poses` the drives that follow a KITTI trajectory are left out."""
-    from dmlo.simulator import simulate_sequence
-
-    train: list[Path] = []
-    val: list[Path] = []
-    for name, sequence, start, seed, frames, options in DRIVES:
-        trajectory = poses / f"{sequence}.txt" if sequence is not None else None
-        if trajectory is not None and not trajectory.is_file():
-            continue
-        out = data / name
-        if not (out / "poses.txt").is_file():
-            simulate_sequence(out, frames=frames, seed=seed, trajectory=trajectory, start=start, progress=False,
-                              **options)  # type: ignore[arg-type]
-        (val if name.startswith("val") else train).append(out)
-    return train, val
+    return simulate_listed_drives(data, poses, DRIVES)
 
 
 def main(argv: list[str] | None = None) -> int:
