@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -27,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 from tqdm import tqdm
 
-from dmlo.peers.consensus import ConsensusReference, gicp_consensus
+from dmlo.peers.consensus import ConsensusReference, available_gicps, gicp_consensus
 from dmlo.peers.peers import PEERS, FrameOdometry
 from dmlo.peers.runner import REFERENCE_PEER
 from dmlo.datasets import open_sequence
@@ -144,6 +145,17 @@ def main() -> None:
     folders = args.folders or sorted(p for p in (args.data / "kitti_real").iterdir() if p.is_dir())
     if not folders:
         parser.error(f"no scan folders given and none in {args.data / 'kitti_real'}")
+
+    for peer in PEERS:  # a peer asked for but not installed would otherwise be missing from the tables unsaid
+        if peer.name in args.peers and not peer.available:
+            print(f"warning: {peer.name} left out: {peer.unavailable_reason}", file=sys.stderr)
+    gicps = available_gicps()
+    if len(gicps) == 1:
+        print(
+            f"warning: the reference is {gicps[0]} alone, not the consensus of two independent GICPs "
+            "(pip install 'dmlo[bench]' for both): its own row compares it with itself",
+            file=sys.stderr,
+        )
 
     stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d")
     print(f"{stamp}, {platform.processor() or platform.machine()}, {len(folders)} set(s)")

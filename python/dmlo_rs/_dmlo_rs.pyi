@@ -547,3 +547,68 @@ def match_pair(
     [H, W, 3] (None: the cells' virtual points; at least `tilt_vote_floor`, None: one vote each) divided by
     the square root of its `vote_voxel` cube's crowding (None: not), and RANSAC as `ransac_rigid`. Matches
     that give no motion: the identity with no inliers."""
+
+__all__ += ["FrameClock", "MotionModel"]
+
+@_final
+class FrameClock:
+    """Frame numbers from scan timestamps: one per scan, or as many sensor periods as a scan's timestamp lies
+    after the last timestamped one (the period: the median of the recent intervals between consecutive
+    scans)."""
+
+    def __new__(cls) -> FrameClock: ...
+    @property
+    def frame(self) -> int:
+        """The newest scan's frame number, −1 before the first."""
+    @property
+    def period(self) -> float | None:
+        """The sensor period in the timestamps' unit; None until two consecutive scans had timestamps."""
+    def advance(self, timestamp: float | None = None) -> tuple[int, bool]:
+        """The next scan's frame number, and whether its timestamp was not after the previous one's (then it
+        is taken for the next frame). A timestamp that is not finite raises ValueError and changes nothing."""
+
+@_final
+class MotionModel:
+    """The constant-velocity motion model (§III-D-c) and the judgement of each pair's motion against it."""
+
+    def __new__(
+        cls,
+        *,
+        min_inliers: int = 10,
+        min_inlier_votes: float = 5.0,
+        max_deviation: float = 0.3,
+        max_deviation_deg: float = 3.0,
+        guided_fraction: float = 0.5,
+        prediction_horizon: int = 20,
+        threshold: float = 0.1,
+        refit: Literal["point_to_point", "ray_noise"] = "point_to_point",
+        range_ratio: float = 4.0,
+    ) -> MotionModel: ...
+    @property
+    def velocity(self) -> npt.NDArray[np.float64]:
+        """The per-frame motion `T_tgt_ref` last measured (the identity before any)."""
+    @property
+    def measured(self) -> bool:
+        """Whether a velocity was measured; until then the prediction is "standing still", a guess."""
+    @property
+    def gated_last(self) -> bool:
+        """Whether the last judged motion was replaced by the prediction as implausible."""
+    def predicted(self, frames: int) -> npt.NDArray[np.float64]:
+        """The constant-velocity motion `T_tgt_ref` across `frames` frames."""
+    def update(self, reference_pose: npt.NDArray[np.floating], pose: npt.NDArray[np.floating], frames: int) -> None:
+        """Measures the velocity from two poses `T_world_lidar` `frames` frames apart (consecutive only)."""
+    def implausible(self, motion: npt.NDArray[np.floating], predicted: npt.NDArray[np.floating], gap: int) -> bool:
+        """Whether `motion` lies further from `predicted` than `gap` frames of a car's change of speed allow."""
+    def judge(
+        self,
+        motion: npt.NDArray[np.floating],
+        num_inliers: int,
+        inlier_votes: float | None,
+        source: npt.NDArray[np.floating],
+        target: npt.NDArray[np.floating],
+        predicted: npt.NDArray[np.floating],
+        gap: int,
+    ) -> tuple[npt.NDArray[np.float64], str | None]:
+        """The motion `T_tgt_ref` a frame `gap` frames after its reference takes from its pair, and the
+        fallback taken: None (the pair's own), "constant_velocity", "degenerate_scene", "guided_consensus" or
+        "implausible_motion"."""

@@ -117,6 +117,11 @@ pub(super) mod counts {
         max_scans,
         min_points_per_voxel,
         min_correspondences,
+        frames,
+        gap,
+        min_inliers,
+        num_inliers,
+        prediction_horizon,
     );
 
     pub(crate) fn seed(obj: &Bound<'_, PyAny>) -> PyResult<u64> {
@@ -352,6 +357,25 @@ pub(super) fn transform(name: &'static str, obj: &Bound<'_, PyAny>) -> PyResult<
     let data = array.f64_data();
     let matrix = Matrix4::from_row_slice(&data);
     Ok(rigid::isometry_from_matrix(&matrix, name)?)
+}
+
+/// A 4×4 rigid transform from Python as the matrix given (checked as [`transform`] does).
+pub(super) fn rigid_matrix(name: &'static str, obj: &Bound<'_, PyAny>) -> PyResult<Matrix4<f64>> {
+    let array = floats(name, obj)?;
+    if array.shape() != [4, 4] {
+        return Err(shape_error(name, "(4, 4)", array.shape()));
+    }
+    let matrix = Matrix4::from_row_slice(&array.f64_data());
+    rigid::isometry_from_matrix(&matrix, name)?;
+    Ok(matrix)
+}
+
+/// A 4×4 matrix as a float64 numpy array.
+pub(super) fn matrix4_to_numpy<'py>(
+    py: Python<'py>,
+    m: &Matrix4<f64>,
+) -> Bound<'py, PyArray2<f64>> {
+    Array2::from_shape_fn((4, 4), |(i, j)| m[(i, j)]).into_pyarray(py)
 }
 
 pub(super) fn matrix_to_numpy<'py>(

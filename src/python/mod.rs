@@ -11,6 +11,7 @@ mod dense_match;
 mod deskew;
 mod matches;
 mod ndt;
+mod odometry;
 mod pair;
 mod pool;
 mod projection;
@@ -59,6 +60,7 @@ fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     ndt::register(m)?;
     surface::register(m)?;
     pair::register(m)?;
+    odometry::register(m)?;
     projective::register(m)?;
     Ok(())
 }

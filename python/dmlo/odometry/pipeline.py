@@ -185,9 +185,9 @@ class Odometry:
         self._clock = FrameClock()  # frame numbers: one per scan, more across gaps in the timestamps
         self._reference_frame = -1  # the reference scan's frame number
         self._pose_frame = -1  # the newest pose's frame number
-        self._velocity = np.eye(4)  # T_tgt_ref per frame, for the constant-velocity model
-        self._velocity_measured = False  # until then the prediction is "standing still", a guess
-        self._gated_last = False  # the previous matched frame's motion was replaced as implausible
+        # The constant-velocity model (its velocity `T_tgt_ref` per frame, whether one was measured) and its
+        # judgement of every pair's motion (`dmlo_rs.MotionModel`, the crate's `odometry::motion`).
+        self._motion = self._make_motion_model()
         self._map = self._make_map() if self.config.mapping.enabled else None
         self._last_keyframe: Matrix4 | None = None  # pose of the newest scan in the map
         self._keyframe_points: npt.NDArray[np.float32] | None = None  # and its point image
@@ -277,7 +277,7 @@ class Odometry:
         if len(cloud) < self.config.min_points:
             return self._skip(diagnostics, "too_few_points")
         times = None if times is None else _rows(times, keep)
-        deskewed = self.config.deskew.enabled and self._velocity_measured
+        deskewed = self.config.deskew.enabled and self._motion.measured
         if deskewed:
             with watch.aside("deskew"):  # on the first deskewed scan with its reference encoded again
                 cloud = self._deskew(cloud, times)
@@ -306,7 +306,9 @@ class Odometry:
             if self._map is not None:
                 pose = self._refine_with_map(cloud, points, pose, diagnostics)
                 watch.lap("ndt")
-            self._update_velocity(previous.pose, pose, self._clock.frame - self._reference_frame)
+            # Across a gap left by skipped scans the motion spans several frames; the velocity measured
+            # before the gap stays the better per-frame estimate (only consecutive frames measure).
+            self._motion.update(previous.pose, pose, self._clock.frame - self._reference_frame)
         if self._map is not None:
             diagnostics.map_keyframe = self._is_keyframe(pose)
             if diagnostics.map_keyframe:
@@ -327,7 +329,7 @@ class Odometry:
         many scans went missing before it)."""
         c = self.config.deskew
         return np.asarray(dmlo_rs.deskew(
-            cloud, np.linalg.inv(self._velocity), times, clockwise=c.clockwise,
+            cloud, np.linalg.inv(self._motion.velocity), times, clockwise=c.clockwise,
             reference_azimuth_deg=c.reference_azimuth_deg,
         ))
 
@@ -680,7 +682,7 @@ class Odometry:
         watch: _Stopwatch,
     ) -> Matrix4:
         gap = diagnostics.gap = self._clock.frame - self._reference_frame
-        predicted = self._predicted_motion(gap)
+        predicted = self._motion.predicted(gap)
         if output.flow is None:  # `_beyond_window`
             pair = self._matched_from_prediction(previous, tgt_range, output.features, predicted, diagnostics)
             if watch:
@@ -695,30 +697,17 @@ class Odometry:
             if watch and diagnostics.rematch_rounds is not None:
                 watch.lap("rematch")
         diagnostics.inlier_votes = pair.inlier_votes
-        if pair.num_inliers < self.config.motion_model.min_inliers:
-            diagnostics.fallback = "constant_velocity"  # the motion model of §III-D-c
-            return predicted
-        if pair.inlier_votes is not None and pair.inlier_votes < self.config.motion_model.min_inlier_votes:
-            # Inliers nearly all on the road: they fix the height, roll and pitch but not where the car went.
-            diagnostics.fallback = "degenerate_scene"
-            return predicted
-        gated_before, self._gated_last = self._gated_last, False
-        if self._velocity_measured and not gated_before:
-            # A car cannot change its per-frame motion by metres: a wrong RANSAC consensus (a metre off on
-            # a simulated drive) is replaced by the prediction rather than chained into the trajectory.
-            # Never twice in a row: then the prediction is the stale one (say, measured from a wrong
-            # pair before any velocity was known), and DMLO is trusted again.
-            if self._implausible(pair, predicted, gap):
-                guided = self._consensus_near(pair, predicted)
-                if guided is not None:
-                    # The static scene usually still agrees with the prediction: a larger wrong consensus
-                    # (a passing car, a repeated facade) outvoted it. Its own solve beats the prediction.
-                    diagnostics.fallback = "guided_consensus"
-                    return guided
-                diagnostics.fallback = "implausible_motion"
-                self._gated_last = True
-                return predicted
-        return pair.T_tgt_ref
+        # The motion model of §III-D-c takes over from too few inliers, and beyond the paper from inliers
+        # nearly all on the road (they fix the height, roll and pitch but not where the car went) and from a
+        # motion a car cannot have changed to in a frame: a wrong RANSAC consensus (a metre off on a simulated
+        # drive) gives way to the solve of the matches that agree with the prediction, or to the prediction
+        # itself, rather than being chained into the trajectory.
+        motion, fallback = self._motion.judge(
+            pair.T_tgt_ref, pair.num_inliers, pair.inlier_votes, pair.source_points, pair.target_points, predicted, gap
+        )
+        if fallback is not None:
+            diagnostics.fallback = fallback
+        return motion
 
     def _beyond_window(self) -> bool:
         """Whether the predicted motion since the reference scan exceeds `motion_model.match_from_prediction_m`
@@ -726,13 +715,13 @@ class Odometry:
         velocity is measured."""
         limit = self.config.motion_model.match_from_prediction_m
         gap = self._clock.frame - self._reference_frame
-        if limit is None or not self._can_rematch or not self._velocity_measured:
+        if limit is None or not self._can_rematch or not self._motion.measured:
             return False
         if gap > self.config.motion_model.prediction_horizon:
             return False
         if self._rematch_gap is not None and gap >= self._rematch_gap:
             return False  # across missing scans `_rematched_if_better` also tries the wide window
-        moved, _ = pose_difference(np.eye(4), self._predicted_motion(gap))
+        moved, _ = pose_difference(np.eye(4), self._motion.predicted(gap))
         return bool(moved > limit)
 
     def _prediction_rounds(self) -> int:
@@ -777,11 +766,11 @@ class Odometry:
         When it does not (a turn during the gap: 10° off after 12 frames; the highway's 17 m), the wide-window
         graph, when the model has one, started from the prediction does better: both start the rounds, and the
         one with more inliers wins."""
-        if self._rematch_gap is None or not self._velocity_measured:
+        if self._rematch_gap is None or not self._motion.measured:
             return pair  # before any velocity is measured the prediction is "standing still", the pair itself
         # As the gate below has it: after a replaced motion the prediction is the stale one, not the pair.
         gives_way = pair.num_inliers < self.config.motion_model.min_inliers or (
-            not self._gated_last and self._implausible(pair, predicted, gap)
+            not self._motion.gated_last and self._implausible(pair, predicted, gap)
         )
         if gap < self._rematch_gap and not gives_way:
             return pair
@@ -817,64 +806,23 @@ class Odometry:
     def _implausible(self, pair: PairResult, predicted: Matrix4, gap: int) -> bool:
         """Whether a motion lies further from the prediction than a car's change of speed allows; never
         beyond the prediction's horizon, where the prediction is a guess."""
-        limits = self.config.motion_model
-        if gap > limits.prediction_horizon:
-            return False
-        moved, turned = pose_difference(pair.T_tgt_ref, predicted)
-        return bool(moved > limits.max_deviation * gap or turned > limits.max_deviation_deg * gap)
-
-    def _consensus_near(self, pair: PairResult, predicted: Matrix4) -> Matrix4 | None:
-        """The solve (Eq. 12–14, refined as `ransac.refit` says) of the matches that agree with a predicted
-        motion, solved once more on its own inliers at the RANSAC threshold; None when they are no consensus
-        of their own (fewer than `min_inliers` or `guided_fraction` of RANSAC's inliers)."""
-        source = np.asarray(pair.source_points, dtype=np.float64)
-        target = np.asarray(pair.target_points, dtype=np.float64)
-        limits = self.config.motion_model
-        threshold = self.config.ransac.threshold
-        needed = max(limits.min_inliers, limits.guided_fraction * pair.num_inliers)
-
-        def agreeing(transform: Matrix4, radius: float) -> npt.NDArray[np.bool_]:
-            moved = source @ transform[:3, :3].T + transform[:3, 3]
-            return np.linalg.norm(moved - target, axis=1) < radius
-
-        # Twice the threshold: the prediction is itself a few centimetres off the true motion.
-        near = agreeing(predicted, 2 * threshold)
-        if near.sum() < needed:
-            return None
-        try:
-            transform = self._refit(source[near], target[near])
-            inliers = agreeing(transform, threshold)
-            if inliers.sum() < needed:
-                return None
-            return self._refit(source[inliers], target[inliers])
-        except dmlo_rs.RegistrationError:  # the agreeing matches are degenerate (collinear, coincident)
-            return None
-
-    def _refit(self, source: npt.NDArray[np.float64], target: npt.NDArray[np.float64]) -> Matrix4:
-        """The motion of matches taken as inliers, solved as RANSAC's refits are (`ransac.refit`)."""
-        ransac = self.config.ransac
-        return np.asarray(
-            dmlo_rs.refit_rigid(source, target, refit=ransac.refit, range_ratio=ransac.ray_range_ratio), dtype=np.float64
-        )
+        return bool(self._motion.implausible(pair.T_tgt_ref, predicted, gap))
 
     # -- motion model ---------------------------------------------------------------------------
 
-    def _predicted_motion(self, frames: int) -> Matrix4:
-        """The constant-velocity motion `T_tgt_ref` across `frames` frames."""
-        return np.linalg.matrix_power(self._velocity, frames)
+    def _make_motion_model(self) -> dmlo_rs.MotionModel:
+        m, r = self.config.motion_model, self.config.ransac
+        return dmlo_rs.MotionModel(
+            min_inliers=m.min_inliers, min_inlier_votes=m.min_inlier_votes, max_deviation=m.max_deviation,
+            max_deviation_deg=m.max_deviation_deg, guided_fraction=m.guided_fraction,
+            prediction_horizon=m.prediction_horizon, threshold=r.threshold, refit=r.refit, range_ratio=r.ray_range_ratio,
+        )
 
     def _predict(self) -> Matrix4:
         """The constant-velocity pose of the newest scan; the first scan defines the world."""
         if not self.poses:
             return np.eye(4)
-        return self.poses[-1] @ np.linalg.inv(self._predicted_motion(self._clock.frame - self._pose_frame))
-
-    def _update_velocity(self, reference_pose: Matrix4, pose: Matrix4, frames: int) -> None:
-        # Across a gap left by skipped scans the motion spans several frames; the velocity measured
-        # before the gap stays the better per-frame estimate.
-        if frames == 1:
-            self._velocity = np.linalg.inv(pose) @ reference_pose
-            self._velocity_measured = True
+        return self.poses[-1] @ np.linalg.inv(self._motion.predicted(self._clock.frame - self._pose_frame))
 
     def _skip(self, diagnostics: FrameDiagnostics, reason: str) -> Matrix4:
         diagnostics.fallback = reason
@@ -957,7 +905,7 @@ class Odometry:
         c = self.config.mapping
         starts = {"dmlo": pose}
         within_horizon = self._clock.frame - self._reference_frame <= self.config.motion_model.prediction_horizon
-        if self._velocity_measured and within_horizon:
+        if self._motion.measured and within_horizon:
             # Before any velocity is measured the prediction is "standing still", and the map's ground
             # rings, which move with the sensor, score that wrong start highly.
             predicted = self._predict()

@@ -1,0 +1,24 @@
+#![forbid(unsafe_code)]
+//! The odometry's per-frame state, shared by `dmlo.Odometry` and Rust users: the frame clock that
+//! counts missing scans from the timestamps ([`clock`]), and the constant-velocity motion model with
+//! the judgement of every pair's motion against it (§III-D-c, [`motion`]).
+//!
+//! ```
+//! use dmlo_rs::odometry::motion::{MotionLimits, MotionModel, PairEvidence};
+//! use nalgebra::Matrix4;
+//!
+//! let mut model = MotionModel::new(MotionLimits::default());
+//! let mut step = Matrix4::identity();
+//! step[(0, 3)] = -1.0; // T_tgt_ref of a car driving 1 m forward a frame
+//! let judged = model.judge(&PairEvidence::new(step, 200, None, &[], &[]), &model.predicted(1), 1);
+//! assert!(judged.fallback.is_none()); // no velocity measured yet: nothing to judge against
+//! let pose = step.try_inverse().unwrap();
+//! model.update(&Matrix4::identity(), &pose, 1);
+//! assert_eq!(model.predicted(2)[(0, 3)], -2.0);
+//! ```
+
+pub mod clock;
+pub mod motion;
+
+#[cfg(test)]
+mod tests;
