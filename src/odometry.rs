@@ -1,7 +1,8 @@
 #![forbid(unsafe_code)]
 //! The odometry's per-frame state, shared by `dmlo.Odometry` and Rust users: the frame clock that
-//! counts missing scans from the timestamps ([`clock`]), and the constant-velocity motion model with
-//! the judgement of every pair's motion against it (§III-D-c, [`motion`]).
+//! counts missing scans from the timestamps ([`clock`]), the constant-velocity motion model with the
+//! judgement of every pair's motion against it (§III-D-c, [`motion`]), and the local map that refines
+//! every pose by scan-to-map NDT (§III-D-c, [`mapping`]).
 //!
 //! ```
 //! use dmlo_rs::odometry::motion::{MotionLimits, MotionModel, PairEvidence};
@@ -18,6 +19,7 @@
 //! ```
 
 pub mod clock;
+pub mod mapping;
 pub mod motion;
 
 #[cfg(test)]

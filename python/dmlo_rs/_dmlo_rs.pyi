@@ -612,3 +612,88 @@ class MotionModel:
         """The motion `T_tgt_ref` a frame `gap` frames after its reference takes from its pair, and the
         fallback taken: None (the pair's own), "constant_velocity", "degenerate_scene", "guided_consensus" or
         "implausible_motion"."""
+
+__all__ += ["LocalMap", "MapRefinement", "heading_and_level", "upright_points"]
+
+@_final
+class MapRefinement:
+    """What the local map made of a pose (`LocalMap.refine`)."""
+
+    @property
+    def pose(self) -> npt.NDArray[np.float64]:
+        """The refined pose `T_map_lidar`, or the one given when no alignment converged."""
+    @property
+    def converged(self) -> bool: ...
+    @property
+    def degenerate_directions(self) -> int | None:
+        """Pose directions the map did not constrain (kept as given); None when no alignment ran."""
+    @property
+    def upright_only(self) -> bool:
+        """Near the newest keyframe: the horizontal motion and heading came from the upright surfaces."""
+    @property
+    def start(self) -> Literal["dmlo", "motion_model", "standing"] | None:
+        """The start whose alignment won; None when none converged."""
+
+@_final
+class LocalMap:
+    """The local map of the most recent keyframes (scan-to-map NDT, §III-D-c), with the odometry's `mapping`
+    settings."""
+
+    def __new__(
+        cls,
+        cylinder: CylinderConfig,
+        *,
+        voxel_size: float = 1.0,
+        max_scans: int = 10,
+        keyframe_distance: float = 2.0,
+        keyframe_angle_deg: float = 5.0,
+        ring_lock_distance: float = 0.5,
+        motion_model_start_distance: float = 0.3,
+        motion_model_start_angle_deg: float = 1.5,
+        downsample: float = 0.75,
+        max_iterations: int = 30,
+        degeneracy_threshold: float = 0.05,
+        rotation_degeneracy_threshold: float = 0.01,
+    ) -> LocalMap: ...
+    @property
+    def last_keyframe(self) -> npt.NDArray[np.float64] | None:
+        """The newest keyframe's pose, None before the first."""
+    @property
+    def num_scans(self) -> int: ...
+    def is_keyframe(self, pose: npt.NDArray[np.floating]) -> bool:
+        """Whether a scan at `pose` moved or turned far enough from the newest keyframe to enter the map."""
+    def insert(
+        self, cloud: npt.NDArray[np.floating], pose: npt.NDArray[np.floating], points: npt.NDArray[np.floating]
+    ) -> None:
+        """Adds a scan (`cloud` N×3/N×4 in its sensor frame, `points` its point image [H, W, 3]) at `pose`."""
+    def restart(
+        self, cloud: npt.NDArray[np.floating], pose: npt.NDArray[np.floating], points: npt.NDArray[np.floating]
+    ) -> None:
+        """Empties the map and starts it again from one scan."""
+    def refine(
+        self,
+        cloud: npt.NDArray[np.floating],
+        points: npt.NDArray[np.floating],
+        pose: npt.NDArray[np.floating],
+        prediction: npt.NDArray[np.floating] | None,
+    ) -> MapRefinement:
+        """The `pose` of a scan refined against the map: near the newest keyframe by point-to-plane ICP (a
+        standing car) or the upright surfaces' split, else NDT from `pose` and, when it lies far from it, from
+        the constant-velocity `prediction`, the better score winning."""
+    def refine_pair(
+        self,
+        reference: npt.NDArray[np.floating],
+        target: npt.NDArray[np.floating],
+        reference_points: npt.NDArray[np.floating],
+        target_points: npt.NDArray[np.floating],
+        t_tgt_ref: npt.NDArray[np.floating],
+    ) -> npt.NDArray[np.float64] | None:
+        """`t_tgt_ref` of a consecutive pair refined against the reference scan alone; None when it fails."""
+
+def upright_points(points: npt.NDArray[np.floating], config: CylinderConfig, voxel: float) -> npt.NDArray[np.float64]:
+    """The upright surfaces of a point image [H, W, 3]: kept points whose surface's normal is mostly horizontal,
+    one cell per `voxel` m (0: every cell) → N×3."""
+
+def heading_and_level(horizontal: npt.NDArray[np.floating], level: npt.NDArray[np.floating]) -> npt.NDArray[np.float64]:
+    """A pose with the horizontal position and heading of `horizontal` and the height, roll and pitch of
+    `level`."""

@@ -15,14 +15,9 @@ fn bundled_encoder() -> PathBuf {
 }
 
 /// The image of a real scan under `../shared/data` as the odometry builds it: range, then reflectance.
+/// The network input `[2, H, W]` (range, reflectance) of a real KITTI scan under `../shared/data/`.
 fn real_image(name: &str) -> Option<Vec<f32>> {
-    let bytes = std::fs::read(root().join("../shared/data").join(name)).ok()?;
-    let points: Vec<f32> = bytes
-        .chunks_exact(4)
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect();
-    let projection = project_flat(&points, 4, &CylinderConfig::kitti()).unwrap();
-    Some([projection.range, projection.reflectance].concat())
+    real_scan_images(name).map(|(image, _, _)| image)
 }
 
 #[test]
@@ -247,8 +242,8 @@ fn the_cylinder_is_read_from_the_metadata_and_checked() {
     assert_eq!(bundled.metadata().cylinder, Some(CylinderConfig::kitti()));
 }
 
-/// The point image of a real scan under `../shared/data` (each cell's kept point, NaN where empty) and
-/// its network image (range, then reflectance).
+/// A real KITTI scan under `../shared/data`: its network image (range, then reflectance), its range
+/// image and its point image (each cell's kept point, NaN where empty).
 fn real_scan_images(name: &str) -> Option<(Vec<f32>, Vec<f32>, Vec<f32>)> {
     let bytes = std::fs::read(root().join("../shared/data").join(name)).ok()?;
     let points: Vec<f32> = bytes

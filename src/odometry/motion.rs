@@ -213,15 +213,13 @@ impl MotionModel {
         matrix_power(&self.velocity, frames)
     }
 
-    /// Measures the velocity from two poses `T_world_lidar` `frames` frames apart. Across a gap left by
+    /// Measures the velocity from two rigid poses `T_world_lidar` `frames` frames apart. Across a gap left by
     /// missing scans the motion spans several frames, and the velocity measured before it stays the
     /// better per-frame estimate: only consecutive frames measure.
     pub fn update(&mut self, reference_pose: &Matrix4<f64>, pose: &Matrix4<f64>, frames: usize) {
         if frames == 1 {
-            if let Some(inverse) = pose.try_inverse() {
-                self.velocity = inverse * reference_pose;
-                self.measured = true;
-            }
+            self.velocity = rigid_inverse(pose) * reference_pose;
+            self.measured = true;
         }
     }
 
@@ -327,12 +325,9 @@ fn agreeing(pair: &PairEvidence<'_>, transform: &Matrix4<f64>, radius: f64) -> V
 }
 
 /// Distance (m) and angle (°) between two transforms: of the motion `a⁻¹·b`, the angle from
-/// `atan2(sin θ, cos θ)` (accurate for small angles), as `dmlo.metrics.pose_difference`.
+/// `atan2(sin θ, cos θ)` (accurate for small angles), as `dmlo.metrics.pose_difference`; both rigid.
 pub fn pose_difference(a: &Matrix4<f64>, b: &Matrix4<f64>) -> (f64, f64) {
-    let Some(inverse) = a.try_inverse() else {
-        return (f64::INFINITY, 180.0);
-    };
-    let step = inverse * b;
+    let step = rigid_inverse(a) * b;
     let moved = step.fixed_view::<3, 1>(0, 3).norm();
     let skew = Vector3::new(
         step[(2, 1)] - step[(1, 2)],
@@ -342,6 +337,17 @@ pub fn pose_difference(a: &Matrix4<f64>, b: &Matrix4<f64>) -> (f64, f64) {
     let sine = 0.5 * skew.norm();
     let cosine = 0.5 * (step[(0, 0)] + step[(1, 1)] + step[(2, 2)] - 1.0);
     (moved, sine.atan2(cosine).to_degrees())
+}
+
+/// The inverse of a rigid transform `[R t; 0 1]`: `[Rᵀ −Rᵀt; 0 1]`, its last row exact (a general inverse
+/// leaves round-off there, which poses chained from it would carry).
+pub fn rigid_inverse(transform: &Matrix4<f64>) -> Matrix4<f64> {
+    let rotation = transform.fixed_view::<3, 3>(0, 0).transpose();
+    let translation = -(rotation * transform.fixed_view::<3, 1>(0, 3));
+    let mut inverse = Matrix4::identity();
+    inverse.fixed_view_mut::<3, 3>(0, 0).copy_from(&rotation);
+    inverse.fixed_view_mut::<3, 1>(0, 3).copy_from(&translation);
+    inverse
 }
 
 /// `matrix^n`, multiplied in the order numpy's `matrix_power` uses (the small powers written out, then

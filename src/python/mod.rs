@@ -9,6 +9,7 @@
 mod convert;
 mod dense_match;
 mod deskew;
+mod mapping;
 mod matches;
 mod ndt;
 mod odometry;
@@ -61,6 +62,7 @@ fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     surface::register(m)?;
     pair::register(m)?;
     odometry::register(m)?;
+    mapping::register(m)?;
     projective::register(m)?;
     Ok(())
 }

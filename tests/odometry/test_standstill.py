@@ -122,28 +122,27 @@ def test_a_scan_registered_with_itself_is_the_identity(odometry: Odometry, share
         assert result.map_refined and moved <= 0.001 and turned <= 0.005, (name, moved, turned)
 
 
-def test_a_standing_car_comes_out_within_millimetres(shared_data: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_standing_car_comes_out_within_millimetres(shared_data: Path) -> None:
     sequence = open_sequence(shared_data / "kitti_raw_static")
     scans = [sequence[k].points for k in range(6)]
+    matches_only = OdometryConfig()
+    matches_only.mapping.enabled = False  # DMLO's estimate, which the planes refine
 
-    def pair_motions() -> np.ndarray:
-        odometry = Odometry.from_default(OdometryConfig())
+    def pair_motions(config: OdometryConfig) -> np.ndarray:
+        odometry = Odometry.from_default(config)
         return np.array([pose_difference(np.eye(4), odometry.register_pair(a, b).T_tgt_ref) for a, b in zip(scans, scans[1:])])
 
-    refined = pair_motions()
+    refined = pair_motions(OdometryConfig())
     # The crate against the numpy reference on the first real pair, from DMLO's estimate.
-    odometry = Odometry.from_default(OdometryConfig())
+    odometry = Odometry.from_default(matches_only)
     images = [odometry._project(odometry._finite_scan(scan, "scan"))[2] for scan in scans[:2]]
-    monkeypatch.setattr(dmlo_rs, "point_to_plane", lambda reference, target, transform, cylinder: transform)
     start = odometry.register_pair(scans[0], scans[1]).T_tgt_ref
-    monkeypatch.undo()
     np.testing.assert_allclose(
         dmlo_rs.point_to_plane(*images, start, odometry.cylinder),
         numpy_point_to_plane(*images, start, odometry.cylinder),
         atol=1e-9,
     )
-    monkeypatch.setattr(dmlo_rs, "point_to_plane", lambda reference, target, transform, cylinder: transform)
-    matches_alone = pair_motions()  # DMLO's estimate, which the planes refine
+    matches_alone = pair_motions(matches_only)
     assert refined[:, 0].max() < 0.003 and refined[:, 1].max() < 0.01, refined
     assert refined[:, 0].mean() < 0.5 * matches_alone[:, 0].mean(), (refined, matches_alone)
 
@@ -233,30 +232,23 @@ def test_dmlo_register_of_a_file_with_itself_prints_the_identity(shared_data: Pa
     assert report["map_refined"] and moved <= 0.001 and turned <= 0.005, report
 
 
-def test_a_ring_lock_distance_of_0_turns_the_keyframe_alignments_off_for_pairs_and_drives(
-    shared_data: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """One decision (`mapping.near_keyframe_alignment`) for the single pair and the drive: with
+def test_a_ring_lock_distance_of_0_turns_the_keyframe_alignments_off_for_pairs_and_drives(shared_data: Path) -> None:
+    """One decision (the crate's `near_keyframe_alignment`) for the single pair and the drive: with
     `ring_lock_distance` 0 neither the standing ICP nor the upright split runs, NDT aligns every scan."""
-    from dmlo.odometry import mapping
-
-    calls: list[str] = []
-    real_icp, real_split = dmlo_rs.point_to_plane, mapping.align_near_keyframe
-    monkeypatch.setattr(dmlo_rs, "point_to_plane", lambda *a, **k: calls.append("standing") or real_icp(*a, **k))
-    monkeypatch.setattr("dmlo.odometry.pipeline.align_near_keyframe",
-                        lambda *a, **k: calls.append("near") or real_split(*a, **k))
     sequence = open_sequence(shared_data / "kitti_raw_static")
     scans = [sequence[k].points for k in range(4)]
 
-    def run(ring_lock_distance: float) -> list[str]:
-        calls.clear()
+    def run(ring_lock_distance: float) -> tuple[float, list[str | None], list[bool | None]]:
         config = OdometryConfig()
         config.mapping.ring_lock_distance = ring_lock_distance
         odometry = Odometry.from_default(config)
-        odometry.register_pair(scans[0], scans[0].copy())
+        pair = odometry.register_pair(scans[0], scans[0].copy())
         for scan in scans:
             odometry.register(scan)
-        return list(calls)
+        later = odometry.diagnostics[1:]
+        return pose_difference(np.eye(4), pair.T_tgt_ref)[0], [d.ndt_start for d in later], [d.ndt_upright_only for d in later]
 
-    assert run(0.5).count("standing") >= 3  # the pair and the standing drive's frames
-    assert run(0.0) == []
+    moved, starts, split = run(0.5)
+    assert moved < 1e-5 and starts.count("standing") >= 2, (moved, starts)  # the pair's planes, the drive's
+    moved, starts, split = run(0.0)
+    assert moved > 1e-5 and "standing" not in starts and not any(split), (moved, starts, split)  # NDT's voxels

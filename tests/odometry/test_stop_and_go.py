@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import dmlo_rs
+
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
 from dmlo.simulator import simulate_sequence
@@ -54,7 +56,7 @@ def test_the_maps_rings_no_longer_hold_a_creeping_car_in_place(queue: Path) -> N
 
 def test_a_creeping_pair_is_not_held_together_by_the_reference_scans_rings(queue: Path) -> None:
     """`register_pair`: NDT against the reference alone reports a creeping pair standing; the split near the
-    reference (`align_near_keyframe`) does not, and a standing pair comes out within a millimetre."""
+    reference (the upright surfaces' split) does not, and a standing pair comes out within a millimetre."""
     sequence = open_sequence(queue)
 
     def errors_cm(config: OdometryConfig, pairs: tuple[int, ...]) -> list[float]:
@@ -79,14 +81,12 @@ def test_a_creeping_pair_is_not_held_together_by_the_reference_scans_rings(queue
 def test_heading_and_level_take_their_angles_and_position_from_either_pose() -> None:
     from scipy.spatial.transform import Rotation
 
-    from dmlo.odometry.mapping import heading_and_level
-
     horizontal, level = np.eye(4), np.eye(4)
     horizontal[:3, :3] = Rotation.from_euler("ZYX", [2.9, 0.01, -0.02]).as_matrix()
     horizontal[:3, 3] = (10.0, -4.0, 0.3)
     level[:3, :3] = Rotation.from_euler("ZYX", [2.8, -0.05, 0.04]).as_matrix()
     level[:3, 3] = (10.2, -4.1, 0.5)
-    pose = heading_and_level(horizontal, level)
+    pose = dmlo_rs.heading_and_level(horizontal, level)
     np.testing.assert_allclose(Rotation.from_matrix(pose[:3, :3]).as_euler("ZYX"), [2.9, -0.05, 0.04], atol=1e-12)
     np.testing.assert_allclose(pose[:3, 3], [10.0, -4.0, 0.5])
     np.testing.assert_allclose(pose[3], [0, 0, 0, 1])

@@ -194,7 +194,7 @@ class MappingConfig:
     the network's matches bring each scan within NDT's basin with no initial guess, and NDT against many
     scans in one frame, fitting every point rather than a few hundred matches, takes out the error the
     matches leave and the drift that frame-to-frame estimates pile up. `Odometry.register_pair` refines a
-    consecutive pair against the reference scan alone (`dmlo.odometry.mapping`). `enabled = False` is the
+    consecutive pair against the reference scan alone (`dmlo_rs.LocalMap.refine_pair`). `enabled = False` is the
     paper's frame-to-frame DMLO."""
 
     enabled: Flag = True

@@ -23,9 +23,6 @@ from dmlo.poses import midpoint_motion
 from dmlo.odometry.clock import FrameClock
 from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.large_motion import register_far, rematch, search_starts
-from dmlo.odometry.mapping import (
-    align_near_keyframe, align_to_map, near_keyframe_alignment, refine_pair, upright_points,
-)
 from dmlo.odometry.pair import PairResult
 from dmlo.odometry import reflectance
 from dmlo.odometry.reflectance import ReflectanceNotice
@@ -188,9 +185,8 @@ class Odometry:
         # The constant-velocity model (its velocity `T_tgt_ref` per frame, whether one was measured) and its
         # judgement of every pair's motion (`dmlo_rs.MotionModel`, the crate's `odometry::motion`).
         self._motion = self._make_motion_model()
+        # The local map of recent keyframes (`dmlo_rs.LocalMap`, the crate's `odometry::mapping`).
         self._map = self._make_map() if self.config.mapping.enabled else None
-        self._last_keyframe: Matrix4 | None = None  # pose of the newest scan in the map
-        self._keyframe_points: npt.NDArray[np.float32] | None = None  # and its point image
         self._wide: Matcher | None = None  # loaded on the first large-motion pair
         self._warned_sensor = False
         self._rematch_gap = self._available_rematch_gap()
@@ -310,10 +306,11 @@ class Odometry:
             # before the gap stays the better per-frame estimate (only consecutive frames measure).
             self._motion.update(previous.pose, pose, self._clock.frame - self._reference_frame)
         if self._map is not None:
-            diagnostics.map_keyframe = self._is_keyframe(pose)
+            # Scans drawn from nearly the same place would add the same ground rings again and again, all
+            # behind the next scan: keyframes spaced in distance keep the map's samples spread out.
+            diagnostics.map_keyframe = self._map.is_keyframe(pose)
             if diagnostics.map_keyframe:
-                self._map.insert_scan(cloud, pose)
-                self._last_keyframe, self._keyframe_points = pose, points
+                self._map.insert(cloud, pose, points)
             watch.lap("map_update")
 
         self._reference = _Scan(
@@ -343,9 +340,7 @@ class Odometry:
         reference.features = self._encode(image)
         reference.deskewed = True
         if self._map is not None:
-            self._map.clear()
-            self._map.insert_scan(reference.cloud, reference.pose)
-            self._last_keyframe, self._keyframe_points = reference.pose, reference.points
+            self._map.restart(reference.cloud, reference.pose, reference.points)
 
     def _encode(self, image: npt.NDArray[np.float32]) -> Features:
         """A scan's features alone: `encoder.onnx`, or for a model without one the frame graph matched
@@ -379,12 +374,12 @@ class Odometry:
         """The motion `T_tgt_ref` between two scans, with no motion model or initial guess.
 
         With `mapping.enabled` (the default), a consecutive pair's motion is refined by NDT of the target
-        against the reference scan as its map (`dmlo.odometry.mapping.refine_pair`), when RANSAC found at
-        least `motion_model.min_inliers` inliers; `map_refined` says whether it converged. A pair that moved
-        less than `mapping.ring_lock_distance` is aligned as a scan near its keyframe is
-        (`dmlo.odometry.mapping.align_near_keyframe`: the reference's ground rings would hold it together),
-        and a pair that stands still by projective point-to-plane ICP (`dmlo_rs.point_to_plane`: NDT's voxels
-        leave millimetres where the planes are exact; a scan with itself is the identity). `large_motion`
+        against the reference scan as its map (`dmlo_rs.LocalMap.refine_pair`), when RANSAC found at least
+        `motion_model.min_inliers` inliers; `map_refined` says whether it converged. A pair that moved less
+        than `mapping.ring_lock_distance` is aligned as a scan near its keyframe is (its upright surfaces
+        first: the reference's ground rings would hold it together), and a pair that stands still by
+        projective point-to-plane ICP (NDT's voxels leave millimetres where the planes are exact; a scan with
+        itself is the identity). `large_motion`
         matches with the model's wide-window graph (the paper's D = 40 at inference,
         §IV-D) for scans far apart, e.g. several frames or metres, and then again with the reference moved
         by the estimate (`config.large_motion`); it matches one way only, whatever `matching.symmetric`
@@ -406,14 +401,11 @@ class Odometry:
         output = self.matcher.frame(tgt_image, ref_features)
         pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features, ref_points, tgt_points)
         if self.config.mapping.enabled and pair.num_inliers >= self.config.motion_model.min_inliers:
-            target_pose = np.asarray(np.linalg.inv(pair.T_tgt_ref), dtype=np.float64)
-            alignment = near_keyframe_alignment(np.eye(4), target_pose, self.config.mapping)
-            if alignment == "standing":  # NDT's voxels leave millimetres; the planes do not
-                refined = dmlo_rs.point_to_plane(ref_points, tgt_points, pair.T_tgt_ref, self.cylinder)
-            else:  # near the reference, its rings would hold the pair together: `align_near_keyframe`
-                near = alignment == "near"
-                upright = upright_points(tgt_points, self.cylinder, self.config.mapping.downsample) if near else None
-                refined = refine_pair(reference_cloud, target_cloud, pair.T_tgt_ref, self.config.mapping, upright)
+            # Against the reference alone, one decision with the drive's: a standing pair by point-to-plane ICP
+            # (NDT's voxels leave millimetres; the planes do not), a near one by its upright surfaces (the
+            # reference's rings would hold it together), any other by NDT (`dmlo_rs.LocalMap.refine_pair`).
+            pair_map = self._map if self._map is not None else self._make_map()
+            refined = pair_map.refine_pair(reference_cloud, target_cloud, ref_points, tgt_points, pair.T_tgt_ref)
             pair.map_refined = refined is not None
             pair.T_tgt_ref = pair.T_tgt_ref if refined is None else refined
         return pair
@@ -836,102 +828,38 @@ class Odometry:
 
     # -- mapping --------------------------------------------------------------------------------
 
-    def _make_map(self) -> Any:
+    def _make_map(self) -> dmlo_rs.LocalMap:
         c = self.config.mapping
-        return dmlo_rs.NdtMap(voxel_size=c.voxel_size, max_scans=c.max_scans)
-
-    def _refine_near_keyframe(
-        self, cloud: npt.NDArray[np.float32], points: npt.NDArray[np.float32], pose: Matrix4,
-        diagnostics: FrameDiagnostics,
-    ) -> Matrix4 | None:
-        """Near the newest keyframe (`mapping.ring_lock_distance`), `align_near_keyframe` of the scan's
-        upright surfaces (`upright_points` of its point image `points`) and of the whole scan against the
-        local map; None farther away, or when an alignment fails (the caller aligns the whole scan).
-
-        A car that the DMLO estimate puts at the keyframe (`mapping.standing`) is aligned to the keyframe
-        by projective point-to-plane ICP instead (`dmlo_rs.point_to_plane`): NDT's voxels leave millimetres
-        there. Only then: a car creeping in a queue that the moving-object network missed would be held in
-        place by the cars around it, which stand still in its frame.
-        """
-        diagnostics.ndt_upright_only = False
-        keyframe = self._last_keyframe
-        if keyframe is None:
-            return None
-        alignment = near_keyframe_alignment(keyframe, pose, self.config.mapping)
-        if alignment is None:
-            return None
-        if self._keyframe_points is not None and alignment == "standing":
-            start = np.linalg.inv(pose) @ keyframe  # the keyframe's points into this scan's frame
-            refined = dmlo_rs.point_to_plane(self._keyframe_points, points, start, self.cylinder)
-            if refined is not None:
-                diagnostics.ndt_converged = True
-                diagnostics.ndt_start = "standing"
-                diagnostics.ndt_degenerate_directions = 0
-                return np.asarray(keyframe @ np.linalg.inv(refined), dtype=np.float64)
-        upright = upright_points(points, self.cylinder, self.config.mapping.downsample)
-        near = align_near_keyframe(self._align, cloud, upright, pose, keyframe)
-        if near is None:
-            return None
-        diagnostics.ndt_converged = True
-        diagnostics.ndt_start = "dmlo"
-        diagnostics.ndt_degenerate_directions = near.degenerate_directions
-        diagnostics.ndt_upright_only = near.split
-        return near.pose
-
-    def _is_keyframe(self, pose: Matrix4) -> bool:
-        """Whether the scan moved or turned far enough from the newest map scan to enter the map.
-
-        Scans drawn from nearly the same place add the same ground rings again and again, all behind
-        the next scan, and NDT then pulls that scan's rings back onto them (a standing or slow car
-        drifted backwards); keyframes spaced in distance keep the map's samples spread out.
-        """
-        if self._last_keyframe is None:
-            return True
-        c = self.config.mapping
-        moved, turned = pose_difference(self._last_keyframe, pose)
-        return moved >= c.keyframe_distance or turned >= c.keyframe_angle_deg
+        return dmlo_rs.LocalMap(
+            self.cylinder, voxel_size=c.voxel_size, max_scans=c.max_scans, keyframe_distance=c.keyframe_distance,
+            keyframe_angle_deg=c.keyframe_angle_deg, ring_lock_distance=c.ring_lock_distance,
+            motion_model_start_distance=c.motion_model_start_distance,
+            motion_model_start_angle_deg=c.motion_model_start_angle_deg, downsample=c.downsample,
+            max_iterations=c.max_iterations, degeneracy_threshold=c.degeneracy_threshold,
+            rotation_degeneracy_threshold=c.rotation_degeneracy_threshold,
+        )
 
     def _refine_with_map(
         self, cloud: npt.NDArray[np.float32], points: npt.NDArray[np.float32], pose: Matrix4,
         diagnostics: FrameDiagnostics,
     ) -> Matrix4:
-        """NDT from the DMLO pose and, when that pose leaves the motion model far behind, also from the
-        constant-velocity prediction: a wrong RANSAC consensus (a metre off, seen on a simulated drive)
-        lies outside NDT's basin, and the start whose alignment scores higher wins. Near the newest keyframe
-        `_refine_near_keyframe` first (`points`: the scan's point image)."""
-        refined = self._refine_near_keyframe(cloud, points, pose, diagnostics)
-        if refined is not None:
-            return refined
-        c = self.config.mapping
-        starts = {"dmlo": pose}
-        within_horizon = self._clock.frame - self._reference_frame <= self.config.motion_model.prediction_horizon
-        if self._motion.measured and within_horizon:
-            # Before any velocity is measured the prediction is "standing still", and the map's ground
-            # rings, which move with the sensor, score that wrong start highly.
-            predicted = self._predict()
-            moved, turned = pose_difference(pose, predicted)
-            if moved > c.motion_model_start_distance or turned > c.motion_model_start_angle_deg:
-                starts["motion_model"] = predicted
-        results = {}
-        for name, start in starts.items():
-            try:
-                results[name] = self._align(cloud, start)
-            except dmlo_rs.RegistrationError:  # too few correspondences with the map from this start
-                pass
-        converged = {name: result for name, result in results.items() if result.converged}
-        diagnostics.ndt_converged = bool(converged)
-        if not converged:
-            if "dmlo" in results:
-                diagnostics.ndt_degenerate_directions = int(results["dmlo"].degenerate_directions)
-            return pose
-        name = max(converged, key=lambda n: converged[n].score)
-        diagnostics.ndt_start = name
-        diagnostics.ndt_degenerate_directions = int(converged[name].degenerate_directions)
-        return np.asarray(converged[name].transform, dtype=np.float64)
-
-    def _align(self, cloud: npt.NDArray[np.float32], start: Matrix4) -> Any:
+        """The DMLO `pose` refined against the local map (`dmlo_rs.LocalMap.refine`, `points` the scan's point
+        image): near the newest keyframe a standing car by point-to-plane ICP and a creeping one by the upright
+        surfaces' split (the keyframe's ground rings would hold it in place); elsewhere NDT from the DMLO pose
+        and, when that pose leaves the motion model far behind, also from the constant-velocity prediction: a
+        wrong RANSAC consensus (a metre off, seen on a simulated drive) lies outside NDT's basin, and the start
+        whose alignment scores higher wins."""
         assert self._map is not None
-        return align_to_map(self._map, cloud, start, self.config.mapping)
+        within_horizon = self._clock.frame - self._reference_frame <= self.config.motion_model.prediction_horizon
+        # Before any velocity is measured the prediction is "standing still", and the map's ground rings, which
+        # move with the sensor, would score that wrong start highly.
+        prediction = self._predict() if self._motion.measured and within_horizon else None
+        refined = self._map.refine(cloud, points, pose, prediction)
+        diagnostics.ndt_converged = refined.converged
+        diagnostics.ndt_start = refined.start
+        diagnostics.ndt_degenerate_directions = refined.degenerate_directions
+        diagnostics.ndt_upright_only = refined.upright_only
+        return np.asarray(refined.pose, dtype=np.float64)
 
 
 def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> PairResult:

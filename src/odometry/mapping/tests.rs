@@ -1,0 +1,376 @@
+use nalgebra::{Isometry3, Matrix4, Point3, Translation3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::*;
+use crate::projection::{project, CylinderConfig};
+
+/// A scan of a box yard (walls 14–25 m away, a floor 1.7 m below, two posts) seen from `pose`
+/// (`T_yard_sensor`), in the sensor's frame.
+fn yard_scan(pose: &Isometry3<f64>, seed: u64) -> Vec<[f32; 4]> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let inverse = pose.inverse();
+    let posts = [(6.0, 4.0), (9.0, -5.0)];
+    (0..150_000)
+        .filter_map(|_| {
+            let azimuth = rng.random_range(-180.0f64..180.0).to_radians();
+            let elevation = rng.random_range(-24.0f64..2.0).to_radians();
+            let d = pose.rotation
+                * Vector3::new(
+                    elevation.cos() * azimuth.cos(),
+                    elevation.cos() * azimuth.sin(),
+                    elevation.sin(),
+                );
+            let o = pose.translation.vector;
+            let mut t = f64::INFINITY;
+            for (axis, low, high) in [(0, -14.0, 25.0), (1, -16.0, 18.0)] {
+                if d[axis].abs() > 1e-9 {
+                    let wall = if d[axis] > 0.0 { high } else { low };
+                    t = t.min((wall - o[axis]) / d[axis]);
+                }
+            }
+            if d.z < -1e-9 {
+                t = t.min((-1.7 - o.z) / d.z);
+            }
+            for (px, py) in posts {
+                // Posts of 0.3 m radius: the nearer root of |o + t d − c|² = r² in the plane.
+                let (ox, oy) = (o.x - px, o.y - py);
+                let a = d.x * d.x + d.y * d.y;
+                let b = ox * d.x + oy * d.y;
+                let disc = b * b - a * (ox * ox + oy * oy - 0.09);
+                if a > 1e-12 && disc >= 0.0 {
+                    let hit = (-b - disc.sqrt()) / a;
+                    if hit > 0.0 {
+                        t = t.min(hit);
+                    }
+                }
+            }
+            let p = inverse * Point3::from(o + d * t);
+            t.is_finite()
+                .then_some([p.x as f32, p.y as f32, p.z as f32, 0.4])
+        })
+        .collect()
+}
+
+struct Scan {
+    cloud: Vec<Point3<f64>>,
+    points: Vec<f32>,
+}
+
+fn scan_at(pose: &Isometry3<f64>, seed: u64) -> Scan {
+    let raw = yard_scan(pose, seed);
+    let projection = project(&raw, &CylinderConfig::kitti()).unwrap();
+    let points = projection
+        .index
+        .iter()
+        .flat_map(|&i| match usize::try_from(i) {
+            Ok(i) => [raw[i][0], raw[i][1], raw[i][2]],
+            Err(_) => [f32::NAN; 3],
+        })
+        .collect();
+    let cloud = raw
+        .iter()
+        .map(|p| Point3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+        .collect();
+    Scan { cloud, points }
+}
+
+fn pose(forward_m: f64, left_m: f64, yaw_deg: f64) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(forward_m, left_m, 0.0),
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw_deg.to_radians()),
+    )
+}
+
+fn off(a: &Matrix4<f64>, b: &Matrix4<f64>) -> (f64, f64) {
+    pose_difference(a, b)
+}
+
+/// A map holding the yard seen from the origin.
+fn yard_map() -> LocalMap {
+    let mut map = LocalMap::new(MappingConfig::default()).unwrap();
+    let first = scan_at(&Isometry3::identity(), 1);
+    map.insert(&first.cloud, &Matrix4::identity(), &first.points)
+        .unwrap();
+    map
+}
+
+#[test]
+fn a_scan_is_refined_against_the_map_from_the_dmlo_pose() {
+    let map = yard_map();
+    let truth = pose(0.9, 0.05, 1.0);
+    let scan = scan_at(&truth, 2);
+    let dmlo = (truth * pose(0.05, -0.03, 0.3)).to_homogeneous();
+    let refined = map
+        .refine(
+            &scan.cloud,
+            &scan.points,
+            &dmlo,
+            None,
+            &CylinderConfig::kitti(),
+        )
+        .unwrap();
+    assert!(refined.converged && refined.start == Some(MapStart::Dmlo));
+    assert!(!refined.upright_only);
+    let (moved, turned) = off(&refined.pose, &truth.to_homogeneous());
+    assert!(moved < 0.02 && turned < 0.1, "{moved} m, {turned}°");
+}
+
+#[test]
+fn a_pose_far_from_the_prediction_also_starts_from_it_and_the_better_score_wins() {
+    let map = yard_map();
+    let truth = pose(1.6, 0.0, 0.5);
+    let scan = scan_at(&truth, 3);
+    let wrong = pose(0.7, 0.6, -4.0).to_homogeneous(); // a wrong consensus
+    let predicted = (truth * pose(0.04, 0.0, 0.2)).to_homogeneous();
+    let cylinder = CylinderConfig::kitti();
+    let refined = map
+        .refine(
+            &scan.cloud,
+            &scan.points,
+            &wrong,
+            Some(&predicted),
+            &cylinder,
+        )
+        .unwrap();
+    assert!(refined.converged);
+    let (moved, turned) = off(&refined.pose, &truth.to_homogeneous());
+    assert!(
+        moved < 0.02 && turned < 0.1,
+        "{:?}: {moved} m, {turned}°",
+        refined.start
+    );
+    // Close to the DMLO pose the prediction is not tried.
+    let near = (truth * pose(0.1, 0.0, 0.0)).to_homogeneous();
+    let refined = map
+        .refine(
+            &scan.cloud,
+            &scan.points,
+            &near,
+            Some(&predicted),
+            &cylinder,
+        )
+        .unwrap();
+    assert_eq!(refined.start, Some(MapStart::Dmlo));
+}
+
+#[test]
+fn a_standing_car_is_aligned_to_its_keyframe_by_its_planes() {
+    let map = yard_map();
+    let scan = scan_at(&Isometry3::identity(), 4); // the same place, other samples
+    let dmlo = pose(0.01, 0.0, 0.05).to_homogeneous();
+    let refined = map
+        .refine(
+            &scan.cloud,
+            &scan.points,
+            &dmlo,
+            None,
+            &CylinderConfig::kitti(),
+        )
+        .unwrap();
+    assert_eq!(refined.start, Some(MapStart::Standing));
+    assert_eq!(refined.degenerate_directions, Some(0));
+    let (moved, turned) = off(&refined.pose, &Matrix4::identity());
+    assert!(moved < 0.003 && turned < 0.02, "{moved} m, {turned}°");
+}
+
+#[test]
+fn near_the_keyframe_the_upright_surfaces_give_the_horizontal_motion() {
+    let map = yard_map();
+    let truth = pose(0.3, 0.0, 0.2);
+    let scan = scan_at(&truth, 5);
+    let dmlo = (truth * pose(0.04, 0.02, 0.1)).to_homogeneous();
+    let refined = map
+        .refine(
+            &scan.cloud,
+            &scan.points,
+            &dmlo,
+            None,
+            &CylinderConfig::kitti(),
+        )
+        .unwrap();
+    assert!(refined.converged && refined.upright_only);
+    assert_eq!(refined.start, Some(MapStart::Dmlo));
+    let (moved, turned) = off(&refined.pose, &truth.to_homogeneous());
+    assert!(moved < 0.02 && turned < 0.1, "{moved} m, {turned}°");
+}
+
+#[test]
+fn scans_enter_the_map_as_keyframes_once_they_moved_or_turned_enough() {
+    let mut map = LocalMap::new(MappingConfig {
+        max_scans: 2,
+        ..Default::default()
+    })
+    .unwrap();
+    assert!(map.is_keyframe(&Matrix4::identity()) && map.last_keyframe().is_none());
+    let scan = scan_at(&Isometry3::identity(), 6);
+    for (i, step) in [
+        pose(0.0, 0.0, 0.0),
+        pose(2.0, 0.0, 0.0),
+        pose(4.0, 0.0, 0.0),
+    ]
+    .iter()
+    .enumerate()
+    {
+        map.insert(&scan.cloud, &step.to_homogeneous(), &scan.points)
+            .unwrap();
+        assert_eq!(map.num_scans(), (i + 1).min(2));
+    }
+    assert_eq!(
+        map.last_keyframe(),
+        Some(&pose(4.0, 0.0, 0.0).to_homogeneous())
+    );
+    assert!(!map.is_keyframe(&pose(5.9, 0.0, 4.9).to_homogeneous()));
+    assert!(map.is_keyframe(&pose(6.0, 0.0, 0.0).to_homogeneous()));
+    assert!(map.is_keyframe(&pose(4.0, 0.0, 5.1).to_homogeneous()));
+    map.restart(&scan.cloud, &Matrix4::identity(), &scan.points)
+        .unwrap();
+    assert_eq!(map.num_scans(), 1);
+}
+
+#[test]
+fn upright_points_keep_the_walls_and_posts_and_leave_the_floor() {
+    let scan = scan_at(&Isometry3::identity(), 7);
+    let cylinder = CylinderConfig::kitti();
+    let every = upright_points(&scan.points, &cylinder, 0.0).unwrap();
+    let kept = scan
+        .points
+        .chunks_exact(3)
+        .filter(|p| p[0].is_finite())
+        .count();
+    assert!(
+        every.len() > kept / 10 && every.len() < kept,
+        "{} of {kept}",
+        every.len()
+    );
+    // A few floor cells at the foot of a wall or a post fit a plane across the corner.
+    let floor = every.iter().filter(|p| p.z < -1.6).count();
+    assert!(
+        floor * 50 < every.len(),
+        "{floor} of {} on the floor",
+        every.len()
+    );
+    let thinned = upright_points(&scan.points, &cylinder, 0.75).unwrap();
+    assert!(thinned.len() < every.len() / 2);
+    let mut voxels: Vec<[i64; 3]> = thinned
+        .iter()
+        .map(|p| [0, 1, 2].map(|k| (p[k] as f32 / 0.75).floor() as i64))
+        .collect();
+    voxels.sort_unstable();
+    voxels.dedup();
+    assert_eq!(voxels.len(), thinned.len(), "two points of one voxel kept");
+    assert!(matches!(
+        upright_points(&scan.points[3..], &cylinder, 0.0),
+        Err(Error::InvalidArgument {
+            argument: "points",
+            ..
+        })
+    ));
+}
+
+#[test]
+fn heading_and_level_take_their_angles_and_position_from_either_pose() {
+    let angles =
+        |yaw: f64, pitch: f64, roll: f64| UnitQuaternion::from_euler_angles(roll, pitch, yaw);
+    let horizontal =
+        Isometry3::from_parts(Translation3::new(10.0, -4.0, 0.3), angles(2.9, 0.01, -0.02));
+    let level = Isometry3::from_parts(Translation3::new(10.2, -4.1, 0.5), angles(2.8, -0.05, 0.04));
+    let pose = heading_and_level(&horizontal.to_homogeneous(), &level.to_homogeneous());
+    let rotation = isometry_from_matrix(&pose, "pose").unwrap().rotation;
+    let (roll, pitch, yaw) = rotation.euler_angles();
+    assert!(
+        (yaw - 2.9).abs() < 1e-12 && (pitch + 0.05).abs() < 1e-12 && (roll - 0.04).abs() < 1e-12
+    );
+    assert_eq!(
+        [pose[(0, 3)], pose[(1, 3)], pose[(2, 3)]],
+        [10.0, -4.0, 0.5]
+    );
+}
+
+#[test]
+fn a_pair_is_refined_against_its_reference_alone() {
+    let cylinder = CylinderConfig::kitti();
+    let config = MappingConfig::default();
+    let reference = scan_at(&Isometry3::identity(), 8);
+    // A scan with itself stands: the planes give the identity.
+    let same = refine_consecutive_pair(
+        &reference.cloud,
+        &reference.cloud,
+        &reference.points,
+        &reference.points,
+        &pose(0.005, 0.0, 0.02).to_homogeneous(),
+        &config,
+        &cylinder,
+    )
+    .unwrap()
+    .unwrap();
+    let (moved, turned) = off(&same, &Matrix4::identity());
+    assert!(moved < 1e-4 && turned < 1e-3, "{moved} m, {turned}°");
+    for truth in [pose(1.2, 0.1, 2.0), pose(0.3, 0.0, 0.5)] {
+        let target = scan_at(&truth, 9);
+        let t_tgt_ref = truth.inverse().to_homogeneous();
+        let start = (truth * pose(0.04, -0.03, 0.2)).inverse().to_homogeneous();
+        let refined = refine_consecutive_pair(
+            &reference.cloud,
+            &target.cloud,
+            &reference.points,
+            &target.points,
+            &start,
+            &config,
+            &cylinder,
+        )
+        .unwrap()
+        .expect("converges");
+        let (moved, turned) = off(&refined, &t_tgt_ref);
+        assert!(moved < 0.02 && turned < 0.1, "{moved} m, {turned}°");
+    }
+}
+
+#[test]
+fn bad_settings_are_named() {
+    let cases: [(MappingConfig, &str); 3] = [
+        (
+            MappingConfig {
+                keyframe_distance: -1.0,
+                ..Default::default()
+            },
+            "keyframe_distance",
+        ),
+        (
+            MappingConfig {
+                downsample: f64::NAN,
+                ..Default::default()
+            },
+            "downsample",
+        ),
+        (
+            MappingConfig {
+                voxel_size: 0.0,
+                ..Default::default()
+            },
+            "voxel_size",
+        ),
+    ];
+    for (config, name) in cases {
+        match LocalMap::new(config) {
+            Err(Error::InvalidArgument { argument, .. }) => assert_eq!(argument, name),
+            other => panic!("{name}: {:?}", other.map(|_| ())),
+        }
+    }
+}
+
+#[test]
+fn near_a_keyframe_a_scan_without_upright_surfaces_is_aligned_whole_not_refused() {
+    let map = yard_map();
+    let truth = pose(0.3, 0.0, 0.0);
+    let scan = scan_at(&truth, 10);
+    let split = align_near_keyframe(
+        |points, start| map.align(points, start),
+        &scan.cloud,
+        &[],
+        &truth.to_homogeneous(),
+        &Matrix4::identity(),
+    )
+    .unwrap();
+    assert!(split.is_none());
+}
