@@ -134,12 +134,14 @@ fn a_pose_far_from_the_prediction_also_starts_from_it_and_the_better_score_wins(
         )
         .unwrap();
     assert!(refined.converged);
+    assert_eq!(refined.start, Some(MapStart::MotionModel));
     let (moved, turned) = off(&refined.pose, &truth.to_homogeneous());
-    assert!(
-        moved < 0.02 && turned < 0.1,
-        "{:?}: {moved} m, {turned}°",
-        refined.start
-    );
+    assert!(moved < 0.02 && turned < 0.1, "{moved} m, {turned}°");
+    // From the wrong pose alone NDT stays out of the truth's basin.
+    let alone = map
+        .refine(&scan.cloud, &scan.points, &wrong, None, &cylinder)
+        .unwrap();
+    assert!(off(&alone.pose, &truth.to_homogeneous()).0 > 0.1);
     // Close to the DMLO pose the prediction is not tried.
     let near = (truth * pose(0.1, 0.0, 0.0)).to_homogeneous();
     let refined = map
