@@ -189,9 +189,14 @@ pub fn upright_points(
     if voxel > 0.0 {
         // One integer a voxel, as the odometry's Python side keyed them: voxels a million apart may share it.
         let size = voxel as f32;
+        // Wrapping, as numpy's int64 arithmetic wraps for coordinates thousands of kilometres out.
         let key = |cell: usize| -> i64 {
-            let k = |axis: usize| (points[3 * cell + axis] / size).floor() as i64 + (1 << 20);
-            (k(0) << 42) + (k(1) << 21) + k(2)
+            let k = |axis: usize| {
+                ((points[3 * cell + axis] / size).floor() as i64).wrapping_add(1 << 20)
+            };
+            k(0).wrapping_shl(42)
+                .wrapping_add(k(1).wrapping_shl(21))
+                .wrapping_add(k(2))
         };
         let mut keyed: Vec<(i64, usize)> = kept.iter().map(|&cell| (key(cell), cell)).collect();
         keyed.sort_by_key(|&(key, _)| key); // stable: the first cell of each voxel leads it
