@@ -48,6 +48,8 @@ pub mod ray_noise;
 pub mod raycast;
 pub mod rigid;
 pub mod surface;
+#[cfg(test)]
+mod test_scenes;
 
 pub use error::{Error, Result};
 

@@ -1,44 +1,10 @@
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
 
 use super::{cell_centre_points, match_pair, voxel_crowding, PairConfig, PairImages};
 use crate::error::Error;
 use crate::ground_truth::ground_truth_flow;
 use crate::projection::{project, CylinderConfig};
-
-/// Points of a box yard around the sensor (walls 14–25 m away, a floor 1.7 m below), in the frame of a
-/// sensor at `pose` (`T_yard_sensor`).
-fn yard_scan(pose: &Isometry3<f64>, seed: u64, n: usize) -> Vec<[f32; 4]> {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let inverse = pose.inverse();
-    (0..n)
-        .filter_map(|_| {
-            let azimuth = rng.random_range(-180.0f64..180.0).to_radians();
-            let elevation = rng.random_range(-24.0f64..2.0).to_radians();
-            let d = pose.rotation
-                * Vector3::new(
-                    elevation.cos() * azimuth.cos(),
-                    elevation.cos() * azimuth.sin(),
-                    elevation.sin(),
-                );
-            let o = pose.translation.vector;
-            let mut t = f64::INFINITY;
-            for (axis, low, high) in [(0, -14.0, 25.0), (1, -16.0, 18.0)] {
-                if d[axis].abs() > 1e-9 {
-                    let wall = if d[axis] > 0.0 { high } else { low };
-                    t = t.min((wall - o[axis]) / d[axis]);
-                }
-            }
-            if d.z < -1e-9 {
-                t = t.min((-1.7 - o.z) / d.z);
-            }
-            let p = inverse * Point3::from(o + d * t);
-            t.is_finite()
-                .then_some([p.x as f32, p.y as f32, p.z as f32, 0.4])
-        })
-        .collect()
-}
+use crate::test_scenes::yard_scan;
 
 struct Pair {
     ref_range: Vec<f32>,
@@ -52,8 +18,8 @@ struct Pair {
 /// confidence where it is valid.
 fn yard_pair(t_tgt_ref: Isometry3<f64>) -> Pair {
     let config = CylinderConfig::kitti();
-    let reference = project(&yard_scan(&Isometry3::identity(), 1, 200_000), &config).unwrap();
-    let target = project(&yard_scan(&t_tgt_ref.inverse(), 2, 200_000), &config).unwrap();
+    let reference = project(&yard_scan(&Isometry3::identity(), 1, 200_000, &[]), &config).unwrap();
+    let target = project(&yard_scan(&t_tgt_ref.inverse(), 2, 200_000, &[]), &config).unwrap();
     let truth =
         ground_truth_flow(&reference.range, &target.range, &t_tgt_ref, &config, 0.1).unwrap();
     Pair {

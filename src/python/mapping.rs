@@ -64,6 +64,24 @@ fn cloud_points(obj: &Bound<'_, PyAny>) -> PyResult<Vec<nalgebra::Point3<f64>>> 
     Ok(mapping::scan_points(&array.f32_data(), columns)?)
 }
 
+/// A keyframe's scan (points in its sensor frame), pose and point image.
+type KeyframeScan = (Vec<nalgebra::Point3<f64>>, nalgebra::Matrix4<f64>, Vec<f32>);
+
+impl PyLocalMap {
+    /// A keyframe's scan, pose and point image, checked.
+    fn keyframe_arguments(
+        &self,
+        cloud: &Bound<'_, PyAny>,
+        pose: &Bound<'_, PyAny>,
+        points: &Bound<'_, PyAny>,
+    ) -> PyResult<KeyframeScan> {
+        let (cloud, pose) = (cloud_points(cloud)?, rigid_matrix("pose", pose)?);
+        let points = point_image("points", points, &self.cylinder)?;
+        let points = points.f32_data().into_owned();
+        Ok((cloud, pose, points))
+    }
+}
+
 #[pymethods]
 impl PyLocalMap {
     #[new]
@@ -134,9 +152,7 @@ impl PyLocalMap {
         pose: &Bound<'_, PyAny>,
         points: &Bound<'_, PyAny>,
     ) -> PyResult<()> {
-        let (cloud, pose) = (cloud_points(cloud)?, rigid_matrix("pose", pose)?);
-        let points = point_image("points", points, &self.cylinder)?;
-        let points = points.f32_data();
+        let (cloud, pose, points) = self.keyframe_arguments(cloud, pose, points)?;
         let map = &mut self.inner;
         run(py, None, || map.insert(&cloud, &pose, &points))
     }
@@ -149,9 +165,7 @@ impl PyLocalMap {
         pose: &Bound<'_, PyAny>,
         points: &Bound<'_, PyAny>,
     ) -> PyResult<()> {
-        let (cloud, pose) = (cloud_points(cloud)?, rigid_matrix("pose", pose)?);
-        let points = point_image("points", points, &self.cylinder)?;
-        let points = points.f32_data();
+        let (cloud, pose, points) = self.keyframe_arguments(cloud, pose, points)?;
         let map = &mut self.inner;
         run(py, None, || map.restart(&cloud, &pose, &points))
     }

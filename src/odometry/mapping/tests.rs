@@ -1,56 +1,8 @@
 use nalgebra::{Isometry3, Matrix4, Point3, Translation3, UnitQuaternion, Vector3};
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
 
 use super::*;
 use crate::projection::{project, CylinderConfig};
-
-/// A scan of a box yard (walls 14–25 m away, a floor 1.7 m below, two posts) seen from `pose`
-/// (`T_yard_sensor`), in the sensor's frame.
-fn yard_scan(pose: &Isometry3<f64>, seed: u64) -> Vec<[f32; 4]> {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let inverse = pose.inverse();
-    let posts = [(6.0, 4.0), (9.0, -5.0)];
-    (0..150_000)
-        .filter_map(|_| {
-            let azimuth = rng.random_range(-180.0f64..180.0).to_radians();
-            let elevation = rng.random_range(-24.0f64..2.0).to_radians();
-            let d = pose.rotation
-                * Vector3::new(
-                    elevation.cos() * azimuth.cos(),
-                    elevation.cos() * azimuth.sin(),
-                    elevation.sin(),
-                );
-            let o = pose.translation.vector;
-            let mut t = f64::INFINITY;
-            for (axis, low, high) in [(0, -14.0, 25.0), (1, -16.0, 18.0)] {
-                if d[axis].abs() > 1e-9 {
-                    let wall = if d[axis] > 0.0 { high } else { low };
-                    t = t.min((wall - o[axis]) / d[axis]);
-                }
-            }
-            if d.z < -1e-9 {
-                t = t.min((-1.7 - o.z) / d.z);
-            }
-            for (px, py) in posts {
-                // Posts of 0.3 m radius: the nearer root of |o + t d − c|² = r² in the plane.
-                let (ox, oy) = (o.x - px, o.y - py);
-                let a = d.x * d.x + d.y * d.y;
-                let b = ox * d.x + oy * d.y;
-                let disc = b * b - a * (ox * ox + oy * oy - 0.09);
-                if a > 1e-12 && disc >= 0.0 {
-                    let hit = (-b - disc.sqrt()) / a;
-                    if hit > 0.0 {
-                        t = t.min(hit);
-                    }
-                }
-            }
-            let p = inverse * Point3::from(o + d * t);
-            t.is_finite()
-                .then_some([p.x as f32, p.y as f32, p.z as f32, 0.4])
-        })
-        .collect()
-}
+use crate::test_scenes::yard_scan;
 
 struct Scan {
     cloud: Vec<Point3<f64>>,
@@ -58,7 +10,7 @@ struct Scan {
 }
 
 fn scan_at(pose: &Isometry3<f64>, seed: u64) -> Scan {
-    let raw = yard_scan(pose, seed);
+    let raw = yard_scan(pose, seed, 150_000, &[(6.0, 4.0), (9.0, -5.0)]);
     let projection = project(&raw, &CylinderConfig::kitti()).unwrap();
     let points = projection
         .index
