@@ -617,22 +617,5 @@ pub fn refine_consecutive_pair(
     }
 }
 
-/// The rows of an `N × columns` float32 scan as points (the first three columns).
-pub fn scan_points(values: &[f32], columns: usize) -> Result<Vec<Point3<f64>>> {
-    if columns < 3 || values.len() % columns != 0 {
-        return Err(Error::invalid(
-            "points",
-            format!(
-                "expected rows of at least 3 values, got {} values in rows of {columns}",
-                values.len()
-            ),
-        ));
-    }
-    Ok(values
-        .chunks_exact(columns)
-        .map(|row| Point3::new(row[0] as f64, row[1] as f64, row[2] as f64))
-        .collect())
-}
-
 #[cfg(test)]
 mod tests;

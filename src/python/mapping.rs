@@ -7,9 +7,8 @@ use pyo3::prelude::*;
 use crate::odometry::mapping::{self, LocalMap, MappingConfig};
 use crate::projection::CylinderConfig;
 
-use super::convert::{
-    counts, matrix4_to_numpy, point_image, points_to_numpy, rigid_matrix, scan_points,
-};
+use super::convert::{counts, matrix4_to_numpy, point_image, points_to_numpy, rigid_matrix};
+use super::ndt::read_points;
 use super::pool::run;
 use super::projection::PyCylinderConfig;
 
@@ -60,8 +59,7 @@ pub struct PyLocalMap {
 }
 
 fn cloud_points(obj: &Bound<'_, PyAny>) -> PyResult<Vec<nalgebra::Point3<f64>>> {
-    let (array, columns) = scan_points(obj)?;
-    Ok(mapping::scan_points(&array.f32_data(), columns)?)
+    read_points(obj, "cloud")
 }
 
 /// A keyframe's scan (points in its sensor frame), pose and point image.

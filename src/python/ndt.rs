@@ -54,7 +54,7 @@ fn read_rows(value: &Bound<'_, PyAny>, argument: &str) -> PyResult<Array2<f64>> 
 }
 
 /// An `N×3` or `N×4` array as points (the 4th column, reflectance, is ignored), read in one pass.
-fn read_points(value: &Bound<'_, PyAny>, argument: &str) -> PyResult<Vec<Point3<f64>>> {
+pub(super) fn read_points(value: &Bound<'_, PyAny>, argument: &str) -> PyResult<Vec<Point3<f64>>> {
     if let Ok(array) = value.extract::<PyReadonlyArray2<'_, f64>>() {
         return points_from_rows(array.as_array(), argument);
     }
