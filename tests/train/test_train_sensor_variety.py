@@ -140,3 +140,14 @@ def test_the_pose_stage_with_sensor_variety_trains_whole_images_with_the_pose_lo
         default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--sensor-variety-pose", "--finetune"])
     with pytest.raises(SystemExit):
         default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--sensor-variety-pose", "--init", str(tmp_path / "none.pt")])
+
+
+def test_the_range_only_pose_stage_starts_from_the_range_only_weights(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    argv = recipe_training_command(monkeypatch, tmp_path, "--range-only-pose")
+    assert argv[argv.index("--init") + 1] == str(default_recipe.BUNDLED_RANGE_ONLY)
+    assert default_recipe.BUNDLED_RANGE_ONLY.is_file()
+    assert argv[argv.index("--out") + 1] == str(tmp_path / "run" / "range_only_pose")
+    assert "--no-reflectance" in argv and argv[argv.index("--crop-width") + 1] == "0"
+    assert float(argv[argv.index("--pose-loss-weight") + 1]) > 0

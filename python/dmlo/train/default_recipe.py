@@ -1,7 +1,7 @@
 """The recipe of the bundled default model: its simulated drives and its training command, in one place.
 
     python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR]
-        [--finetune | --range-only | --sensor-variety | --sensor-variety-pose | --scenes]
+        [--finetune | --range-only | --range-only-pose | --sensor-variety | --sensor-variety-pose | --scenes]
 
 simulates the drives (skipping those already written; deterministic per seed) and then trains, resuming
 from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. `--finetune` runs
@@ -16,6 +16,12 @@ with the reflectance channel zeroed in every sample (`--no-reflectance`), into `
 resumable like the other stages; two epochs on 448-column crops, sized to finish within 10 minutes on one
 GPU (about an hour on 2 CPU cores; `best.pt` from the first epoch's validation on). Then `dmlo export
 RUN_DIR/range_only --out python/dmlo/models/default/range_only --wide-window 41 --refine-window 7`.
+
+`--range-only-pose` gives the range-only model the bundled model's last stage (whole images, the pose loss),
+with the reflectance zeroed as in its crop stage, from the range-only weights
+(`models/default/training/range_only/best.pt`, or `--init CKPT`), into `RUN_DIR/range_only_pose`: the crop
+stage alone loses what the whole-image pose-loss stage taught. One epoch; on 2 CPU cores it spans sessions
+(`--resume` continues it), on one GPU it is a single run.
 
 `--sensor-variety` fine-tunes the same final weights (or `--init CKPT`) on pairs with a real sensor's row
 artefacts — per-laser reflectance gains and partly empty rows (`Augmentation`) — into
@@ -85,6 +91,11 @@ RANGE_ONLY_ARGUMENTS = (
     "--no-reflectance --optimizer adam --lr 5e-4 --lr-step 1 --epochs 2 --batch-size 4 --crop-width 448 "
     "--val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume --mirror"
 ).split()
+# The range-only pose stage: the second stage's whole images and pose loss, with the reflectance zeroed.
+RANGE_ONLY_POSE_ARGUMENTS = (
+    "--no-reflectance --pose-loss-weight 0.2 --optimizer adam --lr 1e-4 --lr-step 1 --epochs 1 --batch-size 2 "
+    "--crop-width 0 --val-max-pairs 32 --val-width 0 --checkpoint-every 25 --resume --mirror"
+).split()
 # The sensor-variety stage: the flow loss on 448-column crops with per-row gains and row dropout.
 SENSOR_VARIETY_ARGUMENTS = (
     "--laser-gain-spread 0.6 --row-dropout 0.4 --optimizer adam --lr 1e-4 --lr-step 1 --epochs 2 --batch-size 4 "
@@ -101,6 +112,7 @@ SCENES_ARGUMENTS = (
     "--val-width 896 --checkpoint-every 25 --resume --mirror"
 ).split()
 BUNDLED_FINAL = Path(__file__).resolve().parents[1] / "models" / "default" / "training" / "finetune" / "best.pt"
+BUNDLED_RANGE_ONLY = BUNDLED_FINAL.parents[1] / "range_only" / "best.pt"
 
 
 def simulate_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Path]]:
@@ -162,6 +174,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="the second stage: fine-tune OUT/best.pt with the pose loss into OUT/finetune")
     parser.add_argument("--range-only", action="store_true",
                         help="fine-tune the range-only model (reflectance zeroed) from --init into OUT/range_only")
+    parser.add_argument("--range-only-pose", action="store_true",
+                        help="fine-tune the range-only weights on whole images with the pose loss, reflectance zeroed, "
+                        "into OUT/range_only_pose")
     parser.add_argument("--sensor-variety", action="store_true",
                         help="fine-tune --init on pairs with per-laser gains and partly empty rows into OUT/sensor_variety")
     parser.add_argument("--sensor-variety-pose", action="store_true",
@@ -170,13 +185,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", action="store_true",
                         help="fine-tune --init on the recipe's drives and the highway, traffic and stop-and-go scenes "
                         "(SCENE_DRIVES) into OUT/scenes")
-    parser.add_argument("--init", type=Path, default=BUNDLED_FINAL,
-                        help="with --range-only, --sensor-variety(-pose) or --scenes: the weights to start from (default: the bundled "
-                        "model's final ones)")
+    parser.add_argument("--init", type=Path, default=None,
+                        help="with --range-only(-pose), --sensor-variety(-pose) or --scenes: the weights to start from "
+                        "(default: the bundled model's final ones; with --range-only-pose the bundled range-only ones)")
     args = parser.parse_args(argv)
-    if args.finetune + args.range_only + args.sensor_variety + args.sensor_variety_pose + args.scenes > 1:
-        parser.error("--finetune, --range-only, --sensor-variety, --sensor-variety-pose and --scenes are separate stages: "
-                     "choose one")
+    chosen = (args.finetune, args.range_only, args.range_only_pose, args.sensor_variety, args.sensor_variety_pose,
+              args.scenes)
+    if sum(chosen) > 1:
+        parser.error("--finetune, --range-only, --range-only-pose, --sensor-variety, --sensor-variety-pose and --scenes "
+                     "are separate stages: choose one")
     poses = args.poses if args.poses.is_dir() else None
     train, val = simulate_drives(args.data, poses)
     if args.scenes:
@@ -186,14 +203,16 @@ def main(argv: list[str] | None = None) -> int:
     from dmlo.train.__main__ import main as train_main
 
     data = ["--data", *map(str, train), "--val", *map(str, val)]
-    stages = {"range_only": RANGE_ONLY_ARGUMENTS, "sensor_variety": SENSOR_VARIETY_ARGUMENTS,
+    stages = {"range_only": RANGE_ONLY_ARGUMENTS, "range_only_pose": RANGE_ONLY_POSE_ARGUMENTS,
+              "sensor_variety": SENSOR_VARIETY_ARGUMENTS,
               "sensor_variety_pose": SENSOR_VARIETY_POSE_ARGUMENTS, "scenes": SCENES_ARGUMENTS}
     stage = next((name for name in stages if getattr(args, name)), None)
     if stage is not None:
         arguments = stages[stage]
-        if not args.init.is_file():
-            parser.error(f"--{stage.replace('_', '-')} starts from {args.init}, which does not exist")
-        return train_main([*data, "--out", str(args.out / stage), "--init", str(args.init), *arguments])
+        init = args.init or (BUNDLED_RANGE_ONLY if stage == "range_only_pose" else BUNDLED_FINAL)
+        if not init.is_file():
+            parser.error(f"--{stage.replace('_', '-')} starts from {init}, which does not exist")
+        return train_main([*data, "--out", str(args.out / stage), "--init", str(init), *arguments])
     if args.finetune:
         start = args.out / "best.pt"
         if not start.is_file():
