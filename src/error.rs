@@ -27,6 +27,10 @@ pub enum Error {
     /// file.
     #[error("model: {0}")]
     Model(String),
+    /// A setting of the odometry's config is unknown, of the wrong type or out of its range; the message
+    /// names the key (`ransac.threshold: ...`).
+    #[error("{0}")]
+    Config(String),
 }
 
 /// `Result` with the crate's [`Error`].

@@ -19,6 +19,7 @@
 //! ```
 
 pub mod clock;
+pub mod config;
 pub mod mapping;
 pub mod motion;
 

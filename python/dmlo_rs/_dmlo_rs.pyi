@@ -548,7 +548,12 @@ def match_pair(
     the square root of its `vote_voxel` cube's crowding (None: not), and RANSAC as `ransac_rigid`. Matches
     that give no motion: the identity with no inliers."""
 
-__all__ += ["FrameClock", "MotionModel"]
+__all__ += ["FrameClock", "MotionModel", "odometry_config_json"]
+
+def odometry_config_json(text: str | None = None) -> str:
+    """The odometry's config as the crate reads it: `text` (a config file's JSON, Python's `Infinity`
+    included) parsed and checked by the crate and written back with every key; None: the crate's defaults.
+    ValueError names a bad key."""
 
 @_final
 class FrameClock:

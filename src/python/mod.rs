@@ -38,7 +38,7 @@ pyo3::create_exception!(
 impl From<Error> for PyErr {
     fn from(err: Error) -> PyErr {
         match err {
-            Error::InvalidArgument { .. } | Error::Model(_) => {
+            Error::InvalidArgument { .. } | Error::Model(_) | Error::Config(_) => {
                 PyValueError::new_err(err.to_string())
             }
             Error::TooFewPoints { .. } | Error::Degenerate(_) => {

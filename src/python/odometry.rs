@@ -5,6 +5,7 @@ use numpy::PyArray2;
 use pyo3::prelude::*;
 
 use crate::odometry::clock::FrameClock;
+use crate::odometry::config::OdometryConfig;
 use crate::odometry::motion::{MotionLimits, MotionModel, PairEvidence};
 
 use super::convert::{counts, matrix4_to_numpy, points3, rigid_matrix};
@@ -14,7 +15,21 @@ use super::registration::refit_kind;
 pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyFrameClock>()?;
     m.add_class::<PyMotionModel>()?;
+    m.add_function(wrap_pyfunction!(odometry_config_json, m)?)?;
     Ok(())
+}
+
+/// The odometry's config as the crate reads it (`odometry::config::OdometryConfig`): `text` (a config
+/// file's JSON, Python's `Infinity` included) parsed and checked by the crate and written back, every key
+/// with its value; None: the crate's defaults. ValueError names a bad key.
+#[pyfunction]
+#[pyo3(signature = (text = None))]
+fn odometry_config_json(text: Option<&str>) -> PyResult<String> {
+    let config = match text {
+        Some(text) => OdometryConfig::from_json(text)?,
+        None => OdometryConfig::default(),
+    };
+    Ok(config.to_json())
 }
 
 /// Frame numbers from scan timestamps: one per scan, or as many sensor periods as a scan's timestamp

@@ -1,0 +1,885 @@
+#![forbid(unsafe_code)]
+//! The odometry's settings as `dmlo run` saves them (`config.json`), read by serde: the same sections,
+//! keys, defaults and ranges as Python's `dmlo.odometry.config.OdometryConfig`, so that a config written
+//! by either loads unchanged in the other.
+//!
+//! Python's `json` writes an unlimited setting (a [`Limit`]) as the bare token `Infinity`, which is not
+//! JSON; [`OdometryConfig::from_json`] reads it (and refuses it anywhere a finite number is asked for).
+//! The checks are as strict as Python's: an unknown key is named with its section, `1` is not a boolean,
+//! `1.5` not an integer, `null` is allowed only where a setting is optional, and every value is checked
+//! against its range ([`OdometryConfig::validate`]); each error names the key.
+//!
+//! ```
+//! use dmlo_rs::odometry::config::OdometryConfig;
+//!
+//! # fn main() -> dmlo_rs::error::Result<()> {
+//! let config = OdometryConfig::from_json(r#"{"ransac": {"threshold": 0.2},
+//!                                            "mapping": {"keyframe_distance": Infinity}}"#)?;
+//! assert_eq!(config.ransac.threshold, 0.2);
+//! assert!(config.mapping.keyframe_distance.is_infinite());
+//! assert_eq!(config.matching.max_matches, 1000); // every key left out keeps its default
+//! let bad = OdometryConfig::from_json(r#"{"ransac": {"treshold": 0.2}}"#).unwrap_err();
+//! assert!(bad.to_string().contains("ransac.treshold"));
+//! # Ok(())
+//! # }
+//! ```
+
+use std::path::Path;
+
+use serde::{Deserialize, Deserializer, Serialize};
+
+use crate::coherence::{CoherenceConfig, MAX_RADIUS as MAX_COHERENCE_RADIUS};
+use crate::error::{Error, Result};
+use crate::odometry::mapping::MappingConfig;
+use crate::odometry::motion::MotionLimits;
+use crate::pair::PairConfig;
+use crate::ransac::{RansacConfig, Refit};
+use crate::ray_noise::RayNoise;
+
+/// Which network predictions become 3D matches (§III-D-a).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MatchingSection {
+    /// A confidence below this drops the cell before NMS (0 to 1).
+    pub min_confidence: f64,
+    /// NMS radius in cells (the paper's r = 1).
+    pub nms_radius: u64,
+    /// The top N matches kept after NMS (at least 3).
+    pub max_matches: u64,
+    /// Also match the new scan back against the previous one and take the midpoint of the two motions.
+    pub symmetric: bool,
+    /// With `symmetric`: the forward–backward check's limit in pixels; `None` keeps every cell.
+    #[serde(deserialize_with = "optional_limit")]
+    pub consistency_px: Option<f64>,
+    /// The confidence weighted by the coherence of each cell's flow with its neighbours'; `None`: not.
+    pub coherence_px: Option<f64>,
+    /// The coherence's neighbourhood radius in cells.
+    pub coherence_radius: u64,
+}
+
+impl Default for MatchingSection {
+    fn default() -> Self {
+        MatchingSection {
+            min_confidence: 0.0,
+            nms_radius: 1,
+            max_matches: 1000,
+            symmetric: false,
+            consistency_px: Some(1.0),
+            coherence_px: Some(0.5),
+            coherence_radius: 2,
+        }
+    }
+}
+
+/// How RANSAC's refits solve for the motion, as the config names them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RefitKind {
+    /// The closed-form SVD solve (the paper's).
+    PointToPoint,
+    /// The SVD solve refined under ray noise.
+    #[default]
+    RayNoise,
+}
+
+/// RANSAC around the closed-form SVD solve (§III-D-b).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RansacSection {
+    /// The inlier threshold (m; the paper's 0.1).
+    pub threshold: f64,
+    /// Stop once a better hypothesis would have been found with this probability.
+    pub confidence: f64,
+    /// Hypotheses at most (1 to a million).
+    pub max_iterations: u64,
+    /// The sampler's seed.
+    pub seed: u64,
+    /// How the refits solve.
+    pub refit: RefitKind,
+    /// With `ray_noise`: range noise over bearing noise.
+    pub ray_range_ratio: f64,
+    /// With `ray_noise`: the refits' bearing tolerance (°).
+    pub ray_bearing_threshold_deg: f64,
+    /// A match's vote from the tilt of the surface under it (consecutive scans).
+    pub vote_by_tilt: bool,
+    /// The votes' floor.
+    pub min_vote: f64,
+    /// Each vote divided by the square root of its cube's crowding, cubes of this many metres; `None`: not.
+    pub vote_voxel: Option<f64>,
+}
+
+impl Default for RansacSection {
+    fn default() -> Self {
+        RansacSection {
+            threshold: 0.1,
+            confidence: 0.999,
+            max_iterations: 1000,
+            seed: 0,
+            refit: RefitKind::RayNoise,
+            ray_range_ratio: 4.0,
+            ray_bearing_threshold_deg: 0.2,
+            vote_by_tilt: true,
+            min_vote: 0.05,
+            vote_voxel: Some(2.0),
+        }
+    }
+}
+
+/// The constant-velocity motion model and its judgement of every pair (§III-D-c).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MotionModelSection {
+    /// Fewer RANSAC inliers than this and the pair has no motion of its own (the paper's 10).
+    pub min_inliers: u64,
+    /// With tilt votes: the inliers' votes above the floor must reach this.
+    pub min_inlier_votes: f64,
+    /// A motion further than this from the prediction (m per frame) is a wrong consensus.
+    #[serde(deserialize_with = "limit")]
+    pub max_deviation: f64,
+    /// The same for the rotation (° per frame).
+    #[serde(deserialize_with = "limit")]
+    pub max_deviation_deg: f64,
+    /// The agreeing matches' share of RANSAC's inliers that makes them a consensus of their own.
+    pub guided_fraction: f64,
+    /// A pair spanning this many frames or more is matched again from the prediction; `None`: never.
+    pub rematch_gap: Option<u64>,
+    /// Across more frames than this the prediction is a guess.
+    pub prediction_horizon: u64,
+    /// A pair predicted to move further than this (m) is matched from the prediction at once.
+    pub match_from_prediction_m: Option<f64>,
+    /// Matching rounds from the prediction at most; `None`: 1 with mapping, 2 without.
+    pub prediction_rounds: Option<u64>,
+}
+
+impl Default for MotionModelSection {
+    fn default() -> Self {
+        MotionModelSection {
+            min_inliers: 10,
+            min_inlier_votes: 5.0,
+            max_deviation: 0.3,
+            max_deviation_deg: 3.0,
+            guided_fraction: 0.5,
+            rematch_gap: Some(2),
+            prediction_horizon: 20,
+            match_from_prediction_m: Some(1.5),
+            prediction_rounds: None,
+        }
+    }
+}
+
+/// Motion compensation of every sweep before projection.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DeskewSection {
+    /// Deskew the sweeps.
+    pub enabled: bool,
+    /// The sensor turns clockwise seen from above (Velodyne, KITTI).
+    pub clockwise: bool,
+    /// The azimuth (°) at whose moment the pose holds.
+    pub reference_azimuth_deg: f64,
+}
+
+impl Default for DeskewSection {
+    fn default() -> Self {
+        DeskewSection {
+            enabled: false,
+            clockwise: true,
+            reference_azimuth_deg: 0.0,
+        }
+    }
+}
+
+/// Scan-to-map NDT refinement over a local map of keyframes (§III-D-c); `enabled = false` is the
+/// paper's frame-to-frame DMLO.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MappingSection {
+    /// Refine every pose against the local map.
+    pub enabled: bool,
+    /// NDT voxel edge (m).
+    pub voxel_size: f64,
+    /// Keyframes the map keeps.
+    pub max_scans: u64,
+    /// Keyframe spacing (m) …
+    #[serde(deserialize_with = "limit")]
+    pub keyframe_distance: f64,
+    /// … or turn (°).
+    #[serde(deserialize_with = "limit")]
+    pub keyframe_angle_deg: f64,
+    /// The near-keyframe handling's reach (m); 0 turns it off.
+    #[serde(deserialize_with = "limit")]
+    pub ring_lock_distance: f64,
+    /// NDT also starts from the prediction when the DMLO pose lies this far from it (m) …
+    #[serde(deserialize_with = "limit")]
+    pub motion_model_start_distance: f64,
+    /// … or this much turned (°).
+    #[serde(deserialize_with = "limit")]
+    pub motion_model_start_angle_deg: f64,
+    /// Voxel (m) of the scan aligned to the map; 0: every point.
+    pub downsample: f64,
+    /// Newton steps at most.
+    pub max_iterations: u64,
+    /// The translations' degeneracy threshold.
+    pub degeneracy_threshold: f64,
+    /// The rotations' degeneracy threshold.
+    pub rotation_degeneracy_threshold: f64,
+}
+
+impl Default for MappingSection {
+    fn default() -> Self {
+        let c = MappingConfig::default();
+        MappingSection {
+            enabled: true,
+            voxel_size: c.voxel_size,
+            max_scans: c.max_scans as u64,
+            keyframe_distance: c.keyframe_distance,
+            keyframe_angle_deg: c.keyframe_angle_deg,
+            ring_lock_distance: c.ring_lock_distance,
+            motion_model_start_distance: c.motion_model_start_distance,
+            motion_model_start_angle_deg: c.motion_model_start_angle_deg,
+            downsample: c.downsample,
+            max_iterations: c.max_iterations as u64,
+            degeneracy_threshold: c.degeneracy_threshold,
+            rotation_degeneracy_threshold: c.rotation_degeneracy_threshold,
+        }
+    }
+}
+
+/// Registration of scans far apart, with no initial guess (§IV-D), from several starts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LargeMotionSection {
+    /// Starts along the reference's x axis (m).
+    pub search_ahead_m: Vec<f64>,
+    /// Starts turned about the vertical (°).
+    pub search_yaw_deg: Vec<f64>,
+    /// Matching rounds from the best start at most.
+    pub max_rounds: u64,
+    /// A round correcting less than this (m) …
+    #[serde(deserialize_with = "limit")]
+    pub min_step: f64,
+    /// … and this (°) ends the rounds.
+    #[serde(deserialize_with = "limit")]
+    pub min_step_deg: f64,
+}
+
+impl Default for LargeMotionSection {
+    fn default() -> Self {
+        LargeMotionSection {
+            search_ahead_m: vec![0.0, -6.0, 6.0, -12.0, 12.0],
+            search_yaw_deg: vec![0.0],
+            max_rounds: 4,
+            min_step: 0.05,
+            min_step_deg: 0.1,
+        }
+    }
+}
+
+/// Points on moving objects predicted by the moving-object network beside the model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MovingObjectsSection {
+    /// Run the network (when the model has it).
+    pub detect: bool,
+    /// A cell's moving probability above this drops its points.
+    pub threshold: f64,
+}
+
+impl Default for MovingObjectsSection {
+    fn default() -> Self {
+        MovingObjectsSection {
+            detect: true,
+            threshold: 0.5,
+        }
+    }
+}
+
+/// Where the network's correlation and window decoding run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MatchingStage {
+    /// The crate when the network runs on a CPU.
+    #[default]
+    Auto,
+    /// The crate's matching stage on cached features.
+    Crate,
+    /// Inside the ONNX graph.
+    Graph,
+}
+
+/// The scans' reflectance scale.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub enum ReflectanceScale {
+    /// Decided from the first scan's values.
+    #[default]
+    #[serde(rename = "auto")]
+    Auto,
+    /// Already in [0, 1].
+    #[serde(rename = "unit")]
+    Unit,
+    /// 0 to 255.
+    #[serde(rename = "0-255")]
+    Byte,
+    /// 0 to 65535.
+    #[serde(rename = "0-65535")]
+    Word,
+    /// Not used: the range-only model runs.
+    #[serde(rename = "none")]
+    Ignored,
+}
+
+/// Every setting of the odometry (module docs); `Default` is `dmlo run`'s.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OdometryConfig {
+    /// Which predictions become matches.
+    pub matching: MatchingSection,
+    /// RANSAC.
+    pub ransac: RansacSection,
+    /// The motion model.
+    pub motion_model: MotionModelSection,
+    /// Deskewing.
+    pub deskew: DeskewSection,
+    /// The local map.
+    pub mapping: MappingSection,
+    /// Registration from several starts.
+    pub large_motion: LargeMotionSection,
+    /// The moving-object network.
+    pub moving_objects: MovingObjectsSection,
+    /// The network's and the matching stage's threads; 0 lets them choose.
+    pub threads: u64,
+    /// Where the matching stage runs.
+    pub matching_stage: MatchingStage,
+    /// Scans with fewer finite points are bridged by the motion model.
+    pub min_points: u64,
+    /// The scans' reflectance scale.
+    pub reflectance: ReflectanceScale,
+}
+
+impl Default for OdometryConfig {
+    fn default() -> Self {
+        OdometryConfig {
+            matching: MatchingSection::default(),
+            ransac: RansacSection::default(),
+            motion_model: MotionModelSection::default(),
+            deskew: DeskewSection::default(),
+            mapping: MappingSection::default(),
+            large_motion: LargeMotionSection::default(),
+            moving_objects: MovingObjectsSection::default(),
+            threads: 0,
+            matching_stage: MatchingStage::Auto,
+            min_points: 1000,
+            reflectance: ReflectanceScale::Auto,
+        }
+    }
+}
+
+impl OdometryConfig {
+    /// The config a JSON text describes (Python's `Infinity` read as an unlimited [`Limit`]), every key left
+    /// out at its default, checked against the schema ([`Self::validate`]). Errors ([`Error::Config`]) name
+    /// the key.
+    pub fn from_json(text: &str) -> Result<Self> {
+        let value: serde_json::Value = serde_json::from_str(&quote_non_finite_tokens(text))
+            .map_err(|e| Error::Config(format!("config: not JSON: {e}")))?;
+        // serde would also take a list of values for a section: Python's schema (and this one) wants mappings.
+        let sections = value.as_object().ok_or_else(|| {
+            Error::Config(format!(
+                "config: must be a mapping of settings, got {value}"
+            ))
+        })?;
+        for (key, section) in sections {
+            if matches!(section, serde_json::Value::Array(_)) {
+                return Err(Error::Config(format!(
+                    "{key}: must be a mapping of settings, got {section}"
+                )));
+            }
+        }
+        let config: OdometryConfig = serde_path_to_error::deserialize(value)
+            .map_err(|e| config_error(e.path().to_string(), e.inner()))?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// [`Self::from_json`] of a file (`dmlo run`'s `config.json`); errors name the file.
+    pub fn load(path: impl AsRef<Path>) -> Result<Self> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| Error::Config(format!("{}: {e}", path.display())))?;
+        Self::from_json(&text).map_err(|e| match e {
+            Error::Config(message) => Error::Config(format!("{}: {message}", path.display())),
+            other => other,
+        })
+    }
+
+    /// The config as JSON, unlimited settings written as Python's `json` writes them (`Infinity`), so that
+    /// `dmlo run --config` reads it back.
+    pub fn to_json(&self) -> String {
+        let mut value = serde_json::to_value(self).expect("the config serialises");
+        restore_infinities(&mut value, self);
+        let text = serde_json::to_string_pretty(&value).expect("a JSON value serialises");
+        text.replace(&format!("\"{INFINITY_JSON}\""), "Infinity")
+    }
+
+    /// Checks every setting against its range, as Python's schema does; the error names the first bad key.
+    pub fn validate(&self) -> Result<()> {
+        let m = &self.matching;
+        fraction("matching.min_confidence", m.min_confidence)?;
+        at_least_u("matching.max_matches", m.max_matches, 3)?;
+        if let Some(v) = m.consistency_px {
+            check(
+                "matching.consistency_px",
+                v,
+                v >= 0.0 && !v.is_nan(),
+                "a number >= 0 or null",
+            )?;
+        }
+        if let Some(v) = m.coherence_px {
+            positive("matching.coherence_px", v)?;
+        }
+        if m.coherence_radius > MAX_COHERENCE_RADIUS as u64 {
+            return Err(Error::Config(format!(
+                "matching.coherence_radius: must be an integer from 0 to {MAX_COHERENCE_RADIUS}, got {}",
+                m.coherence_radius
+            )));
+        }
+        let r = &self.ransac;
+        positive("ransac.threshold", r.threshold)?;
+        let c = r.confidence;
+        check(
+            "ransac.confidence",
+            c,
+            c > 0.0 && c < 1.0,
+            "a number > 0 and < 1",
+        )?;
+        if !(1..=1_000_000).contains(&r.max_iterations) {
+            return Err(Error::Config(format!(
+                "ransac.max_iterations: must be an integer from 1 to 1000000, got {}",
+                r.max_iterations
+            )));
+        }
+        positive("ransac.ray_range_ratio", r.ray_range_ratio)?;
+        let b = r.ray_bearing_threshold_deg;
+        check(
+            "ransac.ray_bearing_threshold_deg",
+            b,
+            (0.0..90.0).contains(&b),
+            "a number >= 0 and < 90",
+        )?;
+        let v = r.min_vote;
+        check(
+            "ransac.min_vote",
+            v,
+            v > 0.0 && v <= 1.0,
+            "a number > 0 and <= 1",
+        )?;
+        if let Some(v) = r.vote_voxel {
+            positive("ransac.vote_voxel", v)?;
+        }
+        let mm = &self.motion_model;
+        at_least_u("motion_model.min_inliers", mm.min_inliers, 3)?;
+        non_negative("motion_model.min_inlier_votes", mm.min_inlier_votes)?;
+        limit_value("motion_model.max_deviation", mm.max_deviation)?;
+        limit_value("motion_model.max_deviation_deg", mm.max_deviation_deg)?;
+        fraction("motion_model.guided_fraction", mm.guided_fraction)?;
+        if let Some(gap) = mm.rematch_gap {
+            at_least_u("motion_model.rematch_gap", gap, 1)?;
+        }
+        at_least_u("motion_model.prediction_horizon", mm.prediction_horizon, 1)?;
+        if let Some(v) = mm.match_from_prediction_m {
+            positive("motion_model.match_from_prediction_m", v)?;
+        }
+        if let Some(rounds) = mm.prediction_rounds {
+            at_least_u("motion_model.prediction_rounds", rounds, 1)?;
+        }
+        finite(
+            "deskew.reference_azimuth_deg",
+            self.deskew.reference_azimuth_deg,
+        )?;
+        let p = &self.mapping;
+        positive("mapping.voxel_size", p.voxel_size)?;
+        at_least_u("mapping.max_scans", p.max_scans, 1)?;
+        limit_value("mapping.keyframe_distance", p.keyframe_distance)?;
+        limit_value("mapping.keyframe_angle_deg", p.keyframe_angle_deg)?;
+        limit_value("mapping.ring_lock_distance", p.ring_lock_distance)?;
+        limit_value(
+            "mapping.motion_model_start_distance",
+            p.motion_model_start_distance,
+        )?;
+        limit_value(
+            "mapping.motion_model_start_angle_deg",
+            p.motion_model_start_angle_deg,
+        )?;
+        non_negative("mapping.downsample", p.downsample)?;
+        at_least_u("mapping.max_iterations", p.max_iterations, 1)?;
+        let d = p.degeneracy_threshold;
+        check(
+            "mapping.degeneracy_threshold",
+            d,
+            (0.0..1.0).contains(&d),
+            "a number >= 0 and < 1",
+        )?;
+        let d = p.rotation_degeneracy_threshold;
+        check(
+            "mapping.rotation_degeneracy_threshold",
+            d,
+            (0.0..1.0).contains(&d),
+            "a number >= 0 and < 1",
+        )?;
+        let l = &self.large_motion;
+        starts("large_motion.search_ahead_m", &l.search_ahead_m)?;
+        starts("large_motion.search_yaw_deg", &l.search_yaw_deg)?;
+        at_least_u("large_motion.max_rounds", l.max_rounds, 1)?;
+        limit_value("large_motion.min_step", l.min_step)?;
+        limit_value("large_motion.min_step_deg", l.min_step_deg)?;
+        let t = self.moving_objects.threshold;
+        check(
+            "moving_objects.threshold",
+            t,
+            t > 0.0 && t < 1.0,
+            "a number > 0 and < 1",
+        )?;
+        Ok(())
+    }
+
+    /// The pair's back end ([`crate::pair::match_pair`]) as this config sets it.
+    pub fn pair_config(&self) -> PairConfig {
+        let (m, r) = (&self.matching, &self.ransac);
+        PairConfig {
+            min_confidence: m.min_confidence as f32,
+            nms_radius: m.nms_radius as usize,
+            max_matches: m.max_matches as usize,
+            coherence: m.coherence_px.map(|scale_px| CoherenceConfig {
+                radius: m.coherence_radius as usize,
+                scale_px: scale_px as f32,
+            }),
+            ransac: RansacConfig {
+                threshold: r.threshold,
+                confidence: r.confidence,
+                max_iterations: r.max_iterations as usize,
+                seed: r.seed,
+                refit: self.refit(),
+                ..Default::default()
+            },
+            tilt_vote_floor: r.vote_by_tilt.then_some(r.min_vote),
+            vote_voxel: r.vote_voxel,
+        }
+    }
+
+    /// The refit RANSAC and the motion model's guided consensus solve with.
+    pub fn refit(&self) -> Refit {
+        match self.ransac.refit {
+            RefitKind::PointToPoint => Refit::PointToPoint,
+            RefitKind::RayNoise => Refit::RayNoise {
+                noise: RayNoise {
+                    range_ratio: self.ransac.ray_range_ratio,
+                    ..Default::default()
+                },
+                bearing_threshold_deg: self.ransac.ray_bearing_threshold_deg,
+            },
+        }
+    }
+
+    /// The motion model's limits ([`crate::odometry::motion::MotionModel`]).
+    pub fn motion_limits(&self) -> MotionLimits {
+        let m = &self.motion_model;
+        MotionLimits {
+            min_inliers: m.min_inliers as usize,
+            min_inlier_votes: m.min_inlier_votes,
+            max_deviation: m.max_deviation,
+            max_deviation_deg: m.max_deviation_deg,
+            guided_fraction: m.guided_fraction,
+            prediction_horizon: m.prediction_horizon as usize,
+            threshold: self.ransac.threshold,
+            refit: self.refit(),
+        }
+    }
+
+    /// The local map's settings ([`crate::odometry::mapping::LocalMap`]).
+    pub fn mapping_config(&self) -> MappingConfig {
+        let p = &self.mapping;
+        MappingConfig {
+            voxel_size: p.voxel_size,
+            max_scans: p.max_scans as usize,
+            keyframe_distance: p.keyframe_distance,
+            keyframe_angle_deg: p.keyframe_angle_deg,
+            ring_lock_distance: p.ring_lock_distance,
+            motion_model_start_distance: p.motion_model_start_distance,
+            motion_model_start_angle_deg: p.motion_model_start_angle_deg,
+            downsample: p.downsample,
+            max_iterations: p.max_iterations as usize,
+            degeneracy_threshold: p.degeneracy_threshold,
+            rotation_degeneracy_threshold: p.rotation_degeneracy_threshold,
+        }
+    }
+
+    /// Matching rounds from the prediction: the setting, or 1 with mapping and 2 without.
+    pub fn prediction_rounds(&self) -> usize {
+        match self.motion_model.prediction_rounds {
+            Some(rounds) => rounds as usize,
+            None if self.mapping.enabled => 1,
+            None => 2,
+        }
+    }
+}
+
+/// A setting that may be infinite (no limit), never NaN or negative: in JSON a number or Python's
+/// `Infinity`.
+pub type Limit = f64;
+
+/// What Python's non-finite tokens become before serde reads the text: a string no finite setting accepts
+/// (a control character no config holds; written in the JSON text by its escape).
+const INFINITY_MARK: &str = "\u{1}Infinity";
+const NEGATIVE_INFINITY_MARK: &str = "\u{1}-Infinity";
+const NAN_MARK: &str = "\u{1}NaN";
+const INFINITY_JSON: &str = "\\u0001Infinity";
+const NEGATIVE_INFINITY_JSON: &str = "\\u0001-Infinity";
+const NAN_JSON: &str = "\\u0001NaN";
+
+/// The text with Python's bare `Infinity`, `-Infinity` and `NaN` (outside strings) turned into marked strings,
+/// which [`limit`] reads and every other setting refuses.
+fn quote_non_finite_tokens(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut rest = text;
+    let mut in_string = false;
+    while let Some(c) = rest.chars().next() {
+        if in_string {
+            match c {
+                '\\' => {
+                    let escaped: String = rest.chars().take(2).collect();
+                    out.push_str(&escaped);
+                    rest = &rest[escaped.len()..];
+                    continue;
+                }
+                '"' => in_string = false,
+                _ => {}
+            }
+        } else if c == '"' {
+            in_string = true;
+        } else {
+            let token = [
+                ("-Infinity", NEGATIVE_INFINITY_JSON),
+                ("Infinity", INFINITY_JSON),
+                ("NaN", NAN_JSON),
+            ]
+            .into_iter()
+            .find(|(token, _)| rest.starts_with(token));
+            if let Some((token, mark)) = token {
+                out.push('"');
+                out.push_str(mark);
+                out.push('"');
+                rest = &rest[token.len()..];
+                continue;
+            }
+        }
+        out.push(c);
+        rest = &rest[c.len_utf8()..];
+    }
+    out
+}
+
+/// A number or the marked `Infinity`; `-Infinity` and `NaN` are refused here, with their names.
+fn limit<'de, D: Deserializer<'de>>(deserializer: D) -> std::result::Result<f64, D::Error> {
+    struct LimitVisitor;
+    impl serde::de::Visitor<'_> for LimitVisitor {
+        type Value = f64;
+        fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            f.write_str("a number >= 0 (or Infinity: no limit)")
+        }
+        fn visit_f64<E: serde::de::Error>(self, v: f64) -> std::result::Result<f64, E> {
+            Ok(v)
+        }
+        fn visit_u64<E: serde::de::Error>(self, v: u64) -> std::result::Result<f64, E> {
+            Ok(v as f64)
+        }
+        fn visit_i64<E: serde::de::Error>(self, v: i64) -> std::result::Result<f64, E> {
+            Ok(v as f64)
+        }
+        fn visit_str<E: serde::de::Error>(self, v: &str) -> std::result::Result<f64, E> {
+            if v == INFINITY_MARK {
+                return Ok(f64::INFINITY);
+            }
+            Err(E::custom(format!(
+                "must be a number >= 0 (or Infinity: no limit), got {}",
+                shown_mark(v)
+            )))
+        }
+    }
+    deserializer.deserialize_any(LimitVisitor)
+}
+
+fn optional_limit<'de, D: Deserializer<'de>>(
+    deserializer: D,
+) -> std::result::Result<Option<f64>, D::Error> {
+    #[derive(Deserialize)]
+    struct Wrapped(#[serde(deserialize_with = "limit")] f64);
+    Ok(Option::<Wrapped>::deserialize(deserializer)?.map(|Wrapped(v)| v))
+}
+
+fn shown_mark(mark: &str) -> String {
+    match mark {
+        INFINITY_MARK => "Infinity".into(),
+        NEGATIVE_INFINITY_MARK => "-Infinity".into(),
+        NAN_MARK => "NaN".into(),
+        other => format!("{other:?}"),
+    }
+}
+
+/// The error of a key, serde's words with Python's non-finite tokens named as written.
+fn config_error(path: String, error: &serde_json::Error) -> Error {
+    let mut message = error.to_string();
+    for mark in [NEGATIVE_INFINITY_MARK, INFINITY_MARK, NAN_MARK] {
+        message = message.replace(
+            &format!("string {mark:?}"),
+            &format!("{} (not finite)", shown_mark(mark)),
+        );
+        message = message.replace(&format!("\"{mark}\""), &shown_mark(mark));
+    }
+    for (serde_word, ours) in [
+        ("expected f64", "expected a number"),
+        ("expected u64", "expected an integer >= 0"),
+    ] {
+        message = message.replace(serde_word, ours);
+    }
+    let key = if path == "." || path.is_empty() {
+        "config".to_string()
+    } else {
+        path
+    };
+    Error::Config(format!("{key}: {message}"))
+}
+
+/// The unlimited settings of `config` written back as the mark that [`OdometryConfig::to_json`] turns into
+/// `Infinity` (serde_json writes a non-finite number as `null`, which would read back as "no setting").
+fn restore_infinities(value: &mut serde_json::Value, config: &OdometryConfig) {
+    let limits: [(&str, &str, f64); 10] = [
+        (
+            "motion_model",
+            "max_deviation",
+            config.motion_model.max_deviation,
+        ),
+        (
+            "motion_model",
+            "max_deviation_deg",
+            config.motion_model.max_deviation_deg,
+        ),
+        (
+            "mapping",
+            "keyframe_distance",
+            config.mapping.keyframe_distance,
+        ),
+        (
+            "mapping",
+            "keyframe_angle_deg",
+            config.mapping.keyframe_angle_deg,
+        ),
+        (
+            "mapping",
+            "ring_lock_distance",
+            config.mapping.ring_lock_distance,
+        ),
+        (
+            "mapping",
+            "motion_model_start_distance",
+            config.mapping.motion_model_start_distance,
+        ),
+        (
+            "mapping",
+            "motion_model_start_angle_deg",
+            config.mapping.motion_model_start_angle_deg,
+        ),
+        ("large_motion", "min_step", config.large_motion.min_step),
+        (
+            "large_motion",
+            "min_step_deg",
+            config.large_motion.min_step_deg,
+        ),
+        (
+            "matching",
+            "consistency_px",
+            config.matching.consistency_px.unwrap_or(0.0),
+        ),
+    ];
+    for (section, key, setting) in limits {
+        if setting == f64::INFINITY {
+            value[section][key] = serde_json::Value::String(INFINITY_MARK.into());
+        }
+    }
+}
+
+fn check(key: &str, value: f64, ok: bool, what: &str) -> Result<()> {
+    if ok {
+        Ok(())
+    } else {
+        Err(Error::Config(format!(
+            "{key}: must be {what}, got {}",
+            shown(value)
+        )))
+    }
+}
+
+fn shown(value: f64) -> String {
+    if value == f64::INFINITY {
+        "Infinity".into()
+    } else if value == f64::NEG_INFINITY {
+        "-Infinity".into()
+    } else {
+        format!("{value}")
+    }
+}
+
+fn finite(key: &str, value: f64) -> Result<()> {
+    check(key, value, value.is_finite(), "a finite number")
+}
+
+fn positive(key: &str, value: f64) -> Result<()> {
+    check(key, value, value.is_finite() && value > 0.0, "a number > 0")
+}
+
+fn non_negative(key: &str, value: f64) -> Result<()> {
+    check(
+        key,
+        value,
+        value.is_finite() && value >= 0.0,
+        "a number >= 0",
+    )
+}
+
+fn fraction(key: &str, value: f64) -> Result<()> {
+    check(
+        key,
+        value,
+        (0.0..=1.0).contains(&value),
+        "a number >= 0 and <= 1",
+    )
+}
+
+fn limit_value(key: &str, value: f64) -> Result<()> {
+    check(
+        key,
+        value,
+        value >= 0.0,
+        "a number >= 0 (or Infinity: no limit)",
+    )
+}
+
+fn at_least_u(key: &str, value: u64, least: u64) -> Result<()> {
+    if value >= least {
+        Ok(())
+    } else {
+        Err(Error::Config(format!(
+            "{key}: must be an integer >= {least}, got {value}"
+        )))
+    }
+}
+
+fn starts(key: &str, values: &[f64]) -> Result<()> {
+    if values.is_empty() || values.iter().any(|v| !v.is_finite()) {
+        return Err(Error::Config(format!(
+            "{key}: must be a non-empty list of finite numbers, got {values:?}"
+        )));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests;
