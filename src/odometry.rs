@@ -22,6 +22,7 @@ pub mod clock;
 pub mod config;
 pub mod mapping;
 pub mod motion;
+pub mod pipeline;
 
 #[cfg(test)]
 mod tests;

@@ -1,0 +1,835 @@
+#![forbid(unsafe_code)]
+//! [`Odometry`]: DMLO's per-frame state machine in the crate (paper §III), over any [`FrameMatcher`] —
+//! the learned matcher of `dmlo_rs::inference` (feature `inference`, no Python), or a runtime of the
+//! caller's own.
+//!
+//! Every scan is projected onto the cylinder image (Eq. 1), encoded, and matched against the previous
+//! scan's cached features (§III-C); the pair's back end ([`crate::pair::match_pair`]) turns the flow
+//! into a motion (§III-D), which the motion model judges ([`super::motion`], §III-D-c) and the local
+//! map refines by NDT ([`super::mapping`]); the motions chain into `T_world_lidar` poses, the first scan
+//! being the world. The steps and their settings are `dmlo.Odometry`'s, read from the same config
+//! ([`super::config`]). Beyond the paper, as in Python: pairs whose predicted motion outgrows the
+//! network's window are matched from the prediction, and pairs across missing scans (or whose own
+//! motion gives way) are matched again from it.
+//!
+//! Not in the crate yet, and refused by [`Odometry::new`] when the config asks for them:
+//! `matching.symmetric`, `deskew.enabled`, `matching_stage = "graph"`. The moving-object network and the
+//! wide-window graph are not run by the crate: every point not masked by the caller is kept (as
+//! `dmlo.Odometry` does with a model folder without `moving.onnx`), and re-matching runs the model's own
+//! window only (as without `frame_wide.onnx`). Scans without usable reflectance need a range-only model
+//! as the matcher; the crate does not switch models mid-drive.
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use nalgebra::{Matrix4, Point3};
+use serde::Serialize;
+
+use crate::dense_match::DenseFlow;
+use crate::error::{Error, Result};
+use crate::odometry::clock::FrameClock;
+use crate::odometry::config::{MatchingStage, OdometryConfig, ReflectanceScale};
+use crate::odometry::mapping::LocalMap;
+use crate::odometry::motion::{pose_difference, rigid_inverse, MotionModel, PairEvidence};
+use crate::pair::{match_pair, PairConfig, PairImages, PairMotion};
+use crate::projection::{project_flat, CylinderConfig};
+
+/// The network as the odometry runs it: scans' images encoded once (features cached, a scan being the
+/// target of one pair and the reference of the next), and the dense flow between two encoded scans.
+pub trait FrameMatcher {
+    /// One scan's encoding.
+    type Features;
+    /// The cylinder image the model takes.
+    fn cylinder(&self) -> &CylinderConfig;
+    /// Whether the model reads the reflectance channel (false: a range-only model).
+    fn uses_reflectance(&self) -> bool {
+        true
+    }
+    /// Encodes a `(2, H, W)` channel-major image: range (m), then reflectance in [0, 1]; 0 where empty.
+    fn encode(&self, image: &[f32]) -> Result<Self::Features>;
+    /// The flow of every `reference` cell into `target` and its confidence (§III-C).
+    fn flow(&self, reference: &Self::Features, target: &Self::Features) -> Result<DenseFlow>;
+}
+
+/// One scan given to [`Odometry::register`].
+#[derive(Debug, Clone, Copy)]
+pub struct Scan<'a> {
+    /// `x, y, z, reflectance` in the sensor frame; non-finite points are left out.
+    pub points: &'a [[f32; 4]],
+    /// Points on moving objects (one per point), left out of matching and of the map.
+    pub moving: Option<&'a [bool]>,
+    /// The scan's time (any increasing unit): scans the sensor dropped are counted from it.
+    pub timestamp: Option<f64>,
+}
+
+impl<'a> Scan<'a> {
+    /// A scan with no mask and no timestamp.
+    pub fn new(points: &'a [[f32; 4]]) -> Self {
+        Scan {
+            points,
+            moving: None,
+            timestamp: None,
+        }
+    }
+}
+
+/// What happened to one scan, as `dmlo.Odometry`'s `FrameDiagnostics` (the same keys in
+/// `diagnostics.jsonl`).
+#[derive(Debug, Clone, PartialEq, Default, Serialize)]
+pub struct FrameDiagnostics {
+    /// The scan's index in the sequence.
+    pub index: usize,
+    /// Points given.
+    pub num_points: usize,
+    /// Frames since the scan this one was matched against; `None` for scans not matched.
+    pub gap: Option<usize>,
+    /// Matches of the pair whose motion the frame took.
+    pub num_matches: usize,
+    /// Their RANSAC inliers.
+    pub num_inliers: usize,
+    /// Inliers over matches.
+    pub inlier_ratio: f64,
+    /// With tilt votes: the inliers' votes above the floor.
+    pub inlier_votes: Option<f64>,
+    /// The fallback taken (`constant_velocity`, `degenerate_scene`, `guided_consensus`,
+    /// `implausible_motion`, `rematched_from_prediction`, `too_few_points`, `unreadable_scan`).
+    pub fallback: Option<String>,
+    /// Rounds of matching from the prediction whose motion was taken (0: tried, none kept).
+    pub rematch_rounds: Option<usize>,
+    /// NDT against the map converged.
+    pub ndt_converged: Option<bool>,
+    /// Pose directions the map did not constrain.
+    pub ndt_degenerate_directions: Option<usize>,
+    /// The horizontal motion came from the upright surfaces alone (near the newest keyframe).
+    pub ndt_upright_only: Option<bool>,
+    /// The scan entered the map.
+    pub map_keyframe: Option<bool>,
+    /// The NDT start that won: "dmlo", "motion_model" or "standing".
+    pub ndt_start: Option<String>,
+    /// Fraction of the cylinder image's cells holding a point.
+    pub image_fill: Option<f64>,
+    /// Milliseconds per stage.
+    pub timings_ms: BTreeMap<String, f64>,
+}
+
+impl FrameDiagnostics {
+    fn count_matches(&mut self, pair: &Matched) {
+        self.num_matches = pair.motion.source.len();
+        self.num_inliers = pair.motion.num_inliers;
+        self.inlier_ratio = if self.num_matches > 0 {
+            self.num_inliers as f64 / self.num_matches as f64
+        } else {
+            0.0
+        };
+    }
+}
+
+/// A pair's motion in the frames of the scans given, and the matching rounds it took.
+struct Matched {
+    motion: PairMotion,
+    transform: Matrix4<f64>,
+    rounds: usize,
+}
+
+impl Matched {
+    fn new(motion: PairMotion) -> Self {
+        let transform = motion.transform.to_homogeneous();
+        Matched {
+            motion,
+            transform,
+            rounds: 1,
+        }
+    }
+}
+
+/// The last usable scan, matched against the next one.
+struct Reference<F> {
+    cloud: Vec<[f32; 4]>,
+    range: Vec<f32>,
+    points: Vec<f32>,
+    features: F,
+    pose: Matrix4<f64>,
+    frame: u64,
+}
+
+/// A scan projected: the network's `(2, H, W)` image, its range image and its point image `(H, W, 3)`
+/// (each cell's kept point, NaN where empty).
+struct Projected {
+    image: Vec<f32>,
+    range: Vec<f32>,
+    points: Vec<f32>,
+}
+
+/// DMLO odometry (module docs).
+pub struct Odometry<M: FrameMatcher> {
+    matcher: M,
+    config: OdometryConfig,
+    pair_config: PairConfig,
+    cylinder: CylinderConfig,
+    motion: MotionModel,
+    map: Option<LocalMap>,
+    clock: FrameClock,
+    reference: Option<Reference<M::Features>>,
+    pose_frame: Option<u64>,
+    poses: Vec<Matrix4<f64>>,
+    diagnostics: Vec<FrameDiagnostics>,
+    reflectance: Option<ReflectanceScale>,
+}
+
+impl<M: FrameMatcher> Odometry<M> {
+    /// An odometry running `matcher` with `config` (checked whole; settings the crate does not run yet
+    /// are refused, naming them).
+    pub fn new(matcher: M, config: OdometryConfig) -> Result<Self> {
+        config.validate()?;
+        let unsupported = [
+            (config.matching.symmetric, "matching.symmetric"),
+            (config.deskew.enabled, "deskew.enabled"),
+            (
+                config.matching_stage == MatchingStage::Graph,
+                "matching_stage = \"graph\"",
+            ),
+        ];
+        if let Some((_, key)) = unsupported.iter().find(|(asked, _)| *asked) {
+            return Err(Error::Config(format!(
+                "{key}: not run by the crate's odometry yet (dmlo.Odometry in Python runs it)"
+            )));
+        }
+        let cylinder = *matcher.cylinder();
+        let map = if config.mapping.enabled {
+            Some(LocalMap::new(config.mapping_config())?)
+        } else {
+            None
+        };
+        let limits = config.motion_limits();
+        limits.validate()?;
+        Ok(Odometry {
+            pair_config: config.pair_config(),
+            motion: MotionModel::new(limits),
+            matcher,
+            config,
+            cylinder,
+            map,
+            clock: FrameClock::new(),
+            reference: None,
+            pose_frame: None,
+            poses: Vec::new(),
+            diagnostics: Vec::new(),
+            reflectance: None,
+        })
+    }
+
+    /// The config it runs with.
+    pub fn config(&self) -> &OdometryConfig {
+        &self.config
+    }
+
+    /// Every pose so far, `T_world_lidar` (the first scan is the world).
+    pub fn poses(&self) -> &[Matrix4<f64>] {
+        &self.poses
+    }
+
+    /// What happened to every scan so far.
+    pub fn diagnostics(&self) -> &[FrameDiagnostics] {
+        &self.diagnostics
+    }
+
+    /// The reflectance scale chosen on the first scan ([`ReflectanceScale::Ignored`]: none used).
+    pub fn reflectance_scale(&self) -> Option<ReflectanceScale> {
+        self.reflectance
+    }
+
+    /// Adds the next scan and returns its pose `T_world_lidar`. A scan with fewer than `min_points`
+    /// finite points (after the moving ones) is not matched: its pose comes from the motion model and its
+    /// diagnostics say so. Errors name a bad argument (a mask of the wrong length, a non-finite timestamp,
+    /// reflectance the model cannot use); the odometry's state is then as before the call, apart from
+    /// the clock of a scan whose error came from the matcher.
+    pub fn register(&mut self, scan: Scan<'_>) -> Result<Matrix4<f64>> {
+        if let Some(moving) = scan.moving {
+            if moving.len() != scan.points.len() {
+                return Err(Error::invalid(
+                    "moving",
+                    format!(
+                        "expected one flag per point ({}), got {}",
+                        scan.points.len(),
+                        moving.len()
+                    ),
+                ));
+            }
+        }
+        let finite = |p: &[f32; 4]| p.iter().all(|v| v.is_finite());
+        let kept: Vec<[f32; 4]> = scan
+            .points
+            .iter()
+            .enumerate()
+            .filter(|&(i, p)| finite(p) && !scan.moving.is_some_and(|m| m[i]))
+            .map(|(_, p)| *p)
+            .collect();
+        let min_points = self.config.min_points as usize;
+        let scale = self.reflectance_for(scan.points, min_points)?;
+        let tick = self.clock.advance(scan.timestamp)?;
+        let mut diagnostics = FrameDiagnostics {
+            index: self.poses.len(),
+            num_points: scan.points.len(),
+            ..Default::default()
+        };
+        if kept.len() < min_points {
+            return Ok(self.skip(diagnostics, "too_few_points"));
+        }
+        let cloud = normalised(kept, scale.unwrap_or(ReflectanceScale::Unit));
+        let mut watch = Stopwatch::new();
+        let projected = self.project(&cloud)?;
+        let filled = projected.range.iter().filter(|&&r| r > 0.0).count();
+        diagnostics.image_fill = Some(filled as f64 / projected.range.len() as f64);
+        let features = self.matcher.encode(&projected.image)?;
+        watch.lap("network", &mut diagnostics);
+        let previous = self.reference.take();
+        let pose = match self.pose_of(
+            previous.as_ref(),
+            &cloud,
+            &projected,
+            &features,
+            tick.frame,
+            &mut diagnostics,
+            &mut watch,
+        ) {
+            Ok(pose) => pose,
+            Err(e) => {
+                self.reference = previous;
+                return Err(e);
+            }
+        };
+        if let Some(map) = &mut self.map {
+            let keyframe = map.is_keyframe(&pose);
+            diagnostics.map_keyframe = Some(keyframe);
+            if keyframe {
+                map.insert(&as_points(&cloud), &pose, &projected.points)?;
+            }
+            watch.lap("map_update", &mut diagnostics);
+        }
+        self.reference = Some(Reference {
+            cloud,
+            range: projected.range,
+            points: projected.points,
+            features,
+            pose,
+            frame: tick.frame,
+        });
+        Ok(self.record(pose, tick.frame, diagnostics))
+    }
+
+    /// The pose of the scan at `frame` matched against `previous` (none: the first scan), refined by the map.
+    #[allow(clippy::too_many_arguments)]
+    fn pose_of(
+        &mut self,
+        previous: Option<&Reference<M::Features>>,
+        cloud: &[[f32; 4]],
+        projected: &Projected,
+        features: &M::Features,
+        frame: u64,
+        diagnostics: &mut FrameDiagnostics,
+        watch: &mut Stopwatch,
+    ) -> Result<Matrix4<f64>> {
+        let Some(previous) = previous else {
+            return Ok(self.predict(frame));
+        };
+        let gap = (frame - previous.frame) as usize;
+        let motion =
+            self.motion_from_flow(previous, projected, features, gap, diagnostics, watch)?;
+        let mut pose = previous.pose * rigid_inverse(&motion);
+        if self.map.is_some() {
+            pose =
+                self.refine_with_map(cloud, &projected.points, &pose, gap, frame, diagnostics)?;
+            watch.lap("ndt", diagnostics);
+        }
+        self.motion.update(&previous.pose, &pose, gap);
+        Ok(pose)
+    }
+
+    /// Records a scan that could not be read: its pose comes from the motion model (`reason` in its
+    /// diagnostics, e.g. "unreadable_scan").
+    pub fn predict_skipped(&mut self, reason: &str) -> Result<Matrix4<f64>> {
+        let tick = self.clock.advance(None)?;
+        let diagnostics = FrameDiagnostics {
+            index: self.poses.len(),
+            ..Default::default()
+        };
+        let pose = self.predict(tick.frame);
+        let mut diagnostics = diagnostics;
+        diagnostics.fallback = Some(reason.to_string());
+        Ok(self.record(pose, tick.frame, diagnostics))
+    }
+
+    fn skip(&mut self, mut diagnostics: FrameDiagnostics, reason: &str) -> Matrix4<f64> {
+        let frame = self.clock.frame().unwrap_or(0);
+        diagnostics.fallback = Some(reason.to_string());
+        let pose = self.predict(frame);
+        self.record(pose, frame, diagnostics)
+    }
+
+    fn record(
+        &mut self,
+        pose: Matrix4<f64>,
+        frame: u64,
+        diagnostics: FrameDiagnostics,
+    ) -> Matrix4<f64> {
+        self.pose_frame = Some(frame);
+        self.poses.push(pose);
+        self.diagnostics.push(diagnostics);
+        pose
+    }
+
+    /// The constant-velocity pose of the scan at `frame`; the first scan defines the world.
+    fn predict(&self, frame: u64) -> Matrix4<f64> {
+        match (self.poses.last(), self.pose_frame) {
+            (Some(last), Some(pose_frame)) => {
+                let frames = frame.saturating_sub(pose_frame) as usize;
+                last * rigid_inverse(&self.motion.predicted(frames))
+            }
+            _ => Matrix4::identity(),
+        }
+    }
+
+    /// The reflectance scale of the sequence, chosen on the first scan with `min_points` finite points
+    /// (`None` before it); errors when the scans have no reflectance the model can use.
+    fn reflectance_for(
+        &mut self,
+        points: &[[f32; 4]],
+        min_points: usize,
+    ) -> Result<Option<ReflectanceScale>> {
+        let finite: Vec<f32> = points
+            .iter()
+            .filter(|p| p.iter().all(|v| v.is_finite()))
+            .map(|p| p[3])
+            .collect();
+        if finite.len() < min_points {
+            // Not matched (too few points): it decides nothing, and its reflectance is never read.
+            return Ok(self.reflectance);
+        }
+        let detected = detect_reflectance(&finite);
+        let choice = match self.reflectance {
+            Some(chosen) => {
+                if chosen != ReflectanceScale::Ignored && detected.0 == ReflectanceScale::Ignored {
+                    return Err(self.no_reflectance(&detected.1));
+                }
+                return Ok(Some(chosen));
+            }
+            None if !self.matcher.uses_reflectance() => ReflectanceScale::Ignored,
+            None => match (self.config.reflectance, detected.0) {
+                (ReflectanceScale::Auto, scale) | (_, scale @ ReflectanceScale::Ignored) => scale,
+                (setting, _) => setting,
+            },
+        };
+        if choice == ReflectanceScale::Ignored && self.matcher.uses_reflectance() {
+            let why = if self.config.reflectance == ReflectanceScale::Ignored {
+                "the config says reflectance none".to_string()
+            } else {
+                detected.1
+            };
+            return Err(self.no_reflectance(&why));
+        }
+        self.reflectance = Some(choice);
+        Ok(Some(choice))
+    }
+
+    fn no_reflectance(&self, why: &str) -> Error {
+        Error::invalid(
+            "points",
+            format!(
+                "{why}, and the model reads reflectance: give the range-only model beside it \
+                 (range_only/) as the matcher (dmlo.Odometry switches to it by itself)"
+            ),
+        )
+    }
+
+    /// The network input, range image and point image of a scan (Eq. 1).
+    fn project(&self, cloud: &[[f32; 4]]) -> Result<Projected> {
+        let projection = project_flat(cloud.as_flattened(), 4, &self.cylinder)?;
+        let points = projection
+            .index
+            .iter()
+            .flat_map(|&i| match usize::try_from(i) {
+                Ok(i) => [cloud[i][0], cloud[i][1], cloud[i][2]],
+                Err(_) => [f32::NAN; 3],
+            })
+            .collect();
+        let mut image = projection.range.clone();
+        image.extend_from_slice(&projection.reflectance);
+        Ok(Projected {
+            image,
+            range: projection.range,
+            points,
+        })
+    }
+
+    /// The pair's back end on a flow, tilt votes as the config says (`tilt_votes`) or one vote each.
+    fn match_flow(
+        &self,
+        ref_range: &[f32],
+        tgt_range: &[f32],
+        flow: &DenseFlow,
+        ref_points: &[f32],
+        tilt_votes: bool,
+    ) -> Result<Matched> {
+        let images = PairImages {
+            ref_points: Some(ref_points),
+            ..PairImages::new(ref_range, tgt_range, &flow.flow, &flow.confidence)
+        };
+        Ok(Matched::new(match_pair(
+            &images,
+            &self.cylinder,
+            &self.pair_config,
+            tilt_votes,
+        )?))
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn motion_from_flow(
+        &mut self,
+        previous: &Reference<M::Features>,
+        target: &Projected,
+        features: &M::Features,
+        gap: usize,
+        diagnostics: &mut FrameDiagnostics,
+        watch: &mut Stopwatch,
+    ) -> Result<Matrix4<f64>> {
+        diagnostics.gap = Some(gap);
+        let predicted = self.motion.predicted(gap);
+        let pair = if self.beyond_window(gap, &predicted) {
+            let pair =
+                self.matched_from_prediction(previous, target, features, &predicted, diagnostics)?;
+            watch.lap("rematch", diagnostics);
+            pair
+        } else {
+            let flow = self.matcher.flow(&previous.features, features)?;
+            watch.lap("matching", diagnostics);
+            let pair = self.match_flow(
+                &previous.range,
+                &target.range,
+                &flow,
+                &previous.points,
+                true,
+            )?;
+            watch.lap("pair", diagnostics);
+            diagnostics.count_matches(&pair);
+            let pair = self.rematched_if_better(
+                pair,
+                previous,
+                target,
+                features,
+                &predicted,
+                gap,
+                diagnostics,
+            )?;
+            if diagnostics.rematch_rounds.is_some() {
+                watch.lap("rematch", diagnostics);
+            }
+            pair
+        };
+        diagnostics.inlier_votes = pair.motion.inlier_votes;
+        let evidence = PairEvidence::new(
+            pair.transform,
+            pair.motion.num_inliers,
+            pair.motion.inlier_votes,
+            &pair.motion.source,
+            &pair.motion.target,
+        );
+        let judged = self.motion.judge(&evidence, &predicted, gap);
+        if let Some(fallback) = judged.fallback {
+            diagnostics.fallback = Some(fallback.name().to_string());
+        }
+        Ok(judged.motion)
+    }
+
+    /// Whether the predicted motion outgrows the network's window (`motion_model.match_from_prediction_m`)
+    /// between consecutive scans; never before a velocity is measured.
+    fn beyond_window(&self, gap: usize, predicted: &Matrix4<f64>) -> bool {
+        let m = &self.config.motion_model;
+        let Some(limit) = m.match_from_prediction_m else {
+            return false;
+        };
+        if !self.motion.is_measured() || gap as u64 > m.prediction_horizon {
+            return false;
+        }
+        if m.rematch_gap
+            .is_some_and(|rematch_gap| gap as u64 >= rematch_gap)
+        {
+            return false;
+        }
+        pose_difference(&Matrix4::identity(), predicted).0 > limit
+    }
+
+    fn matched_from_prediction(
+        &self,
+        previous: &Reference<M::Features>,
+        target: &Projected,
+        features: &M::Features,
+        predicted: &Matrix4<f64>,
+        diagnostics: &mut FrameDiagnostics,
+    ) -> Result<Matched> {
+        let rounds = self.config.prediction_rounds();
+        let again = self.rematch(
+            &previous.cloud,
+            predicted,
+            &target.range,
+            features,
+            rounds,
+            true,
+        )?;
+        diagnostics.rematch_rounds = Some(again.as_ref().map_or(0, |pair| pair.rounds));
+        Ok(match again {
+            Some(pair) => {
+                diagnostics.count_matches(&pair);
+                pair
+            }
+            None => Matched {
+                motion: PairMotion {
+                    transform: nalgebra::Isometry3::identity(),
+                    source: Vec::new(),
+                    target: Vec::new(),
+                    cells: Vec::new(),
+                    inliers: Vec::new(),
+                    num_inliers: 0,
+                    inlier_votes: None,
+                },
+                transform: *predicted,
+                rounds: 0,
+            },
+        })
+    }
+
+    /// The pair, or the pair matched again from the prediction (`motion_model.rematch_gap`) when it
+    /// spans missing scans or its own motion would give way, and the re-match is usable and better.
+    #[allow(clippy::too_many_arguments)]
+    fn rematched_if_better(
+        &self,
+        pair: Matched,
+        previous: &Reference<M::Features>,
+        target: &Projected,
+        features: &M::Features,
+        predicted: &Matrix4<f64>,
+        gap: usize,
+        diagnostics: &mut FrameDiagnostics,
+    ) -> Result<Matched> {
+        let Some(rematch_gap) = self.config.motion_model.rematch_gap else {
+            return Ok(pair);
+        };
+        if !self.motion.is_measured() {
+            return Ok(pair);
+        }
+        let min_inliers = self.config.motion_model.min_inliers as usize;
+        let gives_way = pair.motion.num_inliers < min_inliers
+            || (!self.motion.gated_last()
+                && self.motion.implausible(&pair.transform, predicted, gap));
+        if (gap as u64) < rematch_gap && !gives_way {
+            return Ok(pair);
+        }
+        let rounds = self.config.large_motion.max_rounds as usize;
+        let tried = self.rematch(
+            &previous.cloud,
+            predicted,
+            &target.range,
+            features,
+            rounds,
+            false,
+        )?;
+        diagnostics.rematch_rounds = Some(0);
+        let Some(again) = tried.filter(|again| {
+            again.motion.num_inliers >= min_inliers
+                && !self.motion.implausible(&again.transform, predicted, gap)
+        }) else {
+            return Ok(pair);
+        };
+        if !gives_way && again.motion.num_inliers <= pair.motion.num_inliers {
+            return Ok(pair);
+        }
+        diagnostics.rematch_rounds = Some(again.rounds);
+        diagnostics.fallback = Some("rematched_from_prediction".into());
+        diagnostics.count_matches(&again);
+        Ok(again)
+    }
+
+    /// Rounds of matching the reference moved by the estimate so far (from `estimate`) against the
+    /// target's features with the model's window, until a round corrects less than the configured steps
+    /// (`large_motion.min_step`, `min_step_deg`). `None` when not one round kept `min_inliers` inliers.
+    fn rematch(
+        &self,
+        reference: &[[f32; 4]],
+        estimate: &Matrix4<f64>,
+        tgt_range: &[f32],
+        tgt_features: &M::Features,
+        rounds: usize,
+        tilt_votes: bool,
+    ) -> Result<Option<Matched>> {
+        let large = &self.config.large_motion;
+        let min_inliers = self.config.motion_model.min_inliers as usize;
+        let mut estimate = *estimate;
+        let mut result: Option<Matched> = None;
+        let mut correction: Option<Matrix4<f64>> = None;
+        for round in 1..=rounds {
+            if let Some(correction) = &correction {
+                let (moved_m, turned_deg) = pose_difference(&Matrix4::identity(), correction);
+                if moved_m < large.min_step && turned_deg < large.min_step_deg {
+                    break;
+                }
+            }
+            let moved = self.project(&moved_cloud(reference, &estimate))?;
+            let flow = self
+                .matcher
+                .flow(&self.matcher.encode(&moved.image)?, tgt_features)?;
+            let pair =
+                self.match_flow(&moved.range, tgt_range, &flow, &moved.points, tilt_votes)?;
+            if pair.motion.num_inliers < min_inliers {
+                break;
+            }
+            correction = Some(pair.transform);
+            let given = in_given_frames(pair, &estimate, round);
+            estimate = given.transform;
+            result = Some(given);
+        }
+        Ok(result)
+    }
+
+    /// The DMLO `pose` refined against the local map; NDT also starts from the prediction once a
+    /// velocity is measured and the prediction is within its horizon.
+    fn refine_with_map(
+        &self,
+        cloud: &[[f32; 4]],
+        points: &[f32],
+        pose: &Matrix4<f64>,
+        gap: usize,
+        frame: u64,
+        diagnostics: &mut FrameDiagnostics,
+    ) -> Result<Matrix4<f64>> {
+        let map = self.map.as_ref().expect("mapping is on");
+        let within_horizon = gap as u64 <= self.config.motion_model.prediction_horizon;
+        let prediction = (self.motion.is_measured() && within_horizon).then(|| self.predict(frame));
+        let refined = map.refine(
+            &as_points(cloud),
+            points,
+            pose,
+            prediction.as_ref(),
+            &self.cylinder,
+        )?;
+        diagnostics.ndt_converged = Some(refined.converged);
+        diagnostics.ndt_start = refined.start.map(|start| start.name().to_string());
+        diagnostics.ndt_degenerate_directions = refined.degenerate_directions;
+        diagnostics.ndt_upright_only = Some(refined.upright_only);
+        Ok(refined.pose)
+    }
+}
+
+/// A pair matched with the reference moved by `start`, as the motion between the scans given: the
+/// motion composed with `start`, the matches' reference points moved back.
+fn in_given_frames(mut pair: Matched, start: &Matrix4<f64>, rounds: usize) -> Matched {
+    let back = rigid_inverse(start);
+    let (rotation, translation) = (back.fixed_view::<3, 3>(0, 0), back.fixed_view::<3, 1>(0, 3));
+    for p in &mut pair.motion.source {
+        *p = Point3::from(rotation * p.coords + translation);
+    }
+    pair.transform *= start;
+    pair.rounds = rounds;
+    pair
+}
+
+/// A scan with its points moved by `transform`, in float32 as the points are stored (as Python's).
+fn moved_cloud(cloud: &[[f32; 4]], transform: &Matrix4<f64>) -> Vec<[f32; 4]> {
+    if *transform == Matrix4::identity() {
+        return cloud.to_vec();
+    }
+    let t: Matrix4<f32> = transform.cast();
+    cloud
+        .iter()
+        .map(|&[x, y, z, reflectance]| {
+            let row = |i: usize| x * t[(i, 0)] + y * t[(i, 1)] + z * t[(i, 2)] + t[(i, 3)];
+            [row(0), row(1), row(2), reflectance]
+        })
+        .collect()
+}
+
+fn as_points(cloud: &[[f32; 4]]) -> Vec<Point3<f64>> {
+    cloud
+        .iter()
+        .map(|p| Point3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+        .collect()
+}
+
+/// The scale a scan's finite reflectance values look like, and why ([`ReflectanceScale::Ignored`]: none
+/// usable), as `dmlo.odometry.reflectance.detect`.
+fn detect_reflectance(values: &[f32]) -> (ReflectanceScale, String) {
+    let Some((low, high)) = values.iter().fold(None, |acc: Option<(f32, f32)>, &v| {
+        Some(acc.map_or((v, v), |(l, h)| (l.min(v), h.max(v))))
+    }) else {
+        return (
+            ReflectanceScale::Ignored,
+            "no point has a finite reflectance".into(),
+        );
+    };
+    if low == high {
+        return (
+            ReflectanceScale::Ignored,
+            format!("every point's reflectance is {high}"),
+        );
+    }
+    if low < 0.0 {
+        return (
+            ReflectanceScale::Ignored,
+            format!("reflectance from {low} to {high} is on no known scale"),
+        );
+    }
+    for (scale, divisor, name) in [
+        (ReflectanceScale::Unit, 1.0, "[0, 1]"),
+        (ReflectanceScale::Byte, 255.0, "0–255"),
+        (ReflectanceScale::Word, 65535.0, "0–65535"),
+    ] {
+        if high <= divisor {
+            return (scale, format!("values up to {high} look like {name}"));
+        }
+    }
+    (
+        ReflectanceScale::Ignored,
+        format!("reflectance up to {high} is on no known scale"),
+    )
+}
+
+/// The cloud's reflectance divided by the scale's divisor and clipped to [0, 1] (zeros when ignored).
+fn normalised(mut cloud: Vec<[f32; 4]>, scale: ReflectanceScale) -> Vec<[f32; 4]> {
+    let divisor: f32 = match scale {
+        ReflectanceScale::Auto | ReflectanceScale::Unit => 1.0,
+        ReflectanceScale::Byte => 255.0,
+        ReflectanceScale::Word => 65535.0,
+        ReflectanceScale::Ignored => {
+            cloud.iter_mut().for_each(|p| p[3] = 0.0);
+            return cloud;
+        }
+    };
+    for p in &mut cloud {
+        p[3] = (p[3] / divisor).clamp(0.0, 1.0);
+    }
+    cloud
+}
+
+/// Milliseconds per stage, each lap from the end of the last.
+struct Stopwatch {
+    last: Instant,
+}
+
+impl Stopwatch {
+    fn new() -> Self {
+        Stopwatch {
+            last: Instant::now(),
+        }
+    }
+
+    fn lap(&mut self, stage: &str, diagnostics: &mut FrameDiagnostics) {
+        let now = Instant::now();
+        let ms = (now - self.last).as_secs_f64() * 1e3;
+        *diagnostics
+            .timings_ms
+            .entry(stage.to_string())
+            .or_insert(0.0) += ms;
+        self.last = now;
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,290 @@
+use std::cell::Cell;
+
+use nalgebra::{Isometry3, Vector3};
+
+use super::*;
+use crate::ground_truth::ground_truth_flow;
+use crate::odometry::config::OdometryConfig;
+use crate::test_scenes::yard_scan;
+
+/// A matcher that knows the truth: its "features" are the range image, its flow the ground-truth flow
+/// (Eq. 5–8) under the motion the test sets before each pair, full confidence where it is defined.
+struct OracleMatcher {
+    cylinder: CylinderConfig,
+    truth: Cell<Isometry3<f64>>,
+    encoded: Cell<usize>,
+}
+
+impl OracleMatcher {
+    fn new() -> Self {
+        OracleMatcher {
+            cylinder: CylinderConfig::kitti(),
+            truth: Cell::new(Isometry3::identity()),
+            encoded: Cell::new(0),
+        }
+    }
+}
+
+impl FrameMatcher for OracleMatcher {
+    type Features = Vec<f32>;
+
+    fn cylinder(&self) -> &CylinderConfig {
+        &self.cylinder
+    }
+
+    fn encode(&self, image: &[f32]) -> Result<Vec<f32>> {
+        self.encoded.set(self.encoded.get() + 1);
+        Ok(image[..image.len() / 2].to_vec())
+    }
+
+    fn flow(&self, reference: &Vec<f32>, target: &Vec<f32>) -> Result<DenseFlow> {
+        let truth = ground_truth_flow(reference, target, &self.truth.get(), &self.cylinder, 0.3)?;
+        Ok(DenseFlow {
+            flow: truth.flow,
+            confidence: truth
+                .valid
+                .iter()
+                .map(|&v| if v { 1.0 } else { 0.0 })
+                .collect(),
+            height: self.cylinder.height,
+            width: self.cylinder.width,
+        })
+    }
+}
+
+const POSTS: [(f64, f64); 3] = [(6.0, 4.0), (9.0, -5.0), (-4.0, 6.0)];
+
+/// `T_yard_sensor` of frame `i`: 0.4 m a frame along x, turning 0.5° a frame.
+fn true_pose(i: usize) -> Isometry3<f64> {
+    let yaw = (0.5 * i as f64).to_radians();
+    Isometry3::new(
+        Vector3::new(0.4 * i as f64, 0.05 * i as f64, 0.0),
+        Vector3::z() * yaw,
+    )
+}
+
+fn scan(i: usize) -> Vec<[f32; 4]> {
+    let mut points = yard_scan(&true_pose(i), 100 + i as u64, 60_000, &POSTS);
+    for (k, p) in points.iter_mut().enumerate() {
+        p[3] = 0.2 + 0.6 * ((k % 7) as f32 / 7.0); // reflectance the model can read
+    }
+    points
+}
+
+fn config(mapping: bool) -> OdometryConfig {
+    let mut config = OdometryConfig::default();
+    config.mapping.enabled = mapping;
+    // The oracle knows the motion between the scans given, not that of a moved reference.
+    config.motion_model.rematch_gap = None;
+    config.motion_model.match_from_prediction_m = None;
+    config
+}
+
+/// Registers scan `i` with the oracle told the true motion from `from` (the reference) to `i`.
+fn register(
+    odometry: &mut Odometry<OracleMatcher>,
+    points: &[[f32; 4]],
+    from: usize,
+    i: usize,
+) -> Matrix4<f64> {
+    odometry
+        .matcher
+        .truth
+        .set(true_pose(i).inverse() * true_pose(from));
+    odometry.register(Scan::new(points)).unwrap()
+}
+
+fn error_to_truth(pose: &Matrix4<f64>, i: usize) -> (f64, f64) {
+    let truth = (true_pose(0).inverse() * true_pose(i)).to_homogeneous();
+    pose_difference(&truth, pose)
+}
+
+#[test]
+fn a_drive_follows_the_truth_with_and_without_the_map() {
+    for mapping in [false, true] {
+        let mut odometry = Odometry::new(OracleMatcher::new(), config(mapping)).unwrap();
+        for i in 0..6 {
+            let pose = register(&mut odometry, &scan(i), i.saturating_sub(1), i);
+            let (moved, turned) = error_to_truth(&pose, i);
+            assert!(
+                moved < 0.02 && turned < 0.1,
+                "mapping {mapping}, frame {i}: {moved} m, {turned}°"
+            );
+        }
+        let diagnostics = odometry.diagnostics();
+        assert_eq!(diagnostics.len(), 6);
+        assert_eq!(diagnostics[0].gap, None);
+        for d in &diagnostics[1..] {
+            assert_eq!(d.gap, Some(1));
+            assert_eq!(d.fallback, None, "{d:?}");
+            assert!(
+                d.num_inliers >= 10 && d.num_matches >= d.num_inliers,
+                "{d:?}"
+            );
+            assert_eq!(d.ndt_converged.is_some(), mapping);
+            assert!(d.timings_ms.contains_key("pair"));
+        }
+        assert_eq!(diagnostics[0].map_keyframe, mapping.then_some(true));
+        assert_eq!(odometry.reflectance_scale(), Some(ReflectanceScale::Unit));
+        assert_eq!(odometry.poses().len(), 6);
+    }
+}
+
+#[test]
+fn scans_without_enough_points_and_unreadable_ones_are_bridged_by_the_motion_model() {
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(false)).unwrap();
+    for i in 0..3 {
+        register(&mut odometry, &scan(i), i.saturating_sub(1), i);
+    }
+    let sparse = &scan(3)[..500];
+    let pose = register(&mut odometry, sparse, 2, 3);
+    assert_eq!(
+        odometry.diagnostics()[3].fallback.as_deref(),
+        Some("too_few_points")
+    );
+    let (moved, _) = error_to_truth(&pose, 3);
+    assert!(
+        moved < 0.05,
+        "the constant-velocity prediction, {moved} m off"
+    );
+    let pose = odometry.predict_skipped("unreadable_scan").unwrap();
+    assert_eq!(
+        odometry.diagnostics()[4].fallback.as_deref(),
+        Some("unreadable_scan")
+    );
+    assert!(error_to_truth(&pose, 4).0 < 0.05);
+    // The next scan is matched against the last one matched (frame 2), three frames back.
+    let pose = register(&mut odometry, &scan(5), 2, 5);
+    assert_eq!(odometry.diagnostics()[5].gap, Some(3));
+    assert!(error_to_truth(&pose, 5).0 < 0.02);
+}
+
+#[test]
+fn timestamps_count_the_scans_the_sensor_dropped() {
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(false)).unwrap();
+    for (i, time) in [(0, 0.0), (1, 0.1), (2, 0.2), (4, 0.4)] {
+        let points = scan(i);
+        let from = if i == 4 { 2 } else { i.saturating_sub(1) };
+        odometry
+            .matcher
+            .truth
+            .set(true_pose(i).inverse() * true_pose(from));
+        let scan = Scan {
+            timestamp: Some(time),
+            ..Scan::new(&points)
+        };
+        let pose = odometry.register(scan).unwrap();
+        assert!(error_to_truth(&pose, i).0 < 0.02, "frame {i}");
+    }
+    assert_eq!(odometry.diagnostics()[3].gap, Some(2));
+}
+
+#[test]
+fn moving_points_are_left_out() {
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(false)).unwrap();
+    let points = scan(0);
+    let all_moving = vec![true; points.len()];
+    let scan = Scan {
+        moving: Some(&all_moving),
+        ..Scan::new(&points)
+    };
+    odometry.register(scan).unwrap();
+    assert_eq!(
+        odometry.diagnostics()[0].fallback.as_deref(),
+        Some("too_few_points")
+    );
+}
+
+#[test]
+fn bad_input_is_named_and_leaves_the_odometry_as_it_was() {
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(true)).unwrap();
+    register(&mut odometry, &scan(0), 0, 0);
+    let points = scan(1);
+    let short = vec![false; 3];
+    let error = odometry
+        .register(Scan {
+            moving: Some(&short),
+            ..Scan::new(&points)
+        })
+        .unwrap_err();
+    assert!(error.to_string().starts_with("moving:"), "{error}");
+    let error = odometry
+        .register(Scan {
+            timestamp: Some(f64::NAN),
+            ..Scan::new(&points)
+        })
+        .unwrap_err();
+    assert!(error.to_string().contains("timestamp"), "{error}");
+    assert_eq!(odometry.poses().len(), 1);
+    // Reflectance the model cannot read, mid-drive: named, not run on zeros.
+    let dark: Vec<[f32; 4]> = points.iter().map(|&[x, y, z, _]| [x, y, z, 0.0]).collect();
+    let error = odometry.register(Scan::new(&dark)).unwrap_err();
+    assert!(error.to_string().contains("range-only"), "{error}");
+    assert_eq!(odometry.poses().len(), 1);
+    // The drive goes on from where it was.
+    let pose = register(&mut odometry, &points, 0, 1);
+    assert!(error_to_truth(&pose, 1).0 < 0.02);
+}
+
+#[test]
+fn reflectance_on_another_scale_is_brought_to_the_models() {
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(false)).unwrap();
+    let bright: Vec<[f32; 4]> = scan(0)
+        .iter()
+        .map(|&[x, y, z, r]| [x, y, z, r * 255.0])
+        .collect();
+    odometry.register(Scan::new(&bright)).unwrap();
+    assert_eq!(odometry.reflectance_scale(), Some(ReflectanceScale::Byte));
+    let first = OdometryConfig {
+        reflectance: ReflectanceScale::Ignored,
+        ..config(false)
+    };
+    let mut odometry = Odometry::new(OracleMatcher::new(), first).unwrap();
+    let error = odometry.register(Scan::new(&bright)).unwrap_err();
+    assert!(error.to_string().contains("reflectance none"), "{error}");
+}
+
+#[test]
+fn settings_the_crate_does_not_run_yet_are_named() {
+    for (change, key) in [
+        (
+            (|c: &mut OdometryConfig| c.matching.symmetric = true) as fn(&mut OdometryConfig),
+            "matching.symmetric",
+        ),
+        (
+            |c: &mut OdometryConfig| c.deskew.enabled = true,
+            "deskew.enabled",
+        ),
+        (
+            |c: &mut OdometryConfig| c.ransac.threshold = -1.0,
+            "ransac.threshold",
+        ),
+    ] {
+        let mut config = OdometryConfig::default();
+        change(&mut config);
+        let error = Odometry::new(OracleMatcher::new(), config).err().unwrap();
+        assert!(error.to_string().contains(key), "{error}");
+    }
+}
+
+#[test]
+fn reflectance_detection_follows_python() {
+    assert_eq!(detect_reflectance(&[0.1, 0.9]).0, ReflectanceScale::Unit);
+    assert_eq!(detect_reflectance(&[0.0, 200.0]).0, ReflectanceScale::Byte);
+    assert_eq!(detect_reflectance(&[0.0, 4000.0]).0, ReflectanceScale::Word);
+    assert_eq!(
+        detect_reflectance(&[0.0, 70000.0]).0,
+        ReflectanceScale::Ignored
+    );
+    assert_eq!(detect_reflectance(&[3.0, 3.0]).0, ReflectanceScale::Ignored);
+    assert_eq!(
+        detect_reflectance(&[-1.0, 3.0]).0,
+        ReflectanceScale::Ignored
+    );
+    assert_eq!(detect_reflectance(&[]).0, ReflectanceScale::Ignored);
+    let cloud = normalised(
+        vec![[0.0, 0.0, 0.0, 300.0], [0.0, 0.0, 0.0, 51.0]],
+        ReflectanceScale::Byte,
+    );
+    assert_eq!((cloud[0][3], cloud[1][3]), (1.0, 0.2));
+}
