@@ -18,7 +18,7 @@
 //! | [`ransac`] | §III-D-b | seeded RANSAC with rayon-parallel hypothesis scoring |
 //! | [`ray_noise`] | — | Gauss–Newton refit weighing each match by its ray's bearing and range noise |
 //! | [`ndt`] | §III-D-c | scan-to-map NDT refinement |
-//! | [`odometry`] | §III-D-c | the per-frame state: frame clock, constant-velocity motion model and its judgement |
+//! | [`odometry`] | §III | the odometry's loop over scans (`Odometry`), its config, the frame clock, the motion model and its judgement, the local map |
 //! | [`raycast`] | — | the LiDAR simulator's ray casting |
 //! | `inference` | §III-C | the network's encoder run by tract, and the learned matcher (feature `inference`) |
 //!

@@ -1,8 +1,9 @@
 #![forbid(unsafe_code)]
-//! The odometry's per-frame state, shared by `dmlo.Odometry` and Rust users: the frame clock that
-//! counts missing scans from the timestamps ([`clock`]), the constant-velocity motion model with the
-//! judgement of every pair's motion against it (§III-D-c, [`motion`]), and the local map that refines
-//! every pose by scan-to-map NDT (§III-D-c, [`mapping`]).
+//! The odometry: its loop over scans ([`pipeline::Odometry`], over any [`pipeline::FrameMatcher`]), its
+//! settings as `dmlo run` saves them ([`config`]), and the per-frame state shared with `dmlo.Odometry`: the
+//! frame clock that counts missing scans from the timestamps ([`clock`]), the constant-velocity motion model
+//! with the judgement of every pair's motion against it (§III-D-c, [`motion`]), and the local map that
+//! refines every pose by scan-to-map NDT (§III-D-c, [`mapping`]).
 //!
 //! ```
 //! use dmlo_rs::odometry::motion::{MotionLimits, MotionModel, PairEvidence};

@@ -31,6 +31,9 @@ pub struct ModelMetadata {
     /// The cylinder image the model was trained on (`dmlo.cylinder_config`), whose size is the input's;
     /// None in graphs exported before it was written.
     pub cylinder: Option<CylinderConfig>,
+    /// Whether the model reads the reflectance channel (`dmlo.model_config.use_reflectance`; false: a
+    /// range-only model); true when the graph does not say.
+    pub use_reflectance: bool,
 }
 
 impl ModelMetadata {
@@ -119,6 +122,10 @@ impl ModelMetadata {
             refine_offset,
             similarity_scales,
             cylinder,
+            use_reflectance: config
+                .get("use_reflectance")
+                .and_then(Value::as_bool)
+                .unwrap_or(true),
         })
     }
 

@@ -34,6 +34,8 @@ pub use tract::TractEncoder;
 
 use crate::dense_match::{self, DenseFlow, DenseMatchConfig, FeatureMap, ScanFeatures};
 use crate::error::{Error, Result};
+use crate::odometry::pipeline::FrameMatcher;
+use crate::projection::CylinderConfig;
 
 /// One scan encoded by the network: coarse features `(C, H / stride, W / stride)` and refine features
 /// `(Cr, H, W)`, channel-major as the graph writes them. Cache it: a scan is the target of one pair and
@@ -86,13 +88,23 @@ pub trait Encoder {
 pub struct LearnedMatcher<E: Encoder> {
     encoder: E,
     config: DenseMatchConfig,
+    cylinder: CylinderConfig,
 }
 
 impl<E: Encoder> LearnedMatcher<E> {
     /// The matcher of `encoder`'s model, its matching stage set from the graph's metadata.
     pub fn new(encoder: E) -> Result<Self> {
         let config = encoder.metadata().dense_match_config()?;
-        Ok(LearnedMatcher { encoder, config })
+        // Graphs exported before the cylinder was written are KITTI's (the only one then).
+        let cylinder = encoder
+            .metadata()
+            .cylinder
+            .unwrap_or_else(CylinderConfig::kitti);
+        Ok(LearnedMatcher {
+            encoder,
+            config,
+            cylinder,
+        })
     }
 
     /// The encoder, to encode scans (and cache their features).
@@ -108,6 +120,27 @@ impl<E: Encoder> LearnedMatcher<E> {
     /// The flow of every `reference` cell into `target` and its confidence (paper §III-C).
     pub fn flow(&self, reference: &EncodedScan, target: &EncodedScan) -> Result<DenseFlow> {
         dense_match::match_features(&reference.features(), &target.features(), &self.config)
+    }
+}
+
+/// The learned matcher as [`crate::odometry::pipeline::Odometry`] runs it.
+impl<E: Encoder> FrameMatcher for LearnedMatcher<E> {
+    type Features = EncodedScan;
+
+    fn cylinder(&self) -> &CylinderConfig {
+        &self.cylinder
+    }
+
+    fn uses_reflectance(&self) -> bool {
+        self.encoder.metadata().use_reflectance
+    }
+
+    fn encode(&self, image: &[f32]) -> Result<EncodedScan> {
+        self.encoder.encode(image)
+    }
+
+    fn flow(&self, reference: &EncodedScan, target: &EncodedScan) -> Result<DenseFlow> {
+        LearnedMatcher::flow(self, reference, target)
     }
 }
 

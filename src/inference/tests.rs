@@ -317,3 +317,74 @@ fn the_learned_pair_from_rust_equals_the_python_odometrys() {
         fixture["num_inliers"].as_u64().unwrap()
     );
 }
+
+/// The `.bin` scans of a real set under `../shared/data/kitti_real`, in name order; None without them.
+fn real_drive(name: &str) -> Option<Vec<Vec<[f32; 4]>>> {
+    let folder = root()
+        .join("../shared/data/kitti_real")
+        .join(name)
+        .join("velodyne");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(folder)
+        .ok()?
+        .filter_map(|entry| entry.ok().map(|e| e.path()))
+        .filter(|path| path.extension().is_some_and(|ext| ext == "bin"))
+        .collect();
+    files.sort();
+    let scans = files
+        .iter()
+        .map(|path| {
+            let bytes = std::fs::read(path).unwrap();
+            bytes
+                .chunks_exact(16)
+                .map(|p| {
+                    let v = |i: usize| f32::from_le_bytes(p[4 * i..4 * i + 4].try_into().unwrap());
+                    [v(0), v(1), v(2), v(3)]
+                })
+                .collect()
+        })
+        .collect();
+    Some(scans)
+}
+
+#[test]
+fn the_rust_odometry_over_tract_equals_the_python_odometry_on_real_drives() {
+    use crate::odometry::config::OdometryConfig;
+    use crate::odometry::pipeline::{Odometry, Scan};
+
+    let fixture: Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join("tests/fixtures/odometry_poses.json")).unwrap(),
+    )
+    .unwrap();
+    for (key, expected) in fixture.as_object().unwrap() {
+        let (name, mode) = key.split_once('/').unwrap();
+        let Some(scans) = real_drive(name) else {
+            eprintln!("no shared KITTI scans: skipped");
+            return;
+        };
+        let mut config = OdometryConfig::default();
+        config.mapping.enabled = mode == "mapping";
+        let matcher = LearnedMatcher::new(TractEncoder::open(bundled_encoder()).unwrap()).unwrap();
+        let mut odometry = Odometry::new(matcher, config).unwrap();
+        let expected = expected.as_array().unwrap();
+        assert_eq!(expected.len(), scans.len(), "{key}");
+        for (i, (points, row)) in scans.iter().zip(expected).enumerate() {
+            let pose = odometry.register(Scan::new(points)).unwrap();
+            let row: Vec<f64> = row
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap())
+                .collect();
+            let mut expected = nalgebra::Matrix4::identity();
+            expected
+                .fixed_view_mut::<3, 4>(0, 0)
+                .copy_from(&nalgebra::Matrix3x4::from_row_slice(&row));
+            let (moved, turned) = crate::odometry::motion::pose_difference(&expected, &pose);
+            assert!(
+                moved < 1e-6 && turned.to_radians() < 1e-6,
+                "{key}, scan {i}: {moved} m, {} rad from dmlo.Odometry's pose",
+                turned.to_radians()
+            );
+        }
+    }
+}

@@ -88,8 +88,10 @@ pub struct FrameDiagnostics {
     /// Their RANSAC inliers.
     pub num_inliers: usize,
     /// Inliers over matches.
+    #[serde(serialize_with = "rounded::<4, _>")]
     pub inlier_ratio: f64,
     /// With tilt votes: the inliers' votes above the floor.
+    #[serde(serialize_with = "rounded_option::<2, _>")]
     pub inlier_votes: Option<f64>,
     /// The fallback taken (`constant_velocity`, `degenerate_scene`, `guided_consensus`,
     /// `implausible_motion`, `rematched_from_prediction`, `too_few_points`, `unreadable_scan`).
@@ -107,9 +109,41 @@ pub struct FrameDiagnostics {
     /// The NDT start that won: "dmlo", "motion_model" or "standing".
     pub ndt_start: Option<String>,
     /// Fraction of the cylinder image's cells holding a point.
+    #[serde(serialize_with = "rounded_option::<4, _>")]
     pub image_fill: Option<f64>,
     /// Milliseconds per stage.
+    #[serde(serialize_with = "rounded_map::<3, _>")]
     pub timings_ms: BTreeMap<String, f64>,
+}
+
+/// `value` to `DIGITS` decimals, as `dmlo.Odometry`'s diagnostics write it.
+fn round_to<const DIGITS: i32>(value: f64) -> f64 {
+    let scale = 10f64.powi(DIGITS);
+    (value * scale).round() / scale
+}
+
+fn rounded<const DIGITS: i32, S: serde::Serializer>(
+    value: &f64,
+    s: S,
+) -> std::result::Result<S::Ok, S::Error> {
+    s.serialize_f64(round_to::<DIGITS>(*value))
+}
+
+fn rounded_option<const DIGITS: i32, S: serde::Serializer>(
+    value: &Option<f64>,
+    s: S,
+) -> std::result::Result<S::Ok, S::Error> {
+    match value {
+        Some(v) => s.serialize_some(&round_to::<DIGITS>(*v)),
+        None => s.serialize_none(),
+    }
+}
+
+fn rounded_map<const DIGITS: i32, S: serde::Serializer>(
+    values: &BTreeMap<String, f64>,
+    s: S,
+) -> std::result::Result<S::Ok, S::Error> {
+    s.collect_map(values.iter().map(|(k, v)| (k, round_to::<DIGITS>(*v))))
 }
 
 impl FrameDiagnostics {

@@ -1,6 +1,7 @@
-"""The config the crate's `odometry::config` tests read (`tests/fixtures/odometry_config.json`) is what
-`OdometryConfig.save` writes today: when a setting is added, renamed or its default changes, the fixture (and
-the crate's sections) must follow."""
+"""The fixtures the crate's odometry is tested against are what Python gives today: the config its
+`odometry::config` reads (`tests/fixtures/odometry_config.json`, as `OdometryConfig.save` writes it) and the poses
+its `Odometry` over tract must equal (`tests/fixtures/odometry_poses.json`). When a setting is added, renamed or
+its default changes, or the odometry's behaviour does, the fixtures (and the crate) must follow."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import json
 from pathlib import Path
 
 import dmlo_rs
+import numpy as np
 import pytest
 
 from dmlo.odometry.config import ConfigError, OdometryConfig
@@ -59,3 +61,17 @@ def test_the_crate_refuses_what_python_refuses_naming_the_same_key(settings: dic
         OdometryConfig.from_dict(settings)
     with pytest.raises(ValueError, match=key.replace(".", r"\.")):
         dmlo_rs.odometry_config_json(json.dumps(settings))
+
+
+def test_the_crate_odometry_fixture_is_what_python_gives_today(shared_data: Path) -> None:
+    """`odometry_poses.json`, the poses the crate's `Odometry` over tract must equal (`cargo test --features
+    inference`), is what `dmlo.Odometry` gives today: a change of the odometry's behaviour shows in both."""
+    spec = importlib.util.spec_from_file_location("make_odometry_poses", FIXTURES / "make_odometry_poses.py")
+    assert spec is not None and spec.loader is not None
+    maker = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(maker)
+    fixture = json.loads((FIXTURES / "odometry_poses.json").read_text())
+    today = maker.odometry_poses(shared_data)
+    assert fixture.keys() == today.keys()
+    for key in fixture:
+        np.testing.assert_allclose(fixture[key], today[key], atol=1e-9, err_msg=f"{key}: re-run {maker.__file__}")

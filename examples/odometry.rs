@@ -1,0 +1,189 @@
+//! DMLO odometry over a folder of KITTI `.bin` scans from Rust alone, no Python (feature `inference`):
+//! the network's encoder run by tract, the crate's matching stage and [`dmlo_rs::odometry::pipeline::Odometry`]
+//! (the motion model, matching from the prediction, the local map), writing the poses as `dmlo run` does.
+//!
+//! ```text
+//! cargo run --release --features inference --example odometry -- SCANS_DIR --out OUT_DIR \
+//!     [--model MODEL_DIR] [--config CONFIG.json] [--threads N]
+//! ```
+//!
+//! `SCANS_DIR` holds the scans (`*.bin`, N × 4 float32: x, y, z, reflectance), registered in name
+//! order. `MODEL_DIR` (default `python/dmlo/models/default`) holds `encoder.onnx`; `CONFIG.json` is a
+//! config as `dmlo run` writes it (default: the defaults). `OUT_DIR` gets `poses_kitti.txt`
+//! (`T_world_lidar`, the first scan the world: one row of 12 numbers a scan, readable by evo) and
+//! `diagnostics.jsonl` (one JSON object a scan), both appended and flushed scan by scan, so an interrupted
+//! run keeps every scan done. `--threads` sizes rayon's pool (tract and the crate's stages); 0 or absent:
+//! the config's `threads`, and when that is 0 rayon's default.
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use dmlo_rs::inference::{LearnedMatcher, TractEncoder};
+use dmlo_rs::odometry::config::OdometryConfig;
+use dmlo_rs::odometry::pipeline::{Odometry, Scan};
+
+const USAGE: &str = "usage: odometry SCANS_DIR --out OUT_DIR [--model MODEL_DIR] [--config CONFIG.json] [--threads N]";
+
+struct Arguments {
+    scans: PathBuf,
+    out: PathBuf,
+    model: PathBuf,
+    config: Option<PathBuf>,
+    threads: Option<usize>,
+}
+
+fn parse(args: &[String]) -> Result<Arguments, String> {
+    let mut scans = None;
+    let (mut out, mut model, mut config, mut threads) = (None, None, None, None);
+    let mut rest = args.iter();
+    while let Some(arg) = rest.next() {
+        let mut value = |flag: &str| {
+            rest.next()
+                .cloned()
+                .ok_or(format!("{flag}: needs a value\n{USAGE}"))
+        };
+        match arg.as_str() {
+            "--out" => out = Some(PathBuf::from(value("--out")?)),
+            "--model" => model = Some(PathBuf::from(value("--model")?)),
+            "--config" => config = Some(PathBuf::from(value("--config")?)),
+            "--threads" => {
+                let text = value("--threads")?;
+                threads = Some(
+                    text.parse()
+                        .map_err(|e| format!("--threads: {text:?}: {e}"))?,
+                );
+            }
+            flag if flag.starts_with("--") => {
+                return Err(format!("unknown option {flag}\n{USAGE}"))
+            }
+            _ if scans.is_none() => scans = Some(PathBuf::from(arg)),
+            _ => return Err(USAGE.into()),
+        }
+    }
+    Ok(Arguments {
+        scans: scans.ok_or(USAGE)?,
+        out: out.ok_or(USAGE)?,
+        model: model.unwrap_or_else(|| PathBuf::from("python/dmlo/models/default")),
+        config,
+        threads,
+    })
+}
+
+/// The `.bin` scans of a folder in name order.
+fn scan_files(folder: &Path) -> Result<Vec<PathBuf>, String> {
+    let entries = std::fs::read_dir(folder).map_err(|e| format!("{}: {e}", folder.display()))?;
+    let mut files: Vec<PathBuf> = entries
+        .filter_map(|entry| entry.ok().map(|e| e.path()))
+        .filter(|path| path.extension().is_some_and(|ext| ext == "bin"))
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        return Err(format!("{}: no .bin scans", folder.display()));
+    }
+    Ok(files)
+}
+
+/// A KITTI scan: N × 4 little-endian float32. A truncated file is an error naming it.
+fn read_scan(path: &Path) -> Result<Vec<[f32; 4]>, String> {
+    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    if bytes.len() % 16 != 0 {
+        return Err(format!(
+            "{}: {} bytes is not a whole number of 16-byte points (truncated?)",
+            path.display(),
+            bytes.len()
+        ));
+    }
+    Ok(bytes
+        .chunks_exact(16)
+        .map(|point| {
+            let value =
+                |i: usize| f32::from_le_bytes(point[4 * i..4 * i + 4].try_into().expect("4 bytes"));
+            [value(0), value(1), value(2), value(3)]
+        })
+        .collect())
+}
+
+fn kitti_row(pose: &nalgebra::Matrix4<f64>) -> String {
+    let values: Vec<String> = (0..3)
+        .flat_map(|row| (0..4).map(move |col| (row, col)))
+        .map(|(row, col)| python_exponent(&format!("{:.9e}", pose[(row, col)])))
+        .collect();
+    values.join(" ")
+}
+
+/// Rust's `1.5e-3` written as Python's `%e` writes it (`1.5e-03`), so the files read alike.
+fn python_exponent(text: &str) -> String {
+    match text.split_once('e') {
+        Some((mantissa, exponent)) => {
+            let exponent: i32 = exponent.parse().expect("Rust writes an integer exponent");
+            let sign = if exponent < 0 { '-' } else { '+' };
+            format!("{mantissa}e{sign}{:02}", exponent.abs())
+        }
+        None => text.to_string(),
+    }
+}
+
+fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error>> {
+    let arguments = parse(args)?;
+    let config = match &arguments.config {
+        Some(path) => OdometryConfig::load(path)?,
+        None => OdometryConfig::default(),
+    };
+    let threads = arguments.threads.unwrap_or(config.threads as usize);
+    if threads > 0 {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build_global()?;
+    }
+    let files = scan_files(&arguments.scans)?;
+    let matcher = LearnedMatcher::new(TractEncoder::open(arguments.model.join("encoder.onnx"))?)?;
+    let mut odometry = Odometry::new(matcher, config)?;
+    std::fs::create_dir_all(&arguments.out)?;
+    let mut poses = BufWriter::new(File::create(arguments.out.join("poses_kitti.txt"))?);
+    let mut diagnostics = BufWriter::new(File::create(arguments.out.join("diagnostics.jsonl"))?);
+    let start = Instant::now();
+    for path in &files {
+        let pose = match read_scan(path) {
+            Ok(points) => odometry.register(Scan::new(&points))?,
+            Err(error) => {
+                eprintln!("skipped: {error}");
+                odometry.predict_skipped("unreadable_scan")?
+            }
+        };
+        writeln!(poses, "{}", kitti_row(&pose))?;
+        let last = odometry
+            .diagnostics()
+            .last()
+            .expect("a scan was registered");
+        writeln!(diagnostics, "{}", serde_json::to_string(last)?)?;
+        poses.flush()?;
+        diagnostics.flush()?;
+    }
+    let seconds = start.elapsed().as_secs_f64();
+    let fallbacks = odometry
+        .diagnostics()
+        .iter()
+        .filter(|d| d.fallback.is_some())
+        .count();
+    println!(
+        "{} scans in {seconds:.1} s ({:.1} Hz), {fallbacks} on a fallback; poses in {}",
+        files.len(),
+        files.len() as f64 / seconds,
+        arguments.out.join("poses_kitti.txt").display()
+    );
+    Ok(())
+}
+
+fn main() -> ExitCode {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    match run(&args) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("error: {error}");
+            ExitCode::FAILURE
+        }
+    }
+}
