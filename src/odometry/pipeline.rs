@@ -32,7 +32,7 @@ use crate::odometry::config::{MatchingStage, OdometryConfig, ReflectanceScale};
 use crate::odometry::mapping::LocalMap;
 use crate::odometry::motion::{pose_difference, rigid_inverse, MotionModel, PairEvidence};
 use crate::pair::{match_pair, PairConfig, PairImages, PairMotion};
-use crate::projection::{project_flat, CylinderConfig};
+use crate::projection::{project, CylinderConfig};
 
 /// The network as the odometry runs it: scans' images encoded once (features cached, a scan being the
 /// target of one pair and the reference of the next), and the dense flow between two encoded scans.
@@ -382,15 +382,12 @@ impl<M: FrameMatcher> Odometry<M> {
     /// Records a scan that could not be read: its pose comes from the motion model (`reason` in its
     /// diagnostics, e.g. "unreadable_scan").
     pub fn predict_skipped(&mut self, reason: &str) -> Result<Matrix4<f64>> {
-        let tick = self.clock.advance(None)?;
+        self.clock.advance(None)?;
         let diagnostics = FrameDiagnostics {
             index: self.poses.len(),
             ..Default::default()
         };
-        let pose = self.predict(tick.frame);
-        let mut diagnostics = diagnostics;
-        diagnostics.fallback = Some(reason.to_string());
-        Ok(self.record(pose, tick.frame, diagnostics))
+        Ok(self.skip(diagnostics, reason))
     }
 
     fn skip(&mut self, mut diagnostics: FrameDiagnostics, reason: &str) -> Matrix4<f64> {
@@ -477,15 +474,8 @@ impl<M: FrameMatcher> Odometry<M> {
 
     /// The network input, range image and point image of a scan (Eq. 1).
     fn project(&self, cloud: &[[f32; 4]]) -> Result<Projected> {
-        let projection = project_flat(cloud.as_flattened(), 4, &self.cylinder)?;
-        let points = projection
-            .index
-            .iter()
-            .flat_map(|&i| match usize::try_from(i) {
-                Ok(i) => [cloud[i][0], cloud[i][1], cloud[i][2]],
-                Err(_) => [f32::NAN; 3],
-            })
-            .collect();
+        let projection = project(cloud, &self.cylinder)?;
+        let points = projection.point_image(cloud);
         let mut image = projection.range.clone();
         image.extend_from_slice(&projection.reflectance);
         Ok(Projected {

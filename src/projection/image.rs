@@ -33,6 +33,18 @@ impl Projection {
     pub fn num_valid(&self) -> usize {
         self.index.iter().filter(|&&i| i >= 0).count()
     }
+
+    /// The point image `H × W × 3`: each cell's kept point of the projected `points`, NaN where the cell
+    /// is empty (the surfaces under the matches, the map's keyframes).
+    pub fn point_image(&self, points: &[[f32; 4]]) -> Vec<f32> {
+        self.index
+            .iter()
+            .flat_map(|&i| match usize::try_from(i) {
+                Ok(i) => [points[i][0], points[i][1], points[i][2]],
+                Err(_) => [f32::NAN; 3],
+            })
+            .collect()
+    }
 }
 
 /// `points` must be a flat array of whole points of 3 (x, y, z) or 4 (… reflectance) values.

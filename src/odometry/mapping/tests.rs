@@ -12,14 +12,7 @@ struct Scan {
 fn scan_at(pose: &Isometry3<f64>, seed: u64) -> Scan {
     let raw = yard_scan(pose, seed, 150_000, &[(6.0, 4.0), (9.0, -5.0)]);
     let projection = project(&raw, &CylinderConfig::kitti()).unwrap();
-    let points = projection
-        .index
-        .iter()
-        .flat_map(|&i| match usize::try_from(i) {
-            Ok(i) => [raw[i][0], raw[i][1], raw[i][2]],
-            Err(_) => [f32::NAN; 3],
-        })
-        .collect();
+    let points = projection.point_image(&raw);
     let cloud = raw
         .iter()
         .map(|p| Point3::new(p[0] as f64, p[1] as f64, p[2] as f64))
