@@ -108,6 +108,26 @@ def test_scenes_stage_fine_tunes_on_the_recipes_drives_and_the_scene_drives(
         default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--scenes", "--range-only"])
 
 
+def test_scenes_pose_stage_trains_whole_images_from_the_scenes_stage(
+    captured: list[list[str]], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    scenes = ([tmp_path / "scenes_highway"], [tmp_path / "val_scenes_jam"])
+    monkeypatch.setattr(default_recipe, "simulate_scene_drives", lambda data, poses: scenes)
+    run = tmp_path / "run"
+    with pytest.raises(SystemExit):  # the scenes stage has not run: nothing to start from
+        default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--scenes-pose"])
+    assert captured == []
+    (run / "scenes").mkdir(parents=True)
+    (run / "scenes" / "best.pt").write_bytes(b"weights")
+    assert default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--scenes-pose"]) == 0
+    (argv,) = captured
+    assert option(argv, "--init") == str(run / "scenes" / "best.pt")
+    assert option(argv, "--out") == str(run / "scenes_pose")
+    data = argv[argv.index("--data") + 1 : argv.index("--val")]
+    assert data == [str(tmp_path / "train_00"), str(tmp_path / "scenes_highway")]
+    assert option(argv, "--crop-width") == "0" and float(option(argv, "--pose-loss-weight")) > 0
+
+
 def test_scene_drives_cover_the_failing_scenes_and_stay_off_the_benchmarks_drives() -> None:
     options = [drive[5] for drive in default_recipe.SCENE_DRIVES if not drive[0].startswith("val")]
     assert any(o.get("scene") == "highway" and float(o.get("laser_gain_spread", 0)) >= 0.4 for o in options)  # type: ignore[arg-type]

@@ -1,7 +1,8 @@
 """The recipe of the bundled default model: its simulated drives and its training command, in one place.
 
     python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR]
-        [--finetune | --range-only | --range-only-pose | --sensor-variety | --sensor-variety-pose | --scenes]
+        [--finetune | --range-only | --range-only-pose | --sensor-variety | --sensor-variety-pose | --scenes
+         | --scenes-pose]
 
 simulates the drives (skipping those already written; deterministic per seed) and then trains, resuming
 from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. `--finetune` runs
@@ -38,6 +39,11 @@ above loses what the whole-image pose-loss stage taught. One epoch; on 2 CPU cor
 drives failed (`SCENE_DRIVES`: feature-poor highways with per-laser gains, traffic keeping pace around the
 ego, stop-and-go queues, mixed traffic), into `RUN_DIR/scenes`: two epochs on 448-column crops, held out
 on the recipe's validation drives and a highway and a jam of its own. Sized like the range-only stage.
+
+`--scenes-pose` is the bundled model's last stage (whole images, the pose loss) on the same drives as
+`--scenes`, from that stage's weights (`RUN_DIR/scenes/best.pt`, or `--init CKPT`), into
+`RUN_DIR/scenes_pose`: the crop stage loses what the whole-image stage taught. One epoch; on 2 CPU cores it
+spans sessions (`--resume` continues it), on one GPU it is a single run.
 """
 
 from __future__ import annotations
@@ -110,6 +116,11 @@ SENSOR_VARIETY_POSE_ARGUMENTS = (
 SCENES_ARGUMENTS = (
     "--optimizer adam --lr 1e-4 --lr-step 1 --epochs 2 --batch-size 4 --crop-width 448 --val-max-pairs 48 "
     "--val-width 896 --checkpoint-every 25 --resume --mirror"
+).split()
+# The scenes pose stage: the second stage's whole images and pose loss on the scenes stage's drives.
+SCENES_POSE_ARGUMENTS = (
+    "--pose-loss-weight 0.2 --optimizer adam --lr 1e-4 --lr-step 1 --epochs 1 --batch-size 2 --crop-width 0 "
+    "--val-max-pairs 48 --val-width 0 --checkpoint-every 25 --resume --mirror"
 ).split()
 BUNDLED_FINAL = Path(__file__).resolve().parents[1] / "models" / "default" / "training" / "finetune" / "best.pt"
 BUNDLED_RANGE_ONLY = BUNDLED_FINAL.parents[1] / "range_only" / "best.pt"
@@ -185,18 +196,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", action="store_true",
                         help="fine-tune --init on the recipe's drives and the highway, traffic and stop-and-go scenes "
                         "(SCENE_DRIVES) into OUT/scenes")
+    parser.add_argument("--scenes-pose", action="store_true",
+                        help="the whole-image pose-loss stage on the --scenes drives, from OUT/scenes/best.pt (or --init), "
+                        "into OUT/scenes_pose")
     parser.add_argument("--init", type=Path, default=None,
-                        help="with --range-only(-pose), --sensor-variety(-pose) or --scenes: the weights to start from "
-                        "(default: the bundled model's final ones; with --range-only-pose the bundled range-only ones)")
+                        help="with --range-only(-pose), --sensor-variety(-pose) or --scenes(-pose): the weights to start "
+                        "from (default: the bundled model's final ones; with --range-only-pose the bundled range-only "
+                        "ones, with --scenes-pose OUT/scenes/best.pt)")
     args = parser.parse_args(argv)
     chosen = (args.finetune, args.range_only, args.range_only_pose, args.sensor_variety, args.sensor_variety_pose,
-              args.scenes)
+              args.scenes, args.scenes_pose)
     if sum(chosen) > 1:
-        parser.error("--finetune, --range-only, --range-only-pose, --sensor-variety, --sensor-variety-pose and --scenes "
-                     "are separate stages: choose one")
+        parser.error("--finetune, --range-only, --range-only-pose, --sensor-variety, --sensor-variety-pose, --scenes "
+                     "and --scenes-pose are separate stages: choose one")
     poses = args.poses if args.poses.is_dir() else None
     train, val = simulate_drives(args.data, poses)
-    if args.scenes:
+    if args.scenes or args.scenes_pose:
         scene_train, scene_val = simulate_scene_drives(args.data, poses)
         train, val = train + scene_train, val + scene_val
 
@@ -205,11 +220,13 @@ def main(argv: list[str] | None = None) -> int:
     data = ["--data", *map(str, train), "--val", *map(str, val)]
     stages = {"range_only": RANGE_ONLY_ARGUMENTS, "range_only_pose": RANGE_ONLY_POSE_ARGUMENTS,
               "sensor_variety": SENSOR_VARIETY_ARGUMENTS,
-              "sensor_variety_pose": SENSOR_VARIETY_POSE_ARGUMENTS, "scenes": SCENES_ARGUMENTS}
+              "sensor_variety_pose": SENSOR_VARIETY_POSE_ARGUMENTS, "scenes": SCENES_ARGUMENTS,
+              "scenes_pose": SCENES_POSE_ARGUMENTS}
     stage = next((name for name in stages if getattr(args, name)), None)
     if stage is not None:
         arguments = stages[stage]
-        init = args.init or (BUNDLED_RANGE_ONLY if stage == "range_only_pose" else BUNDLED_FINAL)
+        default_init = {"range_only_pose": BUNDLED_RANGE_ONLY, "scenes_pose": args.out / "scenes" / "best.pt"}
+        init = args.init or default_init.get(stage, BUNDLED_FINAL)
         if not init.is_file():
             parser.error(f"--{stage.replace('_', '-')} starts from {init}, which does not exist")
         return train_main([*data, "--out", str(args.out / stage), "--init", str(init), *arguments])
