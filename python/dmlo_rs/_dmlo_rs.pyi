@@ -702,3 +702,40 @@ def upright_points(points: npt.NDArray[np.floating], config: CylinderConfig, vox
 def heading_and_level(horizontal: npt.NDArray[np.floating], level: npt.NDArray[np.floating]) -> npt.NDArray[np.float64]:
     """A pose with the horizontal position and heading of `horizontal` and the height, roll and pitch of
     `level`."""
+
+__all__ += ["Odometry"]
+
+@_final
+class Odometry:
+    """DMLO odometry run by the crate (`dmlo_rs::odometry::pipeline::Odometry`: projection, the pair's back
+    end, the motion model, matching from the prediction, the local map, diagnostics), the network by
+    `matcher`: an object with `cylinder` (CylinderConfig), `encode(image)` → features (any object; `image`
+    [2, H, W] float32: range, reflectance), `match(reference, target)` → (flow [2, H, W], confidence [H, W])
+    float32, and optionally `uses_reflectance` (bool) — as `dmlo.odometry.matcher.OnnxMatcher`. An exception
+    the matcher raises comes through unchanged. `config_json`: `dmlo run`'s config.json text (None: the
+    defaults); settings the crate does not run yet raise ValueError naming them."""
+
+    def __new__(cls, matcher: object, config_json: str | None = None, num_threads: int | None = None) -> Odometry: ...
+    def register(
+        self,
+        points: npt.NDArray[np.floating],
+        moving: npt.NDArray[np.bool_] | None = None,
+        timestamp: float | None = None,
+    ) -> npt.NDArray[np.float64]:
+        """Adds the next scan (N×4: x, y, z, reflectance) and returns its pose `T_world_lidar` (4×4);
+        `moving`: one flag per point, left out; `timestamp`: the scan's time, dropped scans counted from it."""
+    def predict_skipped(self, reason: str = "unreadable_scan") -> npt.NDArray[np.float64]:
+        """Records a scan that could not be read: its pose from the motion model."""
+    @property
+    def poses(self) -> npt.NDArray[np.float64]:
+        """Every pose so far, (N, 4, 4)."""
+    @property
+    def diagnostics(self) -> list[dict[str, object]]:
+        """Every frame's diagnostics, as `dmlo.Odometry`'s `FrameDiagnostics.to_dict()`."""
+    @property
+    def reflectance_scale(self) -> str | None:
+        """The reflectance scale chosen on the first matched scan ("unit", "0-255", "0-65535", "none")."""
+    @property
+    def config_json(self) -> str:
+        """The config it runs with, as `dmlo run`'s config.json."""
+    def __len__(self) -> int: ...

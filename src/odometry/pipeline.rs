@@ -98,6 +98,8 @@ pub struct FrameDiagnostics {
     pub fallback: Option<String>,
     /// Rounds of matching from the prediction whose motion was taken (0: tried, none kept).
     pub rematch_rounds: Option<usize>,
+    /// With `matching.symmetric`: RANSAC inliers of the scan matched back against the previous one.
+    pub backward_inliers: Option<usize>,
     /// NDT against the map converged.
     pub ndt_converged: Option<bool>,
     /// Pose directions the map did not constrain.
@@ -108,9 +110,14 @@ pub struct FrameDiagnostics {
     pub map_keyframe: Option<bool>,
     /// The NDT start that won: "dmlo", "motion_model" or "standing".
     pub ndt_start: Option<String>,
+    /// Points the moving-object network left out; `None` when it did not run (the crate runs none: a
+    /// caller's flags come in [`Scan::moving`]).
+    pub num_moving_predicted: Option<usize>,
     /// Fraction of the cylinder image's cells holding a point.
     #[serde(serialize_with = "rounded_option::<4, _>")]
     pub image_fill: Option<f64>,
+    /// With `deskew.enabled`: the sweep was motion-compensated.
+    pub deskewed: bool,
     /// Milliseconds per stage.
     #[serde(serialize_with = "rounded_map::<3, _>")]
     pub timings_ms: BTreeMap<String, f64>,
@@ -250,6 +257,11 @@ impl<M: FrameMatcher> Odometry<M> {
             diagnostics: Vec::new(),
             reflectance: None,
         })
+    }
+
+    /// The matcher it runs.
+    pub fn matcher(&self) -> &M {
+        &self.matcher
     }
 
     /// The config it runs with.

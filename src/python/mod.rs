@@ -13,6 +13,7 @@ mod mapping;
 mod matches;
 mod ndt;
 mod odometry;
+mod odometry_loop;
 mod pair;
 mod pool;
 mod projection;
@@ -62,6 +63,7 @@ fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     surface::register(m)?;
     pair::register(m)?;
     odometry::register(m)?;
+    odometry_loop::register(m)?;
     mapping::register(m)?;
     projective::register(m)?;
     Ok(())

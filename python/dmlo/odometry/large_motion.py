@@ -126,8 +126,12 @@ def moved(cloud: npt.NDArray[np.float32], transform: Matrix4) -> npt.NDArray[np.
     if np.array_equal(transform, np.eye(4)):
         return cloud
     out = cloud.copy()
-    # In float32, as the points are stored: a float64 product and the casts around it took several times as
-    # long on every frame matched from the prediction, for differences within the points' own rounding.
-    rotation, translation = transform[:3, :3].astype(np.float32), transform[:3, 3].astype(np.float32)
-    out[:, :3] = cloud[:, :3] @ rotation.T + translation
+    # In float32, as the points are stored (a float64 product and the casts around it took several times as
+    # long on every frame matched from the prediction), and term by term in the crate's order
+    # (`odometry::pipeline`'s moved cloud): a matrix product's summation order and fused multiply-adds round
+    # differently, and the two odometries must give the same poses.
+    m = transform[:3].astype(np.float32)
+    x, y, z = cloud[:, 0], cloud[:, 1], cloud[:, 2]
+    for axis in range(3):
+        out[:, axis] = x * m[axis, 0] + y * m[axis, 1] + z * m[axis, 2] + m[axis, 3]
     return out

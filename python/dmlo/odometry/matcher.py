@@ -183,6 +183,11 @@ class OnnxMatcher:
         elif match_graph:
             self._match_session = self._open_match_graph()
 
+    @property
+    def uses_reflectance(self) -> bool:
+        """Whether the model reads the reflectance channel (False: a range-only model)."""
+        return self.model_config.get("use_reflectance", True) is not False
+
     def _choose_stage(self, requested: str) -> str:
         on_cpu = self._session.get_providers()[0] == "CPUExecutionProvider"
         crate_possible = self._scales is not None and self.path.with_name(ENCODER_GRAPH).is_file()

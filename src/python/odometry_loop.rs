@@ -1,0 +1,255 @@
+//! Binding of the crate's per-frame odometry (`crate::odometry::pipeline::Odometry`) over a matcher
+//! written in Python: any object with `cylinder`, `encode(image)` and `match(reference, target)` (as
+//! `dmlo.odometry.matcher.OnnxMatcher`), so the loop runs in the crate while the network runs wherever
+//! the caller runs it (onnxruntime in `dmlo`).
+
+use std::sync::Mutex;
+
+use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
+use numpy::{IntoPyArray, PyArray3};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+use crate::dense_match::DenseFlow;
+use crate::error::{Error, Result};
+use crate::odometry::config::OdometryConfig;
+use crate::odometry::pipeline::{FrameMatcher, Odometry, Scan};
+use crate::projection::CylinderConfig;
+
+use super::convert::{matrix4_to_numpy, scan_points, shape_error};
+use super::pool::run;
+use super::projection::PyCylinderConfig;
+
+pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<PyOdometry>()?;
+    Ok(())
+}
+
+/// A Python matcher behind the crate's [`FrameMatcher`]: each call takes the GIL for the Python call
+/// alone. An exception the matcher raises is kept and raised again unchanged by the binding.
+struct PythonMatcher {
+    object: Py<PyAny>,
+    cylinder: CylinderConfig,
+    uses_reflectance: bool,
+    raised: Mutex<Option<PyErr>>,
+}
+
+impl PythonMatcher {
+    /// Keeps the matcher's exception for the binding and tells the crate that the call failed.
+    fn failed(&self, method: &str, err: PyErr) -> Error {
+        let message = format!("the matcher's {method} raised {err}");
+        *self.raised.lock().unwrap_or_else(|p| p.into_inner()) = Some(err);
+        Error::Model(message)
+    }
+
+    fn take_raised(&self) -> Option<PyErr> {
+        self.raised.lock().unwrap_or_else(|p| p.into_inner()).take()
+    }
+}
+
+impl FrameMatcher for PythonMatcher {
+    type Features = Py<PyAny>;
+
+    fn cylinder(&self) -> &CylinderConfig {
+        &self.cylinder
+    }
+
+    fn uses_reflectance(&self) -> bool {
+        self.uses_reflectance
+    }
+
+    fn encode(&self, image: &[f32]) -> Result<Py<PyAny>> {
+        let (height, width) = (self.cylinder.height, self.cylinder.width);
+        Python::attach(|py| -> PyResult<Py<PyAny>> {
+            let array = PyArray1::from_slice(py, image).reshape([2, height, width])?;
+            self.object.call_method1(py, "encode", (array,))
+        })
+        .map_err(|e| self.failed("encode", e))
+    }
+
+    fn flow(&self, reference: &Py<PyAny>, target: &Py<PyAny>) -> Result<DenseFlow> {
+        let (height, width) = (self.cylinder.height, self.cylinder.width);
+        Python::attach(|py| -> PyResult<DenseFlow> {
+            let output = self.object.call_method1(py, "match", (reference, target))?;
+            let (flow, confidence): (PyReadonlyArray3<'_, f32>, PyReadonlyArray2<'_, f32>) =
+                output.extract(py)?;
+            if flow.shape() != [2, height, width] {
+                return Err(shape_error(
+                    "match: flow",
+                    &format!("(2, {height}, {width}) float32"),
+                    flow.shape(),
+                ));
+            }
+            if confidence.shape() != [height, width] {
+                return Err(shape_error(
+                    "match: confidence",
+                    &format!("({height}, {width}) float32"),
+                    confidence.shape(),
+                ));
+            }
+            Ok(DenseFlow {
+                flow: flow.as_array().iter().copied().collect(),
+                confidence: confidence.as_array().iter().copied().collect(),
+                height,
+                width,
+            })
+        })
+        .map_err(|e| self.failed("match", e))
+    }
+}
+
+/// DMLO odometry run by the crate, the network by `matcher` (see the stub for the protocol).
+#[pyclass(name = "Odometry", module = "dmlo_rs._dmlo_rs")]
+pub struct PyOdometry {
+    inner: Odometry<PythonMatcher>,
+    threads: Option<i64>,
+}
+
+impl PyOdometry {
+    /// `result` of a call into the crate, the matcher's own exception in place of the crate's report of it.
+    fn raised_or<T>(&self, result: PyResult<T>) -> PyResult<T> {
+        result.map_err(|err| self.inner.matcher().take_raised().unwrap_or(err))
+    }
+}
+
+#[pymethods]
+impl PyOdometry {
+    #[new]
+    #[pyo3(signature = (matcher, config_json = None, num_threads = None))]
+    fn new(
+        matcher: &Bound<'_, PyAny>,
+        config_json: Option<&str>,
+        num_threads: Option<super::convert::Int>,
+    ) -> PyResult<Self> {
+        let cylinder = matcher
+            .getattr_opt("cylinder")?
+            .and_then(|c| c.extract::<PyCylinderConfig>().ok())
+            .ok_or_else(|| {
+                PyValueError::new_err("matcher: expected a `cylinder` attribute of type CylinderConfig")
+            })?;
+        let uses_reflectance = match matcher.getattr_opt("uses_reflectance")? {
+            Some(value) => value.extract::<bool>().map_err(|_| {
+                PyValueError::new_err("matcher: `uses_reflectance` must be True or False")
+            })?,
+            None => true,
+        };
+        for method in ["encode", "match"] {
+            if !matcher.getattr_opt(method)?.is_some_and(|m| m.is_callable()) {
+                return Err(PyValueError::new_err(format!(
+                    "matcher: expected a method `{method}`"
+                )));
+            }
+        }
+        let config = match config_json {
+            Some(text) => OdometryConfig::from_json(text)?,
+            None => OdometryConfig::default(),
+        };
+        let python_matcher = PythonMatcher {
+            object: matcher.clone().unbind(),
+            cylinder: cylinder.inner,
+            uses_reflectance,
+            raised: Mutex::new(None),
+        };
+        Ok(PyOdometry {
+            inner: Odometry::new(python_matcher, config)?,
+            threads: super::pool::threads(num_threads)?,
+        })
+    }
+
+    /// Adds the next scan (`N×4` x, y, z, reflectance, float32 or float64; non-finite rows left out) and
+    /// returns its pose `T_world_lidar` (4×4 float64). `moving`: one flag per point, left out of matching
+    /// and the map; `timestamp`: the scan's time, from which dropped scans are counted.
+    #[pyo3(signature = (points, moving = None, timestamp = None))]
+    fn register<'py>(
+        &mut self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+        moving: Option<PyReadonlyArray1Bool<'py>>,
+        timestamp: Option<f64>,
+    ) -> PyResult<Bound<'py, numpy::PyArray2<f64>>> {
+        let (array, columns) = scan_points(points)?;
+        if columns != 4 {
+            return Err(shape_error("points", "(N, 4): x, y, z, reflectance", array.shape()));
+        }
+        let data = array.f32_data();
+        let cloud: Vec<[f32; 4]> = data
+            .chunks_exact(4)
+            .map(|p| [p[0], p[1], p[2], p[3]])
+            .collect();
+        let mask: Option<Vec<bool>> = match &moving {
+            Some(m) => Some(m.as_array().iter().copied().collect()),
+            None => None,
+        };
+        let threads = self.threads;
+        let inner = &mut self.inner;
+        let result = run(py, threads, || {
+            inner.register(Scan {
+                points: &cloud,
+                moving: mask.as_deref(),
+                timestamp,
+            })
+        });
+        let pose = self.raised_or(result)?;
+        Ok(matrix4_to_numpy(py, &pose))
+    }
+
+    /// Records a scan that could not be read: its pose from the motion model, `reason` in its diagnostics.
+    #[pyo3(signature = (reason = "unreadable_scan"))]
+    fn predict_skipped<'py>(
+        &mut self,
+        py: Python<'py>,
+        reason: &str,
+    ) -> PyResult<Bound<'py, numpy::PyArray2<f64>>> {
+        let pose = self.inner.predict_skipped(reason)?;
+        Ok(matrix4_to_numpy(py, &pose))
+    }
+
+    /// Every pose so far, `(N, 4, 4)` float64.
+    #[getter]
+    fn poses<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray3<f64>> {
+        let poses = self.inner.poses();
+        numpy::ndarray::Array3::from_shape_fn((poses.len(), 4, 4), |(n, i, j)| poses[n][(i, j)])
+            .into_pyarray(py)
+    }
+
+    /// Every frame's diagnostics, as `dmlo.Odometry`'s `FrameDiagnostics.to_dict()` gives them.
+    #[getter]
+    fn diagnostics<'py>(&self, py: Python<'py>) -> PyResult<Vec<Bound<'py, PyAny>>> {
+        let loads = py.import("json")?.getattr("loads")?;
+        self.inner
+            .diagnostics()
+            .iter()
+            .map(|d| {
+                let text = serde_json::to_string(d)
+                    .map_err(|e| PyValueError::new_err(format!("diagnostics: {e}")))?;
+                loads.call1((text,))
+            })
+            .collect()
+    }
+
+    /// The reflectance scale chosen on the first matched scan, as the config names it ("unit", "0-255",
+    /// "0-65535", or "none": not used), None before it.
+    #[getter]
+    fn reflectance_scale(&self) -> Option<String> {
+        let scale = self.inner.reflectance_scale()?;
+        serde_json::to_value(scale)
+            .ok()
+            .and_then(|name| name.as_str().map(str::to_string))
+    }
+
+    /// The config it runs with, as JSON (`dmlo run`'s `config.json` format).
+    #[getter]
+    fn config_json(&self) -> String {
+        self.inner.config().to_json()
+    }
+
+    fn __len__(&self) -> usize {
+        self.inner.poses().len()
+    }
+
+    fn __repr__(&self) -> String {
+        format!("Odometry(scans={})", self.inner.poses().len())
+    }
+}
+
+type PyReadonlyArray1Bool<'py> = numpy::PyReadonlyArray1<'py, bool>;

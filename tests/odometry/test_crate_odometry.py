@@ -1,0 +1,147 @@
+"""The crate's per-frame odometry (`dmlo_rs.Odometry`, `odometry::pipeline` in Rust) run on Python's own
+matcher (onnxruntime behind the crate's `FrameMatcher` trait) gives `dmlo.Odometry`'s poses and diagnostics
+exactly, on every real KITTI drive of `../shared/data/kitti_real`, with mapping and frame to frame — the same
+network outputs on both sides, so no RANSAC inlier can flip between them (as it does between tract's and
+onnxruntime's features, `docs/measurements.md`). The model folder holds the three graphs the crate's loop runs
+(no moving-object network, no wide-window graph)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import dmlo_rs
+import numpy as np
+import pytest
+
+from dmlo.datasets import open_sequence
+from dmlo.odometry import Odometry, OdometryConfig
+from dmlo.odometry.matcher import default_model_path
+
+GRAPHS = ("encoder.onnx", "frame.onnx", "match.onnx")
+REAL_SETS = ("odometry_01", "odometry_02", "odometry_03", "raw_drive_22")
+
+
+@pytest.fixture(scope="module")
+def three_graphs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("model")
+    for graph in GRAPHS:
+        (folder / graph).symlink_to(default_model_path() / graph)
+    return folder / "frame.onnx"
+
+
+def _scans(shared_data: Path, name: str) -> tuple[list[np.ndarray], list[float] | None]:
+    folder = shared_data / "kitti_real" / name
+    if not folder.is_dir():
+        pytest.skip(f"{folder} not found")
+    sequence = open_sequence(folder)
+    frames = [sequence[i] for i in range(len(sequence))]
+    times = [frame.timestamp for frame in frames]
+    return [frame.points for frame in frames], None if any(t is None for t in times) else times  # type: ignore[misc]
+
+
+def _without_timings(diagnostics: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [{key: value for key, value in d.items() if key != "timings_ms"} for d in diagnostics]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mapping", [True, False], ids=["mapping", "frame_to_frame"])
+@pytest.mark.parametrize("name", REAL_SETS)
+def test_the_crate_odometry_on_pythons_matcher_equals_dmlo_odometry(
+    shared_data: Path, three_graphs: Path, name: str, mapping: bool
+) -> None:
+    scans, times = _scans(shared_data, name)
+    config = OdometryConfig()
+    config.mapping.enabled = mapping
+    python = Odometry(three_graphs, config)
+    crate = dmlo_rs.Odometry(python.matcher, json.dumps(config.to_dict()))
+    for index, points in enumerate(scans):
+        timestamp = None if times is None else times[index]
+        expected = python.register(points, timestamp=timestamp)
+        got = crate.register(points, timestamp=timestamp)
+        # Both chain the same motions; only the order of the float64 products differs.
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12, err_msg=f"{name} scan {index}")
+    np.testing.assert_allclose(crate.poses, np.stack(python.poses), rtol=0, atol=1e-12)
+    assert _without_timings(crate.diagnostics) == _without_timings([d.to_dict() for d in python.diagnostics])
+    assert crate.reflectance_scale == "unit" and len(crate) == len(scans)
+
+
+class _Recorder:
+    """A matcher that hands its calls on to `inner`, and can be told to fail."""
+
+    def __init__(self, inner: Any, fail_on: str | None = None) -> None:
+        self.inner, self.fail_on = inner, fail_on
+        self.cylinder = inner.cylinder
+        self.calls: list[str] = []
+
+    def encode(self, image: np.ndarray) -> Any:
+        self.calls.append("encode")
+        if self.fail_on == "encode":
+            raise KeyError("encoder broke")
+        return self.inner.encode(image)
+
+    def match(self, reference: Any, target: Any) -> Any:
+        self.calls.append("match")
+        if self.fail_on == "match":
+            raise KeyError("matcher broke")
+        if self.fail_on == "shape":
+            flow, confidence = self.inner.match(reference, target)
+            return flow[:, :-1], confidence
+        return self.inner.match(reference, target)
+
+
+@pytest.fixture(scope="module")
+def real_pair(shared_data: Path) -> list[np.ndarray]:
+    return _scans(shared_data, "odometry_03")[0][:2]
+
+
+@pytest.fixture(scope="module")
+def onnx_matcher(three_graphs: Path) -> Any:
+    return Odometry(three_graphs, OdometryConfig()).matcher
+
+
+@pytest.mark.parametrize("fail_on", ["encode", "match"])
+def test_a_matcher_that_raises_raises_through_the_crate_and_leaves_the_odometry_as_it_was(
+    onnx_matcher: Any, real_pair: list[np.ndarray], fail_on: str
+) -> None:
+    matcher = _Recorder(onnx_matcher)
+    crate = dmlo_rs.Odometry(matcher)
+    crate.register(real_pair[0])
+    matcher.fail_on = fail_on
+    with pytest.raises(KeyError, match="broke"):
+        crate.register(real_pair[1])
+    assert len(crate) == 1
+    matcher.fail_on = None
+    pose = crate.register(real_pair[1])  # the first scan is still the reference
+    assert 0.5 < np.linalg.norm(pose[:3, 3]) < 2.0 and len(crate) == 2
+
+
+def test_a_matcher_that_returns_the_wrong_shape_is_named(onnx_matcher: Any, real_pair: list[np.ndarray]) -> None:
+    crate = dmlo_rs.Odometry(_Recorder(onnx_matcher, fail_on="shape"))
+    crate.register(real_pair[0])
+    with pytest.raises(ValueError, match=r"match: flow: expected shape \(2, 64, 1792\)"):
+        crate.register(real_pair[1])
+
+
+def test_bad_matchers_configs_and_scans_are_named(onnx_matcher: Any, real_pair: list[np.ndarray]) -> None:
+    with pytest.raises(ValueError, match="cylinder"):
+        dmlo_rs.Odometry(object())
+    without_match = type("NoMatch", (), {"cylinder": onnx_matcher.cylinder, "encode": lambda self, image: image})()
+    with pytest.raises(ValueError, match="match"):
+        dmlo_rs.Odometry(without_match)
+    with pytest.raises(ValueError, match=r"ransac\.treshold"):
+        dmlo_rs.Odometry(onnx_matcher, json.dumps({"ransac": {"treshold": 0.2}}))
+    with pytest.raises(ValueError, match=r"matching\.symmetric"):
+        dmlo_rs.Odometry(onnx_matcher, json.dumps({"matching": {"symmetric": True}}))
+    crate = dmlo_rs.Odometry(onnx_matcher)
+    with pytest.raises(ValueError, match=r"points: expected shape \(N, 4\)"):
+        crate.register(real_pair[0][:, :3])
+    with pytest.raises(TypeError, match="points"):
+        crate.register(real_pair[0].astype(np.int32))
+    with pytest.raises(ValueError, match="moving"):
+        crate.register(real_pair[0], moving=np.zeros(3, dtype=bool))
+    assert len(crate) == 0
+    crate.register(real_pair[0], moving=np.zeros(len(real_pair[0]), dtype=bool))
+    skipped = crate.predict_skipped()
+    assert crate.diagnostics[-1]["fallback"] == "unreadable_scan" and skipped.shape == (4, 4)
