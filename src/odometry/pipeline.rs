@@ -13,11 +13,11 @@
 //! motion gives way) are matched again from it.
 //!
 //! Not in the crate yet, and refused by [`Odometry::new`] when the config asks for them:
-//! `matching.symmetric`, `deskew.enabled`, `matching_stage = "graph"`. The moving-object network and the
-//! wide-window graph are not run by the crate: every point not masked by the caller is kept (as
-//! `dmlo.Odometry` does with a model folder without `moving.onnx`), and re-matching runs the model's own
-//! window only (as without `frame_wide.onnx`). Scans without usable reflectance need a range-only model
-//! as the matcher; the crate does not switch models mid-drive.
+//! `matching.symmetric`, `deskew.enabled`, `matching_stage = "graph"`. The moving-object network is not
+//! run by the crate: every point not masked by the caller is kept (as `dmlo.Odometry` does with a model
+//! folder without `moving.onnx`). Re-matching tries the wide window when the matcher has one
+//! ([`FrameMatcher::has_wide_window`]). Scans without usable reflectance need a range-only model as the
+//! matcher; the crate does not switch models mid-drive.
 
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -49,6 +49,16 @@ pub trait FrameMatcher {
     fn encode(&self, image: &[f32]) -> Result<Self::Features>;
     /// The flow of every `reference` cell into `target` and its confidence (§III-C).
     fn flow(&self, reference: &Self::Features, target: &Self::Features) -> Result<DenseFlow>;
+    /// Whether a wide-window matcher is at hand (the model's `frame_wide.onnx`: the same weights, a wider
+    /// coarse window) for pairs re-matched from the prediction, whose flow may exceed the model's window.
+    fn has_wide_window(&self) -> bool {
+        false
+    }
+    /// The wide window's flow of `reference` into the scan whose `(2, H, W)` image is `target_image`.
+    fn wide_flow(&self, reference: &Self::Features, target_image: &[f32]) -> Result<DenseFlow> {
+        let _ = (reference, target_image);
+        Err(Error::Model("the matcher has no wide window".into()))
+    }
 }
 
 /// One scan given to [`Odometry::register`].
@@ -608,7 +618,8 @@ impl<M: FrameMatcher> Odometry<M> {
             predicted,
             &target.range,
             features,
-            rounds,
+            1..=rounds,
+            None,
             true,
         )?;
         diagnostics.rematch_rounds = Some(again.as_ref().map_or(0, |pair| pair.rounds));
@@ -659,20 +670,37 @@ impl<M: FrameMatcher> Odometry<M> {
         if (gap as u64) < rematch_gap && !gives_way {
             return Ok(pair);
         }
-        let rounds = self.config.large_motion.max_rounds as usize;
-        let tried = self.rematch(
+        let large = &self.config.large_motion;
+        let mut tried = vec![self.rematch(
             &previous.cloud,
             predicted,
             &target.range,
             features,
-            rounds,
+            1..=large.max_rounds as usize,
+            None,
             false,
-        )?;
+        )?];
+        // When the prediction's error outgrows the model's window too (a turn during the gap), the wide
+        // window started from the prediction does better; beyond the prediction's horizon it is a guess,
+        // and the search's starts join it.
+        if self.matcher.has_wide_window() {
+            let mut starts = vec![*predicted];
+            if gap as u64 > self.config.motion_model.prediction_horizon {
+                starts.extend(search_starts(&large.search_ahead_m, &large.search_yaw_deg));
+            }
+            tried.push(Some(self.register_far(&previous.cloud, target, features, &starts)?));
+        }
         diagnostics.rematch_rounds = Some(0);
-        let Some(again) = tried.filter(|again| {
+        let usable = tried.into_iter().flatten().filter(|again| {
             again.motion.num_inliers >= min_inliers
                 && !self.motion.implausible(&again.transform, predicted, gap)
-        }) else {
+        });
+        // The most inliers; on a tie the first tried (the model's own window).
+        let best = usable.fold(None::<Matched>, |best, again| match best {
+            Some(best) if best.motion.num_inliers >= again.motion.num_inliers => Some(best),
+            _ => Some(again),
+        });
+        let Some(again) = best else {
             return Ok(pair);
         };
         if !gives_way && again.motion.num_inliers <= pair.motion.num_inliers {
@@ -684,24 +712,66 @@ impl<M: FrameMatcher> Odometry<M> {
         Ok(again)
     }
 
+    /// `T_tgt_ref` of `reference` and the target scan with no usable guess but `starts`: the wide window
+    /// from every start, the start with the most inliers (one vote each: starts are compared by their
+    /// counts) going on to rounds of the model's own window.
+    fn register_far(
+        &self,
+        reference: &[[f32; 4]],
+        target: &Projected,
+        tgt_features: &M::Features,
+        starts: &[Matrix4<f64>],
+    ) -> Result<Matched> {
+        let mut best: Option<(Matched, Matrix4<f64>)> = None;
+        for start in starts {
+            let moved = self.project(&moved_cloud(reference, start))?;
+            let encoded = self.matcher.encode(&moved.image)?;
+            let flow = self.matcher.wide_flow(&encoded, &target.image)?;
+            let pair = self.match_flow(&moved.range, &target.range, &flow, &moved.points, false)?;
+            if best
+                .as_ref()
+                .is_none_or(|(kept, _)| pair.motion.num_inliers > kept.motion.num_inliers)
+            {
+                best = Some((pair, *start));
+            }
+        }
+        let (pair, start) = best.ok_or_else(|| Error::Config("large_motion: no start".into()))?;
+        let refined = self.rematch(
+            reference,
+            &(pair.transform * start),
+            &target.range,
+            tgt_features,
+            2..=self.config.large_motion.max_rounds as usize,
+            Some(pair.transform),
+            false,
+        )?;
+        Ok(match refined {
+            Some(refined) => refined,
+            None => in_given_frames(pair, &start, 1),
+        })
+    }
+
     /// Rounds of matching the reference moved by the estimate so far (from `estimate`) against the
-    /// target's features with the model's window, until a round corrects less than the configured steps
-    /// (`large_motion.min_step`, `min_step_deg`). `None` when not one round kept `min_inliers` inliers.
+    /// target's features with the model's window, until a round — or the `last_correction` that led to
+    /// `estimate` — corrects less than the configured steps (`large_motion.min_step`, `min_step_deg`).
+    /// `None` when not one round kept `min_inliers` inliers.
+    #[allow(clippy::too_many_arguments)]
     fn rematch(
         &self,
         reference: &[[f32; 4]],
         estimate: &Matrix4<f64>,
         tgt_range: &[f32],
         tgt_features: &M::Features,
-        rounds: usize,
+        rounds: std::ops::RangeInclusive<usize>,
+        last_correction: Option<Matrix4<f64>>,
         tilt_votes: bool,
     ) -> Result<Option<Matched>> {
         let large = &self.config.large_motion;
         let min_inliers = self.config.motion_model.min_inliers as usize;
         let mut estimate = *estimate;
         let mut result: Option<Matched> = None;
-        let mut correction: Option<Matrix4<f64>> = None;
-        for round in 1..=rounds {
+        let mut correction = last_correction;
+        for round in rounds {
             if let Some(correction) = &correction {
                 let (moved_m, turned_deg) = pose_difference(&Matrix4::identity(), correction);
                 if moved_m < large.min_step && turned_deg < large.min_step_deg {
@@ -765,6 +835,26 @@ fn in_given_frames(mut pair: Matched, start: &Matrix4<f64>, rounds: usize) -> Ma
     pair.transform *= start;
     pair.rounds = rounds;
     pair
+}
+
+/// The guesses `T_tgt_ref` of a target `ahead` metres along the reference's x axis, turned by `yaw`
+/// (every yaw with every distance, yaw first).
+fn search_starts(ahead_m: &[f64], yaw_deg: &[f64]) -> Vec<Matrix4<f64>> {
+    let mut starts = Vec::with_capacity(ahead_m.len() * yaw_deg.len());
+    for yaw in yaw_deg {
+        let (sin, cos) = yaw.to_radians().sin_cos();
+        for &ahead in ahead_m {
+            #[rustfmt::skip]
+            let ref_tgt = Matrix4::new(
+                cos, -sin, 0.0, ahead,
+                sin, cos, 0.0, 0.0,
+                0.0, 0.0, 1.0, 0.0,
+                0.0, 0.0, 0.0, 1.0,
+            );
+            starts.push(rigid_inverse(&ref_tgt));
+        }
+    }
+    starts
 }
 
 /// A scan with its points moved by `transform`, in float32 as the points are stored (as Python's).

@@ -1,7 +1,8 @@
 //! Binding of the crate's per-frame odometry (`crate::odometry::pipeline::Odometry`) over a matcher
-//! written in Python: any object with `cylinder`, `encode(image)` and `match(reference, target)` (as
-//! `dmlo.odometry.matcher.OnnxMatcher`), so the loop runs in the crate while the network runs wherever
-//! the caller runs it (onnxruntime in `dmlo`).
+//! written in Python: any object with `cylinder`, `encode(image)` and `match(reference, target)`, and
+//! optionally `wide_match(reference, target_image)` (the wide window), as
+//! `dmlo.odometry.matcher.OnnxMatcher` gives them, so the loop runs in the crate while the network runs
+//! wherever the caller runs it (onnxruntime in `dmlo`).
 
 use std::sync::Mutex;
 
@@ -31,6 +32,7 @@ struct PythonMatcher {
     object: Py<PyAny>,
     cylinder: CylinderConfig,
     uses_reflectance: bool,
+    wide_window: bool,
     raised: Mutex<Option<PyErr>>,
 }
 
@@ -59,42 +61,67 @@ impl FrameMatcher for PythonMatcher {
     }
 
     fn encode(&self, image: &[f32]) -> Result<Py<PyAny>> {
-        let (height, width) = (self.cylinder.height, self.cylinder.width);
-        Python::attach(|py| -> PyResult<Py<PyAny>> {
-            let array = PyArray1::from_slice(py, image).reshape([2, height, width])?;
+        Python::attach(|py| {
+            let array = self.image(py, image)?;
             self.object.call_method1(py, "encode", (array,))
         })
         .map_err(|e| self.failed("encode", e))
     }
 
     fn flow(&self, reference: &Py<PyAny>, target: &Py<PyAny>) -> Result<DenseFlow> {
-        let (height, width) = (self.cylinder.height, self.cylinder.width);
-        Python::attach(|py| -> PyResult<DenseFlow> {
+        Python::attach(|py| {
             let output = self.object.call_method1(py, "match", (reference, target))?;
-            let (flow, confidence): (PyReadonlyArray3<'_, f32>, PyReadonlyArray2<'_, f32>) =
-                output.extract(py)?;
-            if flow.shape() != [2, height, width] {
-                return Err(shape_error(
-                    "match: flow",
-                    &format!("(2, {height}, {width}) float32"),
-                    flow.shape(),
-                ));
-            }
-            if confidence.shape() != [height, width] {
-                return Err(shape_error(
-                    "match: confidence",
-                    &format!("({height}, {width}) float32"),
-                    confidence.shape(),
-                ));
-            }
-            Ok(DenseFlow {
-                flow: flow.as_array().iter().copied().collect(),
-                confidence: confidence.as_array().iter().copied().collect(),
-                height,
-                width,
-            })
+            self.dense_flow(py, "match", &output)
         })
         .map_err(|e| self.failed("match", e))
+    }
+
+    fn has_wide_window(&self) -> bool {
+        self.wide_window
+    }
+
+    fn wide_flow(&self, reference: &Py<PyAny>, target_image: &[f32]) -> Result<DenseFlow> {
+        Python::attach(|py| {
+            let image = self.image(py, target_image)?;
+            let output = self.object.call_method1(py, "wide_match", (reference, image))?;
+            self.dense_flow(py, "wide_match", &output)
+        })
+        .map_err(|e| self.failed("wide_match", e))
+    }
+}
+
+impl PythonMatcher {
+    /// A `(2, H, W)` image as numpy.
+    fn image<'py>(&self, py: Python<'py>, image: &[f32]) -> PyResult<Bound<'py, PyAny>> {
+        let (height, width) = (self.cylinder.height, self.cylinder.width);
+        Ok(PyArray1::from_slice(py, image).reshape([2, height, width])?.into_any())
+    }
+
+    /// A `(flow [2, H, W], confidence [H, W])` float32 pair returned by the matcher's `method`, checked.
+    fn dense_flow(&self, py: Python<'_>, method: &str, output: &Py<PyAny>) -> PyResult<DenseFlow> {
+        let (height, width) = (self.cylinder.height, self.cylinder.width);
+        let (flow, confidence): (PyReadonlyArray3<'_, f32>, PyReadonlyArray2<'_, f32>) =
+            output.extract(py)?;
+        if flow.shape() != [2, height, width] {
+            return Err(shape_error(
+                &format!("{method}: flow"),
+                &format!("(2, {height}, {width}) float32"),
+                flow.shape(),
+            ));
+        }
+        if confidence.shape() != [height, width] {
+            return Err(shape_error(
+                &format!("{method}: confidence"),
+                &format!("({height}, {width}) float32"),
+                confidence.shape(),
+            ));
+        }
+        Ok(DenseFlow {
+            flow: flow.as_array().iter().copied().collect(),
+            confidence: confidence.as_array().iter().copied().collect(),
+            height,
+            width,
+        })
     }
 }
 
@@ -144,10 +171,14 @@ impl PyOdometry {
             Some(text) => OdometryConfig::from_json(text)?,
             None => OdometryConfig::default(),
         };
+        let wide_window = matcher
+            .getattr_opt("wide_match")?
+            .is_some_and(|m| m.is_callable());
         let python_matcher = PythonMatcher {
             object: matcher.clone().unbind(),
             cylinder: cylinder.inner,
             uses_reflectance,
+            wide_window,
             raised: Mutex::new(None),
         };
         Ok(PyOdometry {

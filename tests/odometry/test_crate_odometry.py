@@ -17,7 +17,7 @@ import pytest
 
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
-from dmlo.odometry.matcher import default_model_path
+from dmlo.odometry.matcher import CrateMatcher, default_model_path
 
 GRAPHS = ("encoder.onnx", "frame.onnx", "match.onnx")
 REAL_SETS = ("odometry_01", "odometry_02", "odometry_03", "raw_drive_22")
@@ -65,6 +65,41 @@ def test_the_crate_odometry_on_pythons_matcher_equals_dmlo_odometry(
     np.testing.assert_allclose(crate.poses, np.stack(python.poses), rtol=0, atol=1e-12)
     assert _without_timings(crate.diagnostics) == _without_timings([d.to_dict() for d in python.diagnostics])
     assert crate.reflectance_scale == "unit" and len(crate) == len(scans)
+
+
+@pytest.fixture(scope="module")
+def with_wide_window(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("model_wide")
+    for graph in (*GRAPHS, "frame_wide.onnx"):
+        (folder / graph).symlink_to(default_model_path() / graph)
+    return folder / "frame.onnx"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mapping", [True, False], ids=["mapping", "frame_to_frame"])
+def test_across_missing_scans_the_crate_rematches_with_the_wide_window_as_dmlo_odometry(
+    shared_data: Path, with_wide_window: Path, mapping: bool
+) -> None:
+    """Scans 4–6 of odometry 03 dropped (their timestamps tell the gap): both odometries match the pair across
+    the gap again from the prediction, with the model's own window and the wide one, and keep the same."""
+    scans, times = _scans(shared_data, "odometry_03")
+    assert times is not None
+    kept = [0, 1, 2, 3, 7, 8, 9]
+    config = OdometryConfig()
+    config.mapping.enabled = mapping
+    python = Odometry(with_wide_window, config)
+    matcher = CrateMatcher(python.matcher)
+    wide_calls: list[int] = []
+    wide_match = matcher.wide_match
+    matcher.wide_match = lambda reference, image: wide_calls.append(1) or wide_match(reference, image)
+    crate = dmlo_rs.Odometry(matcher, json.dumps(config.to_dict()))
+    for index in kept:
+        expected = python.register(scans[index], timestamp=times[index])
+        got = crate.register(scans[index], timestamp=times[index])
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12, err_msg=f"scan {index}")
+    diagnostics = _without_timings(crate.diagnostics)
+    assert diagnostics == _without_timings([d.to_dict() for d in python.diagnostics])
+    assert diagnostics[4]["gap"] == 4 and diagnostics[4]["rematch_rounds"] is not None and wide_calls
 
 
 class _Recorder:

@@ -375,3 +375,32 @@ def _cylinder_from_metadata(values: dict[str, object], graph: Path) -> dmlo_rs.C
         return dmlo_rs.CylinderConfig(**{k: values[k] for k in _CYLINDER_KEYS})  # type: ignore[arg-type]
     except (TypeError, ValueError, OverflowError) as err:
         raise ModelError(f"{graph}: invalid cylinder configuration: {err}") from err
+
+
+class CrateMatcher:
+    """`matcher` as the crate's odometry (`dmlo_rs.Odometry`) calls it: `encode`, `match`, `cylinder`,
+    `uses_reflectance`, and `wide_match` when the wide-window graph lies beside the model (opened on the first
+    pair far apart, with `threads` and `matching_stage` as the model's)."""
+
+    def __init__(self, matcher: OnnxMatcher, threads: int = 0, matching_stage: str = "auto") -> None:
+        self.matcher = matcher
+        self.cylinder = matcher.cylinder
+        self.uses_reflectance = matcher.uses_reflectance
+        self.encode = matcher.encode
+        self.match = matcher.match
+        self._wide: OnnxMatcher | None = None
+        self._threads, self._matching_stage = threads, matching_stage
+        if matcher.path.with_name(WIDE_FRAME_GRAPH).is_file():
+            self.wide_match = self._wide_match
+
+    def _wide_match(
+        self, reference: Features, target_image: npt.NDArray[np.float32]
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """The wide window's flow of `reference` (features of the model's encoder) into the scan `target_image`."""
+        if self._wide is None:
+            self._wide = OnnxMatcher(
+                wide_graph_path(self.matcher.path), threads=self._threads, matching_stage=self._matching_stage
+            )
+        output = self._wide.frame(target_image, reference)
+        assert output.flow is not None and output.confidence is not None
+        return output.flow, output.confidence
