@@ -721,9 +721,11 @@ class Odometry:
         points: npt.NDArray[np.floating],
         moving: npt.NDArray[np.bool_] | None = None,
         timestamp: float | None = None,
+        point_times: npt.NDArray[np.floating] | None = None,
     ) -> npt.NDArray[np.float64]:
         """Adds the next scan (N×4: x, y, z, reflectance) and returns its pose `T_world_lidar` (4×4);
-        `moving`: one flag per point, left out; `timestamp`: the scan's time, dropped scans counted from it."""
+        `moving`: one flag per point, left out; `timestamp`: the scan's time, dropped scans counted from it;
+        `point_times`: with `deskew.enabled`, each point's time in sensor periods (None: from its azimuth)."""
     def predict_skipped(self, reason: str = "unreadable_scan") -> npt.NDArray[np.float64]:
         """Records a scan that could not be read: its pose from the motion model."""
     @property

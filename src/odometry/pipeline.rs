@@ -13,7 +13,7 @@
 //! motion gives way) are matched again from it.
 //!
 //! Not in the crate yet, and refused by [`Odometry::new`] when the config asks for them:
-//! `matching.symmetric`, `deskew.enabled`, `matching_stage = "graph"`. The moving-object network is not
+//! `matching.symmetric`, `matching_stage = "graph"`. The moving-object network is not
 //! run by the crate: every point not masked by the caller is kept (as `dmlo.Odometry` does with a model
 //! folder without `moving.onnx`). Re-matching tries the wide window when the matcher has one
 //! ([`FrameMatcher::has_wide_window`]). Scans without usable reflectance need a range-only model as the
@@ -26,6 +26,8 @@ use nalgebra::{Matrix4, Point3};
 use serde::Serialize;
 
 use crate::dense_match::DenseFlow;
+use crate::deskew::{deskew, sweep_times, SweepPattern};
+use crate::rigid::isometry_from_matrix;
 use crate::error::{Error, Result};
 use crate::odometry::clock::FrameClock;
 use crate::odometry::config::{MatchingStage, OdometryConfig, ReflectanceScale};
@@ -70,6 +72,9 @@ pub struct Scan<'a> {
     pub moving: Option<&'a [bool]>,
     /// The scan's time (any increasing unit): scans the sensor dropped are counted from it.
     pub timestamp: Option<f64>,
+    /// With `deskew.enabled`: when each point was measured, in sensor periods, 0 at the moment the pose
+    /// refers to (e.g. −0.5…0.5 over a sweep centred on it); `None`: from each point's azimuth.
+    pub point_times: Option<&'a [f64]>,
 }
 
 impl<'a> Scan<'a> {
@@ -79,6 +84,7 @@ impl<'a> Scan<'a> {
             points,
             moving: None,
             timestamp: None,
+            point_times: None,
         }
     }
 }
@@ -196,6 +202,10 @@ impl Matched {
 /// The last usable scan, matched against the next one.
 struct Reference<F> {
     cloud: Vec<[f32; 4]>,
+    /// Its points' sweep times, when given.
+    times: Option<Vec<f64>>,
+    /// Its sweep was deskewed.
+    deskewed: bool,
     range: Vec<f32>,
     points: Vec<f32>,
     features: F,
@@ -234,7 +244,6 @@ impl<M: FrameMatcher> Odometry<M> {
         config.validate()?;
         let unsupported = [
             (config.matching.symmetric, "matching.symmetric"),
-            (config.deskew.enabled, "deskew.enabled"),
             (
                 config.matching_stage == MatchingStage::Graph,
                 "matching_stage = \"graph\"",
@@ -312,14 +321,27 @@ impl<M: FrameMatcher> Odometry<M> {
                 ));
             }
         }
+        if let Some(times) = scan.point_times {
+            if times.len() != scan.points.len() {
+                return Err(Error::invalid(
+                    "point_times",
+                    format!(
+                        "expected one time per point ({}), got {}",
+                        scan.points.len(),
+                        times.len()
+                    ),
+                ));
+            }
+        }
         let finite = |p: &[f32; 4]| p.iter().all(|v| v.is_finite());
-        let kept: Vec<[f32; 4]> = scan
+        let keep: Vec<bool> = scan
             .points
             .iter()
             .enumerate()
-            .filter(|&(i, p)| finite(p) && !scan.moving.is_some_and(|m| m[i]))
-            .map(|(_, p)| *p)
+            .map(|(i, p)| finite(p) && !scan.moving.is_some_and(|m| m[i]))
             .collect();
+        let kept: Vec<[f32; 4]> = kept_rows(scan.points, &keep);
+        let times = scan.point_times.map(|times| kept_rows(times, &keep));
         let min_points = self.config.min_points as usize;
         let scale = self.reflectance_for(scan.points, min_points)?;
         let tick = self.clock.advance(scan.timestamp)?;
@@ -331,7 +353,16 @@ impl<M: FrameMatcher> Odometry<M> {
         if kept.len() < min_points {
             return Ok(self.skip(diagnostics, "too_few_points"));
         }
-        let cloud = normalised(kept, scale.unwrap_or(ReflectanceScale::Unit));
+        let mut cloud = normalised(kept, scale.unwrap_or(ReflectanceScale::Unit));
+        let deskewed = self.config.deskew.enabled && self.motion.is_measured();
+        if deskewed {
+            let start = Instant::now();
+            cloud = self.deskewed(&cloud, times.as_deref())?;
+            self.deskew_reference()?;
+            let ms = start.elapsed().as_secs_f64() * 1e3;
+            diagnostics.timings_ms.insert("deskew".into(), ms);
+            diagnostics.deskewed = true;
+        }
         let mut watch = Stopwatch::new();
         let projected = self.project(&cloud)?;
         let filled = projected.range.iter().filter(|&&r| r > 0.0).count();
@@ -364,6 +395,8 @@ impl<M: FrameMatcher> Odometry<M> {
         }
         self.reference = Some(Reference {
             cloud,
+            times,
+            deskewed,
             range: projected.range,
             points: projected.points,
             features,
@@ -492,6 +525,55 @@ impl<M: FrameMatcher> Odometry<M> {
                  (range_only/) as the matcher (dmlo.Odometry switches to it by itself)"
             ),
         )
+    }
+
+    /// The sweep moved into the sensor frame of its pose's moment by the per-frame velocity: the
+    /// sensor's motion over one period is the inverse of `T_tgt_ref` (a sweep lasts one period however
+    /// many scans went missing before it).
+    fn deskewed(&self, cloud: &[[f32; 4]], times: Option<&[f64]>) -> Result<Vec<[f32; 4]>> {
+        let d = &self.config.deskew;
+        let pattern = SweepPattern {
+            clockwise: d.clockwise,
+            reference_azimuth_deg: d.reference_azimuth_deg,
+        };
+        let flat: &[f32] = cloud.as_flattened();
+        let derived;
+        let times = match times {
+            Some(times) => times,
+            None => {
+                derived = sweep_times(flat, 4, &pattern)?;
+                &derived[..]
+            }
+        };
+        let motion = isometry_from_matrix(&rigid_inverse(self.motion.velocity()), "velocity")?;
+        let moved = deskew(flat, 4, times, &motion)?;
+        Ok(moved
+            .chunks_exact(4)
+            .map(|p| [p[0], p[1], p[2], p[3]])
+            .collect())
+    }
+
+    /// The first deskewed scan's reference, measured before any velocity was, deskewed too (its own
+    /// motion is the velocity just measured) and encoded again: a skewed scan matched against a deskewed
+    /// one loses the skew's cancellation between two sweeps of the same motion, and with mapping the map
+    /// then holds only deskewed scans.
+    fn deskew_reference(&mut self) -> Result<()> {
+        let Some(reference) = self.reference.as_ref().filter(|r| !r.deskewed) else {
+            return Ok(());
+        };
+        let cloud = self.deskewed(&reference.cloud, reference.times.as_deref())?;
+        let projected = self.project(&cloud)?;
+        let features = self.matcher.encode(&projected.image)?;
+        let reference = self.reference.as_mut().expect("checked above");
+        if let Some(map) = &mut self.map {
+            map.restart(&as_points(&cloud), &reference.pose, &projected.points)?;
+        }
+        reference.cloud = cloud;
+        reference.range = projected.range;
+        reference.points = projected.points;
+        reference.features = features;
+        reference.deskewed = true;
+        Ok(())
     }
 
     /// The network input, range image and point image of a scan (Eq. 1).
@@ -869,6 +951,16 @@ fn moved_cloud(cloud: &[[f32; 4]], transform: &Matrix4<f64>) -> Vec<[f32; 4]> {
             let row = |i: usize| x * t[(i, 0)] + y * t[(i, 1)] + z * t[(i, 2)] + t[(i, 3)];
             [row(0), row(1), row(2), reflectance]
         })
+        .collect()
+}
+
+/// The rows of `values` whose `keep` flag is set.
+fn kept_rows<T: Copy>(values: &[T], keep: &[bool]) -> Vec<T> {
+    values
+        .iter()
+        .zip(keep)
+        .filter(|&(_, &kept)| kept)
+        .map(|(value, _)| *value)
         .collect()
 }
 

@@ -17,7 +17,7 @@ use crate::odometry::config::OdometryConfig;
 use crate::odometry::pipeline::{FrameMatcher, Odometry, Scan};
 use crate::projection::CylinderConfig;
 
-use super::convert::{matrix4_to_numpy, scan_points, shape_error};
+use super::convert::{matrix4_to_numpy, scan_points, shape_error, vector_f64};
 use super::pool::run;
 use super::projection::PyCylinderConfig;
 
@@ -189,16 +189,21 @@ impl PyOdometry {
 
     /// Adds the next scan (`N×4` x, y, z, reflectance, float32 or float64; non-finite rows left out) and
     /// returns its pose `T_world_lidar` (4×4 float64). `moving`: one flag per point, left out of matching
-    /// and the map; `timestamp`: the scan's time, from which dropped scans are counted.
-    #[pyo3(signature = (points, moving = None, timestamp = None))]
+    /// and the map; `timestamp`: the scan's time, from which dropped scans are counted; `point_times`: with
+    /// `deskew.enabled`, each point's time in sensor periods (None: from its azimuth).
+    #[pyo3(signature = (points, moving = None, timestamp = None, point_times = None))]
     fn register<'py>(
         &mut self,
         py: Python<'py>,
         points: &Bound<'py, PyAny>,
         moving: Option<PyReadonlyArray1Bool<'py>>,
         timestamp: Option<f64>,
+        point_times: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, numpy::PyArray2<f64>>> {
         let (array, columns) = scan_points(points)?;
+        let times = point_times
+            .map(|t| vector_f64("point_times", t))
+            .transpose()?;
         if columns != 4 {
             return Err(shape_error("points", "(N, 4): x, y, z, reflectance", array.shape()));
         }
@@ -218,6 +223,7 @@ impl PyOdometry {
                 points: &cloud,
                 moving: mask.as_deref(),
                 timestamp,
+                point_times: times.as_deref(),
             })
         });
         let pose = self.raised_or(result)?;

@@ -102,6 +102,34 @@ def test_across_missing_scans_the_crate_rematches_with_the_wide_window_as_dmlo_o
     assert diagnostics[4]["gap"] == 4 and diagnostics[4]["rematch_rounds"] is not None and wide_calls
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("mapping", [True, False], ids=["mapping", "frame_to_frame"])
+def test_deskewed_sweeps_are_the_same_in_the_crate(shared_data: Path, three_graphs: Path, mapping: bool) -> None:
+    """The raw drive's sweeps (not motion-compensated) deskewed by the measured velocity, from the third scan
+    on (its reference deskewed and encoded again then), sweep times from the azimuths or given."""
+    scans, _ = _scans(shared_data, "raw_drive_22")
+    scans = scans[:8]
+    config = OdometryConfig()
+    config.mapping.enabled = mapping
+    config.deskew.enabled = True
+    python = Odometry(three_graphs, config)
+    crate = dmlo_rs.Odometry(python.matcher, json.dumps(config.to_dict()))
+    for index, points in enumerate(scans):
+        # Given times on the odd scans: the azimuth's, scaled a little so that they differ from the derived.
+        times = None
+        if index % 2:
+            azimuth = np.arctan2(points[:, 1], points[:, 0])
+            times = (-azimuth / (2 * np.pi) * 0.9).astype(np.float64)
+        expected = python.register(points, point_times=times)
+        got = crate.register(points, point_times=times)
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12, err_msg=f"scan {index}")
+    diagnostics = _without_timings(crate.diagnostics)
+    assert diagnostics == _without_timings([d.to_dict() for d in python.diagnostics])
+    assert [d["deskewed"] for d in diagnostics] == [False, False] + [True] * (len(scans) - 2)
+    with pytest.raises(ValueError, match="point_times"):
+        crate.register(scans[0], point_times=np.zeros(3))
+
+
 class _Recorder:
     """A matcher that hands its calls on to `inner`, and can be told to fail."""
 
