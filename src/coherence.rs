@@ -13,7 +13,7 @@
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::ground_truth::check_range_image;
+use crate::ground_truth::{check_non_negative_image, check_range_image};
 use crate::projection::CylinderConfig;
 
 /// Settings of [`coherent_confidence`].
@@ -78,7 +78,12 @@ pub fn coherent_confidence(
 ) -> Result<Vec<f32>> {
     config.validate()?;
     check_range_image("reference", reference, config)?;
-    check_range_image("confidence", confidence, config)?;
+    check_non_negative_image(
+        "confidence",
+        confidence,
+        config,
+        "confidences must be finite and >= 0",
+    )?;
     let cells = config.height * config.width;
     if flow.len() != 2 * cells {
         return Err(Error::invalid(

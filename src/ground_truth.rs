@@ -35,25 +35,33 @@ pub(crate) fn check_range_image(
     range: &[f32],
     config: &CylinderConfig,
 ) -> Result<()> {
-    if range.len() != config.height * config.width {
+    check_non_negative_image(argument, range, config, "ranges must be finite and >= 0; 0 = empty")
+}
+
+/// Checks that an image of `config` has its size and only finite, non-negative values (`rule` says so
+/// in the error).
+pub(crate) fn check_non_negative_image(
+    argument: &'static str,
+    values: &[f32],
+    config: &CylinderConfig,
+    rule: &str,
+) -> Result<()> {
+    if values.len() != config.height * config.width {
         return Err(Error::invalid(
             argument,
             format!(
                 "has {} cells, the config's image is {}x{} = {}",
-                range.len(),
+                values.len(),
                 config.height,
                 config.width,
                 config.height * config.width
             ),
         ));
     }
-    if let Some(i) = range.iter().position(|r| !(r.is_finite() && *r >= 0.0)) {
+    if let Some(i) = values.iter().position(|r| !(r.is_finite() && *r >= 0.0)) {
         return Err(Error::invalid(
             argument,
-            format!(
-                "cell {i} holds {} (ranges must be finite and >= 0; 0 = empty)",
-                range[i]
-            ),
+            format!("cell {i} holds {} ({rule})", values[i]),
         ));
     }
     Ok(())

@@ -1,11 +1,15 @@
-//! Property-based tests of the crate's public entry points (issue 25): random and adversarial input
-//! (NaN, infinities, huge coordinates, empty and mismatched slices, any settings) gives a valid result or
-//! an `Error`, never a panic or a hang; and exact pairs give their motion back, wherever they lie.
+//! Property-based tests of the crate's public entry points (issue 25, and the odometry's loop of issue
+//! 24): random and adversarial input (NaN, infinities, huge coordinates, empty and mismatched slices, any
+//! settings) gives a valid result or an `Error`, never a panic or a hang; and exact pairs give their
+//! motion back, wherever they lie.
 //!
 //! Few cases each, so that `cargo test --release` stays fast; no regression files are written (a
 //! failure prints its minimal case: add it to the unit tests of the module at fault).
 
+use dmlo_rs::dense_match::DenseFlow;
 use dmlo_rs::nms::nms_wrapping;
+use dmlo_rs::odometry::config::OdometryConfig;
+use dmlo_rs::odometry::pipeline::{FrameMatcher, Odometry, Scan};
 use dmlo_rs::projection::{project_flat, unproject_many, CylinderConfig};
 use dmlo_rs::ransac::{ransac_rigid_voted, RansacConfig, Refit};
 use dmlo_rs::ray_noise::RayNoise;
@@ -263,4 +267,134 @@ fn a_point_beyond_a_float32_range_is_out_of_view() {
     let projection = project_flat(&points, 4, &CylinderConfig::kitti()).unwrap();
     assert!(projection.range.iter().all(|r| r.is_finite()));
     assert_eq!((projection.num_valid(), projection.num_out_of_view), (1, 1));
+}
+
+/// A stand-in for the network: the features are the range image, the flow one given offset everywhere
+/// (possibly absurd), the confidence one given value (possibly NaN).
+struct ConstantFlowMatcher {
+    cylinder: CylinderConfig,
+    offset: (f32, f32),
+    confidence: f32,
+}
+
+impl FrameMatcher for ConstantFlowMatcher {
+    type Features = Vec<f32>;
+
+    fn cylinder(&self) -> &CylinderConfig {
+        &self.cylinder
+    }
+
+    fn encode(&self, image: &[f32]) -> dmlo_rs::Result<Vec<f32>> {
+        Ok(image[..image.len() / 2].to_vec())
+    }
+
+    fn flow(&self, reference: &Vec<f32>, _target: &Vec<f32>) -> dmlo_rs::Result<DenseFlow> {
+        let cells = reference.len();
+        let mut flow = vec![self.offset.0; cells];
+        flow.extend(std::iter::repeat_n(self.offset.1, cells));
+        Ok(DenseFlow {
+            flow,
+            confidence: vec![self.confidence; cells],
+            height: self.cylinder.height,
+            width: self.cylinder.width,
+        })
+    }
+
+    fn has_wide_window(&self) -> bool {
+        true
+    }
+
+    fn wide_flow(&self, reference: &Vec<f32>, _target_image: &[f32]) -> dmlo_rs::Result<DenseFlow> {
+        self.flow(reference, reference)
+    }
+}
+
+/// A scan as a user may hand one over: a walled yard seen from `(x, 0)` (dense enough for the stand-in's
+/// flow to find matches), some of its values replaced by what breaks arithmetic or reflectance scales.
+fn odometry_scan(x: f64, seed: u64, corrupt: usize) -> Vec<[f32; 4]> {
+    let mut points = Vec::with_capacity(20_000);
+    let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let mut next = || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    for _ in 0..20_000 {
+        let azimuth = next() * std::f64::consts::TAU;
+        let elevation = (-24.0 + next() * 26.0f64).to_radians();
+        let (dx, dy) = (azimuth.cos(), azimuth.sin());
+        // The yard's walls: x in [-20, 25], y in [-15, 15] around the origin, the ground 1.7 m below.
+        let to_wall = [((25.0 - x) / dx), ((-20.0 - x) / dx), (15.0 / dy), (-15.0 / dy)]
+            .into_iter()
+            .filter(|t| *t > 0.0)
+            .fold(f64::INFINITY, f64::min);
+        let to_ground = if elevation < 0.0 { 1.7 / -elevation.tan() } else { f64::INFINITY };
+        let reach = to_wall.min(to_ground);
+        let z = (reach * elevation.tan()).max(-1.7);
+        points.push([(reach * dx) as f32, (reach * dy) as f32, z as f32, next() as f32]);
+    }
+    let bad = [f32::NAN, f32::INFINITY, -f32::INFINITY, 3.4e38, 0.0, 1e-30, 300.0, 70000.0];
+    for k in 0..corrupt.min(points.len()) {
+        let point = (next() * points.len() as f64) as usize;
+        points[point][k % 4] = bad[(next() * bad.len() as f64) as usize];
+    }
+    points
+}
+
+proptest! {
+    #![proptest_config(config(32))]
+
+    /// `Odometry::register` with any scans, masks, timestamps, sweep times, flows and settings gives a
+    /// rigid, finite pose or a named error, never a panic; an error leaves the poses as they were.
+    #[test]
+    fn odometry_registers_any_scan_or_names_what_is_wrong(
+        scans in prop::collection::vec(
+            (0.0..2.0f64, any::<u64>(), prop_oneof![3 => Just(0usize), 1 => 0usize..50, 1 => Just(25_000usize)],
+             prop_oneof![6 => Just(20_000usize), 1 => 0usize..200]),
+            1..5,
+        ),
+        offset in (prop_oneof![6 => -1.0..1.0f32, 1 => Just(f32::NAN), 1 => Just(1e30f32)],
+                   prop_oneof![6 => -8.0..2.0f32, 1 => Just(f32::INFINITY)]),
+        confidence in prop_oneof![6 => 0.0..1.0f32, 1 => Just(f32::NAN), 1 => Just(-1.0f32)],
+        mapping in any::<bool>(),
+        symmetric in any::<bool>(),
+        deskew in any::<bool>(),
+        timestamps in prop::collection::vec(prop_oneof![12 => 0.0..0.5f64, 1 => Just(f64::NAN), 1 => Just(-5.0)], 4),
+        mask_share in prop_oneof![3 => Just(0.0f64), 1 => 0.0..1.0f64],
+        min_points in prop_oneof![3 => Just(100u64), 1 => 0u64..5],
+    ) {
+        let mut config = OdometryConfig::default();
+        config.mapping.enabled = mapping;
+        config.matching.symmetric = symmetric;
+        config.deskew.enabled = deskew;
+        config.min_points = min_points;
+        let matcher = ConstantFlowMatcher { cylinder: CylinderConfig::kitti(), offset, confidence };
+        let mut odometry = Odometry::new(matcher, config).unwrap();
+        let mut ahead = 0.0;
+        for (i, &(step, seed, corrupt, kept)) in scans.iter().enumerate() {
+            ahead += step;
+            let mut points = odometry_scan(ahead, seed, corrupt);
+            points.truncate(kept);
+            let moving: Vec<bool> = (0..points.len()).map(|k| (k as f64 * 0.618).fract() < mask_share).collect();
+            let times: Vec<f64> = (0..points.len()).map(|k| (k as f64 / points.len().max(1) as f64) - 0.5).collect();
+            let before = odometry.poses().len();
+            let scan = Scan {
+                points: &points,
+                moving: Some(&moving),
+                timestamp: Some(timestamps[i % 4] + i as f64),
+                point_times: (i % 2 == 1).then_some(&times[..]),
+            };
+            match odometry.register(scan) {
+                Ok(pose) => {
+                    prop_assert!(pose.iter().all(|v| v.is_finite()), "{}", pose);
+                    let rotation = pose.fixed_view::<3, 3>(0, 0);
+                    prop_assert!((rotation.transpose() * rotation - nalgebra::Matrix3::identity()).abs().max() < 1e-6);
+                    prop_assert_eq!(odometry.poses().len(), before + 1);
+                }
+                Err(error) => {
+                    prop_assert!(!error.to_string().is_empty());
+                    prop_assert_eq!(odometry.poses().len(), before);
+                }
+            }
+        }
+    }
 }

@@ -8,7 +8,7 @@
 //! otherwise the prediction is taken. Transforms are 4×4 homogeneous matrices, `T_tgt_ref` for motions
 //! and `T_world_lidar` for poses, as `dmlo.Odometry` holds them.
 
-use nalgebra::{Matrix4, Point3, Vector3};
+use nalgebra::{Matrix3, Matrix4, Point3, Vector3};
 
 use crate::error::{Error, Result};
 use crate::ransac::Refit;
@@ -337,6 +337,22 @@ pub fn pose_difference(a: &Matrix4<f64>, b: &Matrix4<f64>) -> (f64, f64) {
     let sine = 0.5 * skew.norm();
     let cosine = 0.5 * (step[(0, 0)] + step[(1, 1)] + step[(2, 2)] - 1.0);
     (moved, sine.atan2(cosine).to_degrees())
+}
+
+/// The rigid motion halfway between two: the rotation the projection of `R_a + R_b` onto SO(3) (for two
+/// rotations their geodesic midpoint), the translation the mean; as `dmlo.poses.midpoint_motion`.
+pub fn midpoint_motion(a: &Matrix4<f64>, b: &Matrix4<f64>) -> Matrix4<f64> {
+    let sum: Matrix3<f64> = a.fixed_view::<3, 3>(0, 0) + b.fixed_view::<3, 3>(0, 0);
+    let svd = sum.svd(true, true);
+    let (u, v_t) = (svd.u.expect("asked for"), svd.v_t.expect("asked for"));
+    let fix = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, (u * v_t).determinant().signum()));
+    let mut middle = Matrix4::identity();
+    middle
+        .fixed_view_mut::<3, 3>(0, 0)
+        .copy_from(&(u * fix * v_t));
+    let translation = (a.fixed_view::<3, 1>(0, 3) + b.fixed_view::<3, 1>(0, 3)) / 2.0;
+    middle.fixed_view_mut::<3, 1>(0, 3).copy_from(&translation);
+    middle
 }
 
 /// The inverse of a rigid transform `[R t; 0 1]`: `[Rᵀ −Rᵀt; 0 1]`, its last row exact (a general inverse

@@ -12,12 +12,12 @@
 //! network's window are matched from the prediction, and pairs across missing scans (or whose own
 //! motion gives way) are matched again from it.
 //!
-//! Not in the crate yet, and refused by [`Odometry::new`] when the config asks for them:
-//! `matching.symmetric`, `matching_stage = "graph"`. The moving-object network is not
+//! Refused by [`Odometry::new`]: a `matching_stage` the matcher does not run
+//! ([`FrameMatcher::runs_matching_stage`]). The moving-object network is not
 //! run by the crate: every point not masked by the caller is kept (as `dmlo.Odometry` does with a model
 //! folder without `moving.onnx`). Re-matching tries the wide window when the matcher has one
-//! ([`FrameMatcher::has_wide_window`]). Scans without usable reflectance need a range-only model as the
-//! matcher; the crate does not switch models mid-drive.
+//! ([`FrameMatcher::has_wide_window`]). Scans without usable reflectance switch to the range-only model
+//! ([`Odometry::with_range_only`]).
 
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -32,7 +32,9 @@ use crate::error::{Error, Result};
 use crate::odometry::clock::FrameClock;
 use crate::odometry::config::{MatchingStage, OdometryConfig, ReflectanceScale};
 use crate::odometry::mapping::LocalMap;
-use crate::odometry::motion::{pose_difference, rigid_inverse, MotionModel, PairEvidence};
+use crate::odometry::motion::{
+    midpoint_motion, pose_difference, rigid_inverse, MotionModel, PairEvidence,
+};
 use crate::pair::{match_pair, PairConfig, PairImages, PairMotion};
 use crate::projection::{project, CylinderConfig};
 
@@ -51,6 +53,11 @@ pub trait FrameMatcher {
     fn encode(&self, image: &[f32]) -> Result<Self::Features>;
     /// The flow of every `reference` cell into `target` and its confidence (§III-C).
     fn flow(&self, reference: &Self::Features, target: &Self::Features) -> Result<DenseFlow>;
+    /// Whether the matcher runs its matching stage as the config's `matching_stage` asks: by default the
+    /// crate's (`auto`, `crate`), not an exported matching graph (`graph`).
+    fn runs_matching_stage(&self, stage: MatchingStage) -> bool {
+        stage != MatchingStage::Graph
+    }
     /// Whether a wide-window matcher is at hand (the model's `frame_wide.onnx`: the same weights, a wider
     /// coarse window) for pairs re-matched from the prediction, whose flow may exceed the model's window.
     fn has_wide_window(&self) -> bool {
@@ -235,6 +242,8 @@ pub struct Odometry<M: FrameMatcher> {
     poses: Vec<Matrix4<f64>>,
     diagnostics: Vec<FrameDiagnostics>,
     reflectance: Option<ReflectanceScale>,
+    /// The range-only model, run from the first scan without usable reflectance on.
+    range_only: Option<M>,
 }
 
 impl<M: FrameMatcher> Odometry<M> {
@@ -242,16 +251,10 @@ impl<M: FrameMatcher> Odometry<M> {
     /// are refused, naming them).
     pub fn new(matcher: M, config: OdometryConfig) -> Result<Self> {
         config.validate()?;
-        let unsupported = [
-            (config.matching.symmetric, "matching.symmetric"),
-            (
-                config.matching_stage == MatchingStage::Graph,
-                "matching_stage = \"graph\"",
-            ),
-        ];
-        if let Some((_, key)) = unsupported.iter().find(|(asked, _)| *asked) {
+        if !matcher.runs_matching_stage(config.matching_stage) {
             return Err(Error::Config(format!(
-                "{key}: not run by the crate's odometry yet (dmlo.Odometry in Python runs it)"
+                "matching_stage: {}: not how this matcher matches (dmlo.Odometry in Python runs the graph stage)",
+                serde_json::to_string(&config.matching_stage).unwrap_or_default()
             )));
         }
         let cylinder = *matcher.cylinder();
@@ -275,7 +278,30 @@ impl<M: FrameMatcher> Odometry<M> {
             poses: Vec::new(),
             diagnostics: Vec::new(),
             reflectance: None,
+            range_only: None,
         })
+    }
+
+    /// The odometry with a range-only model beside the matcher (the bundled model's `range_only/`): from
+    /// the first scan without usable reflectance on it runs instead, the reference scan encoded again by
+    /// it (without one such a scan is an error: a model that reads reflectance cannot run on zeros).
+    pub fn with_range_only(mut self, range_only: M) -> Result<Self> {
+        if range_only.uses_reflectance() {
+            return Err(Error::invalid(
+                "range_only",
+                "reads the reflectance channel: not a range-only model",
+            ));
+        }
+        if range_only.cylinder() != self.matcher.cylinder() {
+            return Err(Error::invalid(
+                "range_only",
+                "its cylinder image differs from the model's",
+            ));
+        }
+        if self.matcher.uses_reflectance() {
+            self.range_only = Some(range_only);
+        }
+        Ok(self)
     }
 
     /// The matcher it runs.
@@ -495,7 +521,9 @@ impl<M: FrameMatcher> Odometry<M> {
         let choice = match self.reflectance {
             Some(chosen) => {
                 if chosen != ReflectanceScale::Ignored && detected.0 == ReflectanceScale::Ignored {
-                    return Err(self.no_reflectance(&detected.1));
+                    self.switch_to_range_only(&detected.1)?;
+                    self.reflectance = Some(ReflectanceScale::Ignored);
+                    return Ok(self.reflectance);
                 }
                 return Ok(Some(chosen));
             }
@@ -511,10 +539,29 @@ impl<M: FrameMatcher> Odometry<M> {
             } else {
                 detected.1
             };
-            return Err(self.no_reflectance(&why));
+            self.switch_to_range_only(&why)?;
         }
         self.reflectance = Some(choice);
         Ok(Some(choice))
+    }
+
+    /// Runs the range-only model from now on, the reference scan encoded again by it; an error naming
+    /// `why` when there is none.
+    fn switch_to_range_only(&mut self, why: &str) -> Result<()> {
+        let Some(range_only) = self.range_only.take() else {
+            return Err(self.no_reflectance(why));
+        };
+        if let Some(reference) = &self.reference {
+            match self.project(&reference.cloud).and_then(|p| range_only.encode(&p.image)) {
+                Ok(features) => self.reference.as_mut().expect("checked").features = features,
+                Err(e) => {
+                    self.range_only = Some(range_only);
+                    return Err(e);
+                }
+            }
+        }
+        self.matcher = range_only;
+        Ok(())
     }
 
     fn no_reflectance(&self, why: &str) -> Error {
@@ -522,7 +569,7 @@ impl<M: FrameMatcher> Odometry<M> {
             "points",
             format!(
                 "{why}, and the model reads reflectance: give the range-only model beside it \
-                 (range_only/) as the matcher (dmlo.Odometry switches to it by itself)"
+                 (range_only/) to Odometry::with_range_only"
             ),
         )
     }
@@ -589,17 +636,20 @@ impl<M: FrameMatcher> Odometry<M> {
         })
     }
 
-    /// The pair's back end on a flow, tilt votes as the config says (`tilt_votes`) or one vote each.
+    /// The pair's back end on a flow (`leave_out`: reference cells not matched), tilt votes as the
+    /// config says (`tilt_votes`) or one vote each.
     fn match_flow(
         &self,
         ref_range: &[f32],
         tgt_range: &[f32],
         flow: &DenseFlow,
         ref_points: &[f32],
+        leave_out: Option<&[bool]>,
         tilt_votes: bool,
     ) -> Result<Matched> {
         let images = PairImages {
             ref_points: Some(ref_points),
+            leave_out,
             ..PairImages::new(ref_range, tgt_range, &flow.flow, &flow.confidence)
         };
         Ok(Matched::new(match_pair(
@@ -630,15 +680,26 @@ impl<M: FrameMatcher> Odometry<M> {
         } else {
             let flow = self.matcher.flow(&previous.features, features)?;
             watch.lap("matching", diagnostics);
-            let pair = self.match_flow(
-                &previous.range,
-                &target.range,
-                &flow,
-                &previous.points,
-                true,
-            )?;
-            watch.lap("pair", diagnostics);
-            diagnostics.count_matches(&pair);
+            let pair = if self.config.matching.symmetric {
+                let (forward, backward) =
+                    self.matched_both_ways(previous, target, features, &flow, diagnostics, watch)?;
+                diagnostics.count_matches(&forward);
+                diagnostics.backward_inliers = Some(backward.motion.num_inliers);
+                let min_inliers = self.config.motion_model.min_inliers as usize;
+                symmetric(forward, backward, min_inliers)
+            } else {
+                let pair = self.match_flow(
+                    &previous.range,
+                    &target.range,
+                    &flow,
+                    &previous.points,
+                    None,
+                    true,
+                )?;
+                watch.lap("pair", diagnostics);
+                diagnostics.count_matches(&pair);
+                pair
+            };
             let pair = self.rematched_if_better(
                 pair,
                 previous,
@@ -666,6 +727,49 @@ impl<M: FrameMatcher> Odometry<M> {
             diagnostics.fallback = Some(fallback.name().to_string());
         }
         Ok(judged.motion)
+    }
+
+    /// The forward pair (`flow`, reference → target) and the target matched back against the reference
+    /// from the cached features (`T_ref_tgt`), each without the cells whose flow the other direction's
+    /// flow does not lead back to within `matching.consistency_px`.
+    fn matched_both_ways(
+        &self,
+        previous: &Reference<M::Features>,
+        target: &Projected,
+        features: &M::Features,
+        flow: &DenseFlow,
+        diagnostics: &mut FrameDiagnostics,
+        watch: &mut Stopwatch,
+    ) -> Result<(Matched, Matched)> {
+        let back = self.matcher.flow(features, &previous.features)?;
+        watch.lap("network_backward", diagnostics);
+        let wraps = self.cylinder.wraps_azimuth();
+        let (forward_out, backward_out) = match self.config.matching.consistency_px {
+            Some(limit) => (
+                Some(round_trip_outliers(flow, &back, wraps, limit)),
+                Some(round_trip_outliers(&back, flow, wraps, limit)),
+            ),
+            None => (None, None),
+        };
+        let forward = self.match_flow(
+            &previous.range,
+            &target.range,
+            flow,
+            &previous.points,
+            forward_out.as_deref(),
+            true,
+        )?;
+        watch.lap("pair", diagnostics);
+        let backward = self.match_flow(
+            &target.range,
+            &previous.range,
+            &back,
+            &target.points,
+            backward_out.as_deref(),
+            true,
+        )?;
+        watch.lap("backward", diagnostics);
+        Ok((forward, backward))
     }
 
     /// Whether the predicted motion outgrows the network's window (`motion_model.match_from_prediction_m`)
@@ -809,7 +913,8 @@ impl<M: FrameMatcher> Odometry<M> {
             let moved = self.project(&moved_cloud(reference, start))?;
             let encoded = self.matcher.encode(&moved.image)?;
             let flow = self.matcher.wide_flow(&encoded, &target.image)?;
-            let pair = self.match_flow(&moved.range, &target.range, &flow, &moved.points, false)?;
+            let pair =
+                self.match_flow(&moved.range, &target.range, &flow, &moved.points, None, false)?;
             if best
                 .as_ref()
                 .is_none_or(|(kept, _)| pair.motion.num_inliers > kept.motion.num_inliers)
@@ -865,7 +970,7 @@ impl<M: FrameMatcher> Odometry<M> {
                 .matcher
                 .flow(&self.matcher.encode(&moved.image)?, tgt_features)?;
             let pair =
-                self.match_flow(&moved.range, tgt_range, &flow, &moved.points, tilt_votes)?;
+                self.match_flow(&moved.range, tgt_range, &flow, &moved.points, None, tilt_votes)?;
             if pair.motion.num_inliers < min_inliers {
                 break;
             }
@@ -917,6 +1022,74 @@ fn in_given_frames(mut pair: Matched, start: &Matrix4<f64>, rounds: usize) -> Ma
     pair.transform *= start;
     pair.rounds = rounds;
     pair
+}
+
+/// One motion from a pair matched both ways: the midpoint of the forward motion and the inverted
+/// backward one, with both directions' matches (the backward ones turned round). A direction with fewer
+/// than `min_inliers` inliers is left out; with neither, the forward pair goes on to the motion model.
+fn symmetric(forward: Matched, backward: Matched, min_inliers: usize) -> Matched {
+    let reverse = Matched {
+        transform: rigid_inverse(&backward.transform),
+        motion: PairMotion {
+            transform: backward.motion.transform.inverse(),
+            source: backward.motion.target,
+            target: backward.motion.source,
+            ..backward.motion
+        },
+        rounds: backward.rounds,
+    };
+    match (
+        forward.motion.num_inliers >= min_inliers,
+        reverse.motion.num_inliers >= min_inliers,
+    ) {
+        (true, true) => {}
+        (false, true) => return reverse,
+        _ => return forward,
+    }
+    let transform = midpoint_motion(&forward.transform, &reverse.transform);
+    let joined = |a: &[Point3<f64>], b: &[Point3<f64>]| [a, b].concat();
+    Matched {
+        motion: PairMotion {
+            transform: forward.motion.transform,
+            source: joined(&forward.motion.source, &reverse.motion.source),
+            target: joined(&forward.motion.target, &reverse.motion.target),
+            cells: [forward.motion.cells, reverse.motion.cells].concat(),
+            inliers: [forward.motion.inliers, reverse.motion.inliers].concat(),
+            num_inliers: forward.motion.num_inliers + reverse.motion.num_inliers,
+            inlier_votes: forward
+                .motion
+                .inlier_votes
+                .zip(reverse.motion.inlier_votes)
+                .map(|(a, b)| a + b),
+        },
+        transform,
+        rounds: forward.rounds,
+    }
+}
+
+/// Per cell, whether following `flow` and then `back` (read at the nearest cell of the match) lands
+/// further than `limit` pixels from where it started, or the match leaves the image: optical flow's
+/// forward–backward consistency check, in float32 as `dmlo.Odometry` computes it.
+fn round_trip_outliers(flow: &DenseFlow, back: &DenseFlow, wraps: bool, limit: f64) -> Vec<bool> {
+    let (height, width) = (flow.height, flow.width);
+    let cells = height * width;
+    let limit = limit as f32;
+    (0..cells)
+        .map(|cell| {
+            let (row, col) = (cell / width, cell % width);
+            let (d_row, d_col) = (flow.flow[cell], flow.flow[cells + cell]);
+            let at_row = (row as f32 + d_row).round_ties_even() as i64;
+            let mut at_col = (col as f32 + d_col).round_ties_even() as i64;
+            if wraps {
+                at_col = at_col.rem_euclid(width as i64);
+            }
+            if at_row < 0 || at_row >= height as i64 || at_col < 0 || at_col >= width as i64 {
+                return true;
+            }
+            let at = at_row as usize * width + at_col as usize;
+            (d_row + back.flow[at]).hypot(d_col + back.flow[cells + at]) > limit
+        })
+        .collect()
 }
 
 /// The guesses `T_tgt_ref` of a target `ahead` metres along the reference's x axis, turned by `yaw`

@@ -4,7 +4,7 @@
 //! `dmlo.odometry.matcher.OnnxMatcher` gives them, so the loop runs in the crate while the network runs
 //! wherever the caller runs it (onnxruntime in `dmlo`).
 
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
 use numpy::{IntoPyArray, PyArray3};
@@ -13,7 +13,7 @@ use pyo3::prelude::*;
 
 use crate::dense_match::DenseFlow;
 use crate::error::{Error, Result};
-use crate::odometry::config::OdometryConfig;
+use crate::odometry::config::{MatchingStage, OdometryConfig};
 use crate::odometry::pipeline::{FrameMatcher, Odometry, Scan};
 use crate::projection::CylinderConfig;
 
@@ -33,10 +33,48 @@ struct PythonMatcher {
     cylinder: CylinderConfig,
     uses_reflectance: bool,
     wide_window: bool,
-    raised: Mutex<Option<PyErr>>,
+    raised: Raised,
 }
 
+/// Where the matchers of one odometry keep the exception a call raised, for the binding to raise again.
+type Raised = Arc<Mutex<Option<PyErr>>>;
+
 impl PythonMatcher {
+    /// `object` checked for the protocol (module docs); errors name it as `name`.
+    fn new(name: &str, object: &Bound<'_, PyAny>, raised: &Raised) -> PyResult<Self> {
+        let cylinder = object
+            .getattr_opt("cylinder")?
+            .and_then(|c| c.extract::<PyCylinderConfig>().ok())
+            .ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "{name}: expected a `cylinder` attribute of type CylinderConfig"
+                ))
+            })?;
+        let uses_reflectance = match object.getattr_opt("uses_reflectance")? {
+            Some(value) => value.extract::<bool>().map_err(|_| {
+                PyValueError::new_err(format!("{name}: `uses_reflectance` must be True or False"))
+            })?,
+            None => true,
+        };
+        for method in ["encode", "match"] {
+            if !object.getattr_opt(method)?.is_some_and(|m| m.is_callable()) {
+                return Err(PyValueError::new_err(format!(
+                    "{name}: expected a method `{method}`"
+                )));
+            }
+        }
+        let wide_window = object
+            .getattr_opt("wide_match")?
+            .is_some_and(|m| m.is_callable());
+        Ok(PythonMatcher {
+            object: object.clone().unbind(),
+            cylinder: cylinder.inner,
+            uses_reflectance,
+            wide_window,
+            raised: raised.clone(),
+        })
+    }
+
     /// Keeps the matcher's exception for the binding and tells the crate that the call failed.
     fn failed(&self, method: &str, err: PyErr) -> Error {
         let message = format!("the matcher's {method} raised {err}");
@@ -44,9 +82,6 @@ impl PythonMatcher {
         Error::Model(message)
     }
 
-    fn take_raised(&self) -> Option<PyErr> {
-        self.raised.lock().unwrap_or_else(|p| p.into_inner()).take()
-    }
 }
 
 impl FrameMatcher for PythonMatcher {
@@ -74,6 +109,11 @@ impl FrameMatcher for PythonMatcher {
             self.dense_flow(py, "match", &output)
         })
         .map_err(|e| self.failed("match", e))
+    }
+
+    /// The Python matcher was opened for the config's stage (`dmlo.odometry.matcher.OnnxMatcher`).
+    fn runs_matching_stage(&self, _stage: MatchingStage) -> bool {
+        true
     }
 
     fn has_wide_window(&self) -> bool {
@@ -129,63 +169,45 @@ impl PythonMatcher {
 #[pyclass(name = "Odometry", module = "dmlo_rs._dmlo_rs")]
 pub struct PyOdometry {
     inner: Odometry<PythonMatcher>,
+    raised: Raised,
     threads: Option<i64>,
 }
 
 impl PyOdometry {
     /// `result` of a call into the crate, the matcher's own exception in place of the crate's report of it.
     fn raised_or<T>(&self, result: PyResult<T>) -> PyResult<T> {
-        result.map_err(|err| self.inner.matcher().take_raised().unwrap_or(err))
+        let raised = self.raised.lock().unwrap_or_else(|p| p.into_inner()).take();
+        result.map_err(|err| raised.unwrap_or(err))
     }
 }
 
 #[pymethods]
 impl PyOdometry {
     #[new]
-    #[pyo3(signature = (matcher, config_json = None, num_threads = None))]
+    #[pyo3(signature = (matcher, config_json = None, num_threads = None, range_only = None))]
     fn new(
         matcher: &Bound<'_, PyAny>,
         config_json: Option<&str>,
         num_threads: Option<super::convert::Int>,
+        range_only: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
-        let cylinder = matcher
-            .getattr_opt("cylinder")?
-            .and_then(|c| c.extract::<PyCylinderConfig>().ok())
-            .ok_or_else(|| {
-                PyValueError::new_err("matcher: expected a `cylinder` attribute of type CylinderConfig")
-            })?;
-        let uses_reflectance = match matcher.getattr_opt("uses_reflectance")? {
-            Some(value) => value.extract::<bool>().map_err(|_| {
-                PyValueError::new_err("matcher: `uses_reflectance` must be True or False")
-            })?,
-            None => true,
-        };
-        for method in ["encode", "match"] {
-            if !matcher.getattr_opt(method)?.is_some_and(|m| m.is_callable()) {
-                return Err(PyValueError::new_err(format!(
-                    "matcher: expected a method `{method}`"
-                )));
-            }
-        }
         let config = match config_json {
             Some(text) => OdometryConfig::from_json(text)?,
             None => OdometryConfig::default(),
         };
-        let wide_window = matcher
-            .getattr_opt("wide_match")?
-            .is_some_and(|m| m.is_callable());
-        let python_matcher = PythonMatcher {
-            object: matcher.clone().unbind(),
-            cylinder: cylinder.inner,
-            uses_reflectance,
-            wide_window,
-            raised: Mutex::new(None),
-        };
+        let raised = Raised::default();
+        let mut odometry = Odometry::new(PythonMatcher::new("matcher", matcher, &raised)?, config)?;
+        if let Some(range_only) = range_only {
+            let range_only = PythonMatcher::new("range_only", range_only, &raised)?;
+            odometry = odometry.with_range_only(range_only)?;
+        }
         Ok(PyOdometry {
-            inner: Odometry::new(python_matcher, config)?,
+            inner: odometry,
+            raised,
             threads: super::pool::threads(num_threads)?,
         })
     }
+
 
     /// Adds the next scan (`N×4` x, y, z, reflectance, float32 or float64; non-finite rows left out) and
     /// returns its pose `T_world_lidar` (4×4 float64). `moving`: one flag per point, left out of matching

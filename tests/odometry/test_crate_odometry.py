@@ -8,6 +8,7 @@ onnxruntime's features, `docs/measurements.md`). The model folder holds the thre
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +18,8 @@ import pytest
 
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
-from dmlo.odometry.matcher import CrateMatcher, default_model_path
+from dmlo.odometry.matcher import CrateMatcher, OnnxMatcher, default_model_path
+from dmlo.odometry.reflectance import ReflectanceNotice
 
 GRAPHS = ("encoder.onnx", "frame.onnx", "match.onnx")
 REAL_SETS = ("odometry_01", "odometry_02", "odometry_03", "raw_drive_22")
@@ -130,6 +132,59 @@ def test_deskewed_sweeps_are_the_same_in_the_crate(shared_data: Path, three_grap
         crate.register(scans[0], point_times=np.zeros(3))
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["odometry_01", "raw_drive_22"])
+def test_symmetric_matching_is_the_same_in_the_crate(shared_data: Path, three_graphs: Path, name: str) -> None:
+    """`matching.symmetric`: every pair matched both ways, the round-trip check leaving cells out, the two
+    motions' midpoint."""
+    scans, times = _scans(shared_data, name)
+    config = OdometryConfig()
+    config.mapping.enabled = False
+    config.matching.symmetric = True
+    python = Odometry(three_graphs, config)
+    crate = dmlo_rs.Odometry(python.matcher, json.dumps(config.to_dict()))
+    for index, points in enumerate(scans[:10]):
+        timestamp = None if times is None else times[index]
+        expected = python.register(points, timestamp=timestamp)
+        got = crate.register(points, timestamp=timestamp)
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12, err_msg=f"scan {index}")
+    diagnostics = _without_timings(crate.diagnostics)
+    assert diagnostics == _without_timings([d.to_dict() for d in python.diagnostics])
+    assert all(d["backward_inliers"] for d in diagnostics[1:])
+
+
+@pytest.mark.slow
+def test_scans_without_reflectance_switch_the_crate_to_the_range_only_model(
+    shared_data: Path, tmp_path: Path
+) -> None:
+    """From the first scan whose reflectance is gone (zeroed from scan 5 of odometry 03 on), both odometries
+    run the range-only model beside the model, the reference scan encoded again by it."""
+    for folder, source in ((tmp_path, default_model_path()), (tmp_path / "range_only", default_model_path() / "range_only")):
+        folder.mkdir(exist_ok=True)
+        for graph in GRAPHS:
+            (folder / graph).symlink_to(source / graph)
+    scans, times = _scans(shared_data, "odometry_03")
+    assert times is not None
+    config = OdometryConfig()
+    python = Odometry(tmp_path / "frame.onnx", config)
+    range_only = python._range_only
+    assert range_only is not None and not range_only.uses_reflectance
+    crate = dmlo_rs.Odometry(python.matcher, json.dumps(config.to_dict()), range_only=range_only)
+    for index, points in enumerate(scans):
+        if index >= 5:
+            points = points.copy()
+            points[:, 3] = 0.0
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ReflectanceNotice)
+            expected = python.register(points, timestamp=times[index])
+        got = crate.register(points, timestamp=times[index])
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12, err_msg=f"scan {index}")
+    assert python.matcher is range_only and crate.reflectance_scale == "none"
+    assert _without_timings(crate.diagnostics) == _without_timings([d.to_dict() for d in python.diagnostics])
+    with pytest.raises(ValueError, match="range_only: reads the reflectance"):
+        dmlo_rs.Odometry(range_only, range_only=CrateMatcher(OnnxMatcher(tmp_path / "frame.onnx")))
+
+
 class _Recorder:
     """A matcher that hands its calls on to `inner`, and can be told to fail."""
 
@@ -195,8 +250,6 @@ def test_bad_matchers_configs_and_scans_are_named(onnx_matcher: Any, real_pair: 
         dmlo_rs.Odometry(without_match)
     with pytest.raises(ValueError, match=r"ransac\.treshold"):
         dmlo_rs.Odometry(onnx_matcher, json.dumps({"ransac": {"treshold": 0.2}}))
-    with pytest.raises(ValueError, match=r"matching\.symmetric"):
-        dmlo_rs.Odometry(onnx_matcher, json.dumps({"matching": {"symmetric": True}}))
     crate = dmlo_rs.Odometry(onnx_matcher)
     with pytest.raises(ValueError, match=r"points: expected shape \(N, 4\)"):
         crate.register(real_pair[0][:, :3])

@@ -7,12 +7,15 @@ use crate::ground_truth::ground_truth_flow;
 use crate::odometry::config::OdometryConfig;
 use crate::test_scenes::yard_scan;
 
-/// A matcher that knows the truth: its "features" are the range image, its flow the ground-truth flow
-/// (Eq. 5–8) under the motion the test sets before each pair, full confidence where it is defined.
+/// A matcher that knows the truth: its "features" are the range image (with the order it was encoded
+/// in), its flow the ground-truth flow (Eq. 5–8) under the motion the test sets before each pair (its
+/// inverse for a pair matched back, from the newer scan to the older), full confidence where it is
+/// defined.
 struct OracleMatcher {
     cylinder: CylinderConfig,
     truth: Cell<Isometry3<f64>>,
     encoded: Cell<usize>,
+    reads_reflectance: bool,
 }
 
 impl OracleMatcher {
@@ -21,24 +24,34 @@ impl OracleMatcher {
             cylinder: CylinderConfig::kitti(),
             truth: Cell::new(Isometry3::identity()),
             encoded: Cell::new(0),
+            reads_reflectance: true,
         }
     }
 }
 
 impl FrameMatcher for OracleMatcher {
-    type Features = Vec<f32>;
+    type Features = (usize, Vec<f32>);
 
     fn cylinder(&self) -> &CylinderConfig {
         &self.cylinder
     }
 
-    fn encode(&self, image: &[f32]) -> Result<Vec<f32>> {
-        self.encoded.set(self.encoded.get() + 1);
-        Ok(image[..image.len() / 2].to_vec())
+    fn uses_reflectance(&self) -> bool {
+        self.reads_reflectance
     }
 
-    fn flow(&self, reference: &Vec<f32>, target: &Vec<f32>) -> Result<DenseFlow> {
-        let truth = ground_truth_flow(reference, target, &self.truth.get(), &self.cylinder, 0.3)?;
+    fn encode(&self, image: &[f32]) -> Result<(usize, Vec<f32>)> {
+        self.encoded.set(self.encoded.get() + 1);
+        Ok((self.encoded.get(), image[..image.len() / 2].to_vec()))
+    }
+
+    fn flow(&self, reference: &(usize, Vec<f32>), target: &(usize, Vec<f32>)) -> Result<DenseFlow> {
+        let motion = if reference.0 < target.0 {
+            self.truth.get()
+        } else {
+            self.truth.get().inverse()
+        };
+        let truth = ground_truth_flow(&reference.1, &target.1, &motion, &self.cylinder, 0.3)?;
         Ok(DenseFlow {
             flow: truth.flow,
             confidence: truth
@@ -245,19 +258,15 @@ fn reflectance_on_another_scale_is_brought_to_the_models() {
 }
 
 #[test]
-fn settings_the_crate_does_not_run_yet_are_named() {
+fn bad_settings_and_a_matching_stage_the_matcher_does_not_run_are_named() {
     for (change, key) in [
         (
-            (|c: &mut OdometryConfig| c.matching.symmetric = true) as fn(&mut OdometryConfig),
-            "matching.symmetric",
-        ),
-        (
-            |c: &mut OdometryConfig| c.deskew.enabled = true,
-            "deskew.enabled",
-        ),
-        (
-            |c: &mut OdometryConfig| c.ransac.threshold = -1.0,
+            (|c: &mut OdometryConfig| c.ransac.threshold = -1.0) as fn(&mut OdometryConfig),
             "ransac.threshold",
+        ),
+        (
+            |c: &mut OdometryConfig| c.matching_stage = MatchingStage::Graph,
+            "matching_stage",
         ),
     ] {
         let mut config = OdometryConfig::default();
@@ -265,6 +274,88 @@ fn settings_the_crate_does_not_run_yet_are_named() {
         let error = Odometry::new(OracleMatcher::new(), config).err().unwrap();
         assert!(error.to_string().contains(key), "{error}");
     }
+}
+
+#[test]
+fn symmetric_matching_follows_the_truth_both_ways() {
+    let mut config = config(false);
+    config.matching.symmetric = true;
+    let mut odometry = Odometry::new(OracleMatcher::new(), config).unwrap();
+    for i in 0..4 {
+        let pose = register(&mut odometry, &scan(i), i.saturating_sub(1), i);
+        let (moved, turned) = error_to_truth(&pose, i);
+        assert!(moved < 0.02 && turned < 0.1, "frame {i}: {moved} m, {turned}°");
+    }
+    for d in &odometry.diagnostics()[1..] {
+        assert!(d.backward_inliers.is_some_and(|n| n >= 10), "{d:?}");
+        assert!(d.timings_ms.contains_key("network_backward"), "{d:?}");
+    }
+}
+
+#[test]
+fn symmetric_pairs_take_the_midpoint_of_both_directions_or_the_one_with_inliers() {
+    let pair = |transform: Isometry3<f64>, inliers: usize| {
+        let points = vec![Point3::new(1.0, 2.0, 3.0); inliers];
+        Matched::new(PairMotion {
+            transform,
+            source: points.clone(),
+            target: points,
+            cells: vec![[0, 0]; inliers],
+            inliers: vec![true; inliers],
+            num_inliers: inliers,
+            inlier_votes: Some(inliers as f64),
+        })
+    };
+    let forward = Isometry3::new(Vector3::new(1.0, 0.0, 0.0), Vector3::z() * 0.02);
+    let backward = Isometry3::new(Vector3::new(-1.2, 0.0, 0.0), Vector3::z() * -0.04).inverse();
+    let both = symmetric(pair(forward, 20), pair(backward.inverse(), 30), 10);
+    // The translations' mean, half way round about z.
+    let mean = (forward.translation.vector + backward.translation.vector) / 2.0;
+    let expected = Isometry3::new(mean, Vector3::z() * 0.03);
+    let (moved, turned) = pose_difference(&expected.to_homogeneous(), &both.transform);
+    assert!(moved < 1e-12 && turned < 1e-9, "{moved} m, {turned}°");
+    assert_eq!((both.motion.num_inliers, both.motion.source.len()), (50, 50));
+    assert_eq!(both.motion.inlier_votes, Some(50.0));
+    // A direction without enough inliers is left out.
+    let forward_only = symmetric(pair(forward, 20), pair(backward.inverse(), 5), 10);
+    assert_eq!(forward_only.transform, forward.to_homogeneous());
+    let backward_only = symmetric(pair(forward, 5), pair(backward.inverse(), 30), 10);
+    let (moved, _) = pose_difference(&backward.to_homogeneous(), &backward_only.transform);
+    assert!(moved < 1e-12);
+}
+
+#[test]
+fn deskewing_a_sweep_taken_at_one_moment_changes_nothing() {
+    let mut plain = Odometry::new(OracleMatcher::new(), config(false)).unwrap();
+    let mut config = config(false);
+    config.deskew.enabled = true;
+    let mut deskewed = Odometry::new(OracleMatcher::new(), config).unwrap();
+    for i in 0..4 {
+        let points = scan(i);
+        let at_once = vec![0.0; points.len()];
+        let expected = register(&mut plain, &points, i.saturating_sub(1), i);
+        deskewed
+            .matcher
+            .truth
+            .set(true_pose(i).inverse() * true_pose(i.saturating_sub(1)));
+        let pose = deskewed
+            .register(Scan {
+                point_times: Some(&at_once),
+                ..Scan::new(&points)
+            })
+            .unwrap();
+        assert!(pose_difference(&expected, &pose).0 < 1e-6, "frame {i}");
+    }
+    let flags: Vec<bool> = deskewed.diagnostics().iter().map(|d| d.deskewed).collect();
+    assert_eq!(flags, [false, false, true, true]);
+    let points = scan(4);
+    let error = deskewed
+        .register(Scan {
+            point_times: Some(&[0.0; 3]),
+            ..Scan::new(&points)
+        })
+        .unwrap_err();
+    assert!(error.to_string().starts_with("point_times:"), "{error}");
 }
 
 #[test]
@@ -287,4 +378,39 @@ fn reflectance_detection_follows_python() {
         ReflectanceScale::Byte,
     );
     assert_eq!((cloud[0][3], cloud[1][3]), (1.0, 0.2));
+}
+
+#[test]
+fn scans_without_reflectance_switch_to_the_range_only_model() {
+    let range_only = || OracleMatcher {
+        reads_reflectance: false,
+        ..OracleMatcher::new()
+    };
+    let odometry = Odometry::new(OracleMatcher::new(), config(true)).unwrap();
+    let mut odometry = odometry.with_range_only(range_only()).unwrap();
+    for i in 0..3 {
+        register(&mut odometry, &scan(i), i.saturating_sub(1), i);
+    }
+    assert_eq!(odometry.reflectance_scale(), Some(ReflectanceScale::Unit));
+    for i in 3..6 {
+        let dark: Vec<[f32; 4]> = scan(i).iter().map(|&[x, y, z, _]| [x, y, z, 0.0]).collect();
+        odometry.matcher.truth.set(true_pose(i).inverse() * true_pose(i - 1));
+        let pose = odometry.register(Scan::new(&dark)).unwrap();
+        assert!(error_to_truth(&pose, i).0 < 0.02, "frame {i}");
+    }
+    assert!(!odometry.matcher.uses_reflectance());
+    // The range-only model encoded the reference again and then each new scan.
+    assert_eq!(odometry.matcher.encoded.get(), 4);
+    assert_eq!(odometry.reflectance_scale(), Some(ReflectanceScale::Ignored));
+    // Not a range-only model; a model already range-only needs none.
+    let error = Odometry::new(OracleMatcher::new(), config(false))
+        .unwrap()
+        .with_range_only(OracleMatcher::new())
+        .err()
+        .unwrap();
+    assert!(error.to_string().starts_with("range_only:"), "{error}");
+    let mut alone = Odometry::new(range_only(), config(false)).unwrap();
+    let dark: Vec<[f32; 4]> = scan(0).iter().map(|&[x, y, z, _]| [x, y, z, 0.0]).collect();
+    alone.register(Scan::new(&dark)).unwrap();
+    assert_eq!(alone.reflectance_scale(), Some(ReflectanceScale::Ignored));
 }
