@@ -8,7 +8,9 @@
 //! ```
 //!
 //! `SCANS_DIR` holds the scans (`*.bin`, N × 4 float32: x, y, z, reflectance), registered in name
-//! order. `MODEL_DIR` (default `python/dmlo/models/default`) holds `encoder.onnx`; `CONFIG.json` is a
+//! order. `MODEL_DIR` (default `python/dmlo/models/default`) holds `encoder.onnx` (with `frame_wide.onnx`
+//! beside it: its wide window for pairs re-matched from the prediction; with `range_only/encoder.onnx`:
+//! the range-only model for scans without usable reflectance); `CONFIG.json` is a
 //! config as `dmlo run` writes it (default: the defaults). `OUT_DIR` gets `poses_kitti.txt`
 //! (`T_world_lidar`, the first scan the world: one row of 12 numbers a scan, readable by evo) and
 //! `diagnostics.jsonl` (one JSON object a scan), both appended and flushed scan by scan, so an interrupted
@@ -21,7 +23,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use dmlo_rs::inference::{LearnedMatcher, TractEncoder};
+use dmlo_rs::inference::{graph_metadata, LearnedMatcher, TractEncoder};
 use dmlo_rs::odometry::config::OdometryConfig;
 use dmlo_rs::odometry::pipeline::{Odometry, Scan};
 
@@ -126,6 +128,17 @@ fn python_exponent(text: &str) -> String {
     }
 }
 
+/// The model in `folder`: its `encoder.onnx` run by tract, with the wide window of `frame_wide.onnx`
+/// beside it when there is one.
+fn learned_matcher(folder: &Path) -> dmlo_rs::Result<LearnedMatcher<TractEncoder>> {
+    let matcher = LearnedMatcher::new(TractEncoder::open(folder.join("encoder.onnx"))?)?;
+    let wide = folder.join("frame_wide.onnx");
+    if !wide.is_file() {
+        return Ok(matcher);
+    }
+    matcher.with_wide_window(graph_metadata(&wide)?.coarse_window)
+}
+
 fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error>> {
     let arguments = parse(args)?;
     let config = match &arguments.config {
@@ -139,8 +152,11 @@ fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error>> {
             .build_global()?;
     }
     let files = scan_files(&arguments.scans)?;
-    let matcher = LearnedMatcher::new(TractEncoder::open(arguments.model.join("encoder.onnx"))?)?;
-    let mut odometry = Odometry::new(matcher, config)?;
+    let mut odometry = Odometry::new(learned_matcher(&arguments.model)?, config)?;
+    let range_only = arguments.model.join("range_only");
+    if range_only.join("encoder.onnx").is_file() {
+        odometry = odometry.with_range_only(learned_matcher(&range_only)?)?;
+    }
     std::fs::create_dir_all(&arguments.out)?;
     let mut poses = BufWriter::new(File::create(arguments.out.join("poses_kitti.txt"))?);
     let mut diagnostics = BufWriter::new(File::create(arguments.out.join("diagnostics.jsonl"))?);

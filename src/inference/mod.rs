@@ -30,7 +30,7 @@ mod metadata;
 mod tract;
 
 pub use metadata::ModelMetadata;
-pub use tract::TractEncoder;
+pub use tract::{graph_metadata, TractEncoder};
 
 use crate::dense_match::{self, DenseFlow, DenseMatchConfig, FeatureMap, ScanFeatures};
 use crate::error::{Error, Result};
@@ -89,6 +89,7 @@ pub struct LearnedMatcher<E: Encoder> {
     encoder: E,
     config: DenseMatchConfig,
     cylinder: CylinderConfig,
+    wide: Option<DenseMatchConfig>,
 }
 
 impl<E: Encoder> LearnedMatcher<E> {
@@ -104,7 +105,28 @@ impl<E: Encoder> LearnedMatcher<E> {
             encoder,
             config,
             cylinder,
+            wide: None,
         })
+    }
+
+    /// The matcher with the wide coarse window of the model's `frame_wide.onnx` (its metadata's
+    /// `coarse_window`, [`graph_metadata`]) for pairs re-matched from the prediction: the same weights,
+    /// a wider search.
+    pub fn with_wide_window(mut self, coarse_window: usize) -> Result<Self> {
+        if coarse_window <= self.config.coarse_window {
+            return Err(Error::invalid(
+                "coarse_window",
+                format!(
+                    "{coarse_window} is not wider than the model's window ({})",
+                    self.config.coarse_window
+                ),
+            ));
+        }
+        self.wide = Some(DenseMatchConfig {
+            coarse_window,
+            ..self.config
+        });
+        Ok(self)
     }
 
     /// The encoder, to encode scans (and cache their features).
@@ -141,6 +163,19 @@ impl<E: Encoder> FrameMatcher for LearnedMatcher<E> {
 
     fn flow(&self, reference: &EncodedScan, target: &EncodedScan) -> Result<DenseFlow> {
         LearnedMatcher::flow(self, reference, target)
+    }
+
+    fn has_wide_window(&self) -> bool {
+        self.wide.is_some()
+    }
+
+    fn wide_flow(&self, reference: &EncodedScan, target_image: &[f32]) -> Result<DenseFlow> {
+        let wide = self
+            .wide
+            .as_ref()
+            .ok_or_else(|| Error::Model("the matcher has no wide window".into()))?;
+        let target = self.encoder.encode(target_image)?;
+        dense_match::match_features(&reference.features(), &target.features(), wide)
     }
 }
 

@@ -89,6 +89,42 @@ fn a_scan_matched_with_itself_stays_in_place() {
 }
 
 #[test]
+fn the_wide_window_is_the_bundled_frame_wide_graphs_and_matches_wider() {
+    let wide = bundled_encoder().with_file_name("frame_wide.onnx");
+    let coarse_window = graph_metadata(&wide).unwrap().coarse_window;
+    assert_eq!(coarse_window, 41);
+    let matcher = LearnedMatcher::new(TractEncoder::open(bundled_encoder()).unwrap()).unwrap();
+    assert!(!FrameMatcher::has_wide_window(&matcher));
+    let narrower = LearnedMatcher::new(TractEncoder::open(bundled_encoder()).unwrap())
+        .unwrap()
+        .with_wide_window(15)
+        .unwrap_err();
+    assert!(narrower.to_string().starts_with("coarse_window:"), "{narrower}");
+    let matcher = matcher.with_wide_window(coarse_window).unwrap();
+    assert!(FrameMatcher::has_wide_window(&matcher));
+    let Some((image, _, _)) = real_scan_images("kitti_real/odometry_03/velodyne/000000.bin") else {
+        eprintln!("no shared KITTI scans: skipped");
+        return;
+    };
+    let Some((target, _, _)) = real_scan_images("kitti_real/odometry_03/velodyne/000001.bin") else {
+        return;
+    };
+    let reference = matcher.encoder().encode(&image).unwrap();
+    let wide = matcher.wide_flow(&reference, &target).unwrap();
+    let expected = crate::dense_match::match_features(
+        &reference.features(),
+        &matcher.encoder().encode(&target).unwrap().features(),
+        &DenseMatchConfig {
+            coarse_window,
+            ..*matcher.config()
+        },
+    )
+    .unwrap();
+    assert_eq!(wide, expected);
+    assert!(graph_metadata("no/such/frame_wide.onnx").is_err());
+}
+
+#[test]
 fn bad_models_are_named_errors() {
     let missing = TractEncoder::open("no/such/encoder.onnx").unwrap_err();
     assert!(

@@ -30,6 +30,25 @@ impl fmt::Debug for TractEncoder {
     }
 }
 
+/// The dmlo metadata of any exported graph at `path` (e.g. `frame_wide.onnx`, for its wide coarse
+/// window), without building it.
+pub fn graph_metadata(path: impl AsRef<Path>) -> Result<ModelMetadata> {
+    let path = path.as_ref();
+    let shown = path.display().to_string();
+    if !path.is_file() {
+        return Err(Error::Model(format!("{shown}: no such file")));
+    }
+    let proto = tract_onnx::onnx()
+        .proto_model_for_path(path)
+        .map_err(|e| Error::Model(format!("{shown}: not an ONNX graph: {e:#}")))?;
+    let entries: HashMap<String, String> = proto
+        .metadata_props
+        .iter()
+        .map(|entry| (entry.key.clone(), entry.value.clone()))
+        .collect();
+    ModelMetadata::from_entries(&entries, &shown)
+}
+
 impl TractEncoder {
     /// Opens the encoder graph at `path`. Errors ([`Error::Model`]) name the file and what is wrong: missing,
     /// not ONNX, not a dmlo encoder (e.g. `frame.onnx` given: the encoder is `encoder.onnx` beside it),

@@ -234,10 +234,9 @@ impl PyOdometry {
             .chunks_exact(4)
             .map(|p| [p[0], p[1], p[2], p[3]])
             .collect();
-        let mask: Option<Vec<bool>> = match &moving {
-            Some(m) => Some(m.as_array().iter().copied().collect()),
-            None => None,
-        };
+        let mask: Option<Vec<bool>> = moving
+            .as_ref()
+            .map(|m| m.as_array().iter().copied().collect());
         let threads = self.threads;
         let inner = &mut self.inner;
         let result = run(py, threads, || {
