@@ -90,11 +90,17 @@ def test_committed_range_only_state_was_made_by_the_recipe() -> None:
     assert config.batch_size == int(option(arguments, "--batch-size"))
 
 
-def test_scenes_stage_fine_tunes_on_the_recipes_drives_and_the_scene_drives(
-    captured: list[list[str]], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
-) -> None:
+@pytest.fixture
+def scene_drives(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """One training and one held-out scene drive, not simulated."""
     scenes = ([tmp_path / "scenes_highway"], [tmp_path / "val_scenes_jam"])
     monkeypatch.setattr(default_recipe, "simulate_scene_drives", lambda data, poses: scenes)
+
+
+@pytest.mark.usefixtures("scene_drives")
+def test_scenes_stage_fine_tunes_on_the_recipes_drives_and_the_scene_drives(
+    captured: list[list[str]], tmp_path: Path
+) -> None:
     run = tmp_path / "run"
     assert default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--scenes"]) == 0
     (argv,) = captured
@@ -108,11 +114,10 @@ def test_scenes_stage_fine_tunes_on_the_recipes_drives_and_the_scene_drives(
         default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--scenes", "--range-only"])
 
 
+@pytest.mark.usefixtures("scene_drives")
 def test_scenes_pose_stage_trains_whole_images_from_the_scenes_stage(
-    captured: list[list[str]], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+    captured: list[list[str]], tmp_path: Path
 ) -> None:
-    scenes = ([tmp_path / "scenes_highway"], [tmp_path / "val_scenes_jam"])
-    monkeypatch.setattr(default_recipe, "simulate_scene_drives", lambda data, poses: scenes)
     run = tmp_path / "run"
     with pytest.raises(SystemExit):  # the scenes stage has not run: nothing to start from
         default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--scenes-pose"])
