@@ -713,9 +713,12 @@ class Odometry:
     [2, H, W] float32: range, reflectance), `match(reference, target)` → (flow [2, H, W], confidence [H, W])
     float32, and optionally `uses_reflectance` (bool) — as `dmlo.odometry.matcher.OnnxMatcher`. An exception
     the matcher raises comes through unchanged. `config_json`: `dmlo run`'s config.json text (None: the
-    defaults); settings the crate does not run yet raise ValueError naming them."""
+    defaults; a bad setting raises ValueError naming it); `range_only`: the range-only model's matcher, run
+    from the first scan without usable reflectance on."""
 
-    def __new__(cls, matcher: object, config_json: str | None = None, num_threads: int | None = None) -> Odometry: ...
+    def __new__(
+        cls, matcher: object, config_json: str | None = None, num_threads: int | None = None, range_only: object | None = None
+    ) -> Odometry: ...
     def register(
         self,
         points: npt.NDArray[np.floating],
