@@ -714,10 +714,16 @@ class Odometry:
     float32, and optionally `uses_reflectance` (bool) — as `dmlo.odometry.matcher.OnnxMatcher`. An exception
     the matcher raises comes through unchanged. `config_json`: `dmlo run`'s config.json text (None: the
     defaults; a bad setting raises ValueError naming it); `range_only`: the range-only model's matcher, run
-    from the first scan without usable reflectance on."""
+    from the first scan without usable reflectance on; `allow_zero_reflectance`: without a range-only model,
+    such scans run the model on zero reflectance (its poses then cannot be trusted) instead of raising."""
 
     def __new__(
-        cls, matcher: object, config_json: str | None = None, num_threads: int | None = None, range_only: object | None = None
+        cls,
+        matcher: object,
+        config_json: str | None = None,
+        num_threads: int | None = None,
+        range_only: object | None = None,
+        allow_zero_reflectance: bool = False,
     ) -> Odometry: ...
     def register(
         self,
@@ -737,6 +743,9 @@ class Odometry:
     @property
     def diagnostics(self) -> list[dict[str, object]]:
         """Every frame's diagnostics, as `dmlo.Odometry`'s `FrameDiagnostics.to_dict()`."""
+    @property
+    def last_diagnostics(self) -> dict[str, object] | None:
+        """The newest frame's diagnostics (None before the first scan)."""
     @property
     def reflectance_scale(self) -> str | None:
         """The reflectance scale chosen on the first matched scan ("unit", "0-255", "0-65535", "none")."""

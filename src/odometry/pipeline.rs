@@ -244,6 +244,8 @@ pub struct Odometry<M: FrameMatcher> {
     reflectance: Option<ReflectanceScale>,
     /// The range-only model, run from the first scan without usable reflectance on.
     range_only: Option<M>,
+    /// Scans without usable reflectance and no range-only model run the model on zeros (not refused).
+    zero_reflectance_allowed: bool,
 }
 
 impl<M: FrameMatcher> Odometry<M> {
@@ -279,6 +281,7 @@ impl<M: FrameMatcher> Odometry<M> {
             diagnostics: Vec::new(),
             reflectance: None,
             range_only: None,
+            zero_reflectance_allowed: false,
         })
     }
 
@@ -302,6 +305,15 @@ impl<M: FrameMatcher> Odometry<M> {
             self.range_only = Some(range_only);
         }
         Ok(self)
+    }
+
+    /// The odometry running its model on zero reflectance for scans without usable reflectance when there
+    /// is no range-only model, instead of refusing them: the model never saw such images, so its poses
+    /// cannot be trusted, and the caller should say so (`dmlo.Odometry` warns). For a model trained with
+    /// reflectance, and for tools that must run on whatever a user gives them.
+    pub fn allowing_zero_reflectance(mut self) -> Self {
+        self.zero_reflectance_allowed = true;
+        self
     }
 
     /// The matcher it runs.
@@ -549,6 +561,9 @@ impl<M: FrameMatcher> Odometry<M> {
     /// `why` when there is none.
     fn switch_to_range_only(&mut self, why: &str) -> Result<()> {
         let Some(range_only) = self.range_only.take() else {
+            if self.zero_reflectance_allowed {
+                return Ok(());
+            }
             return Err(self.no_reflectance(why));
         };
         if let Some(reference) = &self.reference {

@@ -14,7 +14,7 @@ use pyo3::prelude::*;
 use crate::dense_match::DenseFlow;
 use crate::error::{Error, Result};
 use crate::odometry::config::{MatchingStage, OdometryConfig};
-use crate::odometry::pipeline::{FrameMatcher, Odometry, Scan};
+use crate::odometry::pipeline::{FrameDiagnostics, FrameMatcher, Odometry, Scan};
 use crate::projection::CylinderConfig;
 
 use super::convert::{matrix4_to_numpy, scan_points, shape_error, vector_f64};
@@ -184,12 +184,13 @@ impl PyOdometry {
 #[pymethods]
 impl PyOdometry {
     #[new]
-    #[pyo3(signature = (matcher, config_json = None, num_threads = None, range_only = None))]
+    #[pyo3(signature = (matcher, config_json = None, num_threads = None, range_only = None, allow_zero_reflectance = false))]
     fn new(
         matcher: &Bound<'_, PyAny>,
         config_json: Option<&str>,
         num_threads: Option<super::convert::Int>,
         range_only: Option<&Bound<'_, PyAny>>,
+        allow_zero_reflectance: bool,
     ) -> PyResult<Self> {
         let config = match config_json {
             Some(text) => OdometryConfig::from_json(text)?,
@@ -200,6 +201,9 @@ impl PyOdometry {
         if let Some(range_only) = range_only {
             let range_only = PythonMatcher::new("range_only", range_only, &raised)?;
             odometry = odometry.with_range_only(range_only)?;
+        }
+        if allow_zero_reflectance {
+            odometry = odometry.allowing_zero_reflectance();
         }
         Ok(PyOdometry {
             inner: odometry,
@@ -218,7 +222,7 @@ impl PyOdometry {
         &mut self,
         py: Python<'py>,
         points: &Bound<'py, PyAny>,
-        moving: Option<PyReadonlyArray1Bool<'py>>,
+        moving: Option<numpy::PyReadonlyArray1<'py, bool>>,
         timestamp: Option<f64>,
         point_times: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, numpy::PyArray2<f64>>> {
@@ -273,16 +277,21 @@ impl PyOdometry {
     /// Every frame's diagnostics, as `dmlo.Odometry`'s `FrameDiagnostics.to_dict()` gives them.
     #[getter]
     fn diagnostics<'py>(&self, py: Python<'py>) -> PyResult<Vec<Bound<'py, PyAny>>> {
-        let loads = py.import("json")?.getattr("loads")?;
         self.inner
             .diagnostics()
             .iter()
-            .map(|d| {
-                let text = serde_json::to_string(d)
-                    .map_err(|e| PyValueError::new_err(format!("diagnostics: {e}")))?;
-                loads.call1((text,))
-            })
+            .map(|d| diagnostics_dict(py, d))
             .collect()
+    }
+
+    /// The newest frame's diagnostics (as `diagnostics` gives each), None before the first scan.
+    #[getter]
+    fn last_diagnostics<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
+        self.inner
+            .diagnostics()
+            .last()
+            .map(|d| diagnostics_dict(py, d))
+            .transpose()
     }
 
     /// The reflectance scale chosen on the first matched scan, as the config names it ("unit", "0-255",
@@ -310,4 +319,9 @@ impl PyOdometry {
     }
 }
 
-type PyReadonlyArray1Bool<'py> = numpy::PyReadonlyArray1<'py, bool>;
+/// One frame's diagnostics as a dict, through their JSON form (the keys and rounding `dmlo` writes).
+fn diagnostics_dict<'py>(py: Python<'py>, diagnostics: &FrameDiagnostics) -> PyResult<Bound<'py, PyAny>> {
+    let text = serde_json::to_string(diagnostics)
+        .map_err(|e| PyValueError::new_err(format!("diagnostics: {e}")))?;
+    py.import("json")?.getattr("loads")?.call1((text,))
+}

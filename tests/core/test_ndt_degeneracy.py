@@ -227,15 +227,7 @@ def test_bad_distance_and_angle_limits_are_refused_up_front(section: str, name: 
 
 def test_a_wrong_dmlo_pose_is_caught_by_aligning_from_the_motion_model_too(straight_drive: Path) -> None:
     from dmlo.odometry import Odometry
-
-    class OneWrongPair(Odometry):
-        """Fault injection: the DMLO motion of frame 15 is 1.2 m off, like a wrong RANSAC consensus."""
-
-        def _motion_from_flow(self, *args, **kwargs):  # type: ignore[no-untyped-def]
-            motion = super()._motion_from_flow(*args, **kwargs)
-            if len(self.poses) == 15:
-                motion = motion @ rigid([1.2, 0.4, 0.0], [0.0, 0.0, 0.0])
-            return motion
+    from faults import corrupt
 
     sequence = open_sequence(straight_drive)
     frames = [sequence[i] for i in range(20)]
@@ -246,7 +238,9 @@ def test_a_wrong_dmlo_pose_is_caught_by_aligning_from_the_motion_model_too(strai
         config.mapping.enabled = True
         config.mapping.motion_model_start_distance = distance
         config.mapping.motion_model_start_angle_deg = np.inf
-        odometry = OneWrongPair.from_default(config)
+        # Fault injection: every match of frame 15 lies 1.2 m off the true motion, like a wrong RANSAC consensus.
+        truth = np.linalg.inv(frames[15].pose) @ frames[14].pose
+        odometry = corrupt(Odometry.from_default(config), truth, share=1.0, frame=15, shift=(1.2, 0.0, 0.0))
         for frame in frames:
             odometry.register(frame.points, moving=(frame.labels & 0xFFFF) >= 252)
         truth_step = np.linalg.inv(frames[14].pose) @ frames[15].pose

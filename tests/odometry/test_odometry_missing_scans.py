@@ -4,21 +4,24 @@ scans missing in time alone (no file missing) counted from the timestamps."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import dmlo_rs
+
 from dmlo.datasets import open_sequence
 from dmlo.metrics import registration_errors
-from dmlo.odometry import Odometry, TimestampWarning
-from dmlo.odometry.clock import FrameClock
+from dmlo.odometry import Odometry, OdometryConfig, TimestampWarning
+from dmlo.odometry.clock import TimestampCheck
 from dmlo.odometry.run import run_sequence
 from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
+from faults import corrupt
 from support import frame_to_frame
 
 GAP = 7  # frames between the scans before and after the missing ones
@@ -92,18 +95,11 @@ def test_the_rematched_motion_is_taken_only_with_more_inliers_than_the_pairs_own
         assert ours.num_inliers > theirs.num_inliers if taken else ours.num_inliers == theirs.num_inliers
 
 
-class WrongFirstPair(Odometry):
-    """Fault injection: the pair's own matches of frame 3 are all 1 m off (a wrong consensus no match
+def wrong_first_pair(config: OdometryConfig, honest_poses: list[np.ndarray]) -> Odometry:
+    """Fault injection: the pair's own matches of frame 3 all lie 1 m off (a wrong consensus no match
     contradicts); the re-matching's are honest."""
-
-    def _match(self, *args, **kwargs):  # type: ignore[no-untyped-def]
-        pair = super()._match(*args, **kwargs)
-        if len(self.poses) == 3 and not getattr(self, "_corrupted", False):
-            self._corrupted = True
-            shifted = pair.T_tgt_ref.copy()
-            shifted[:3, 3] += [1.0, 0.0, 0.0]
-            pair = dataclasses.replace(pair, T_tgt_ref=shifted, target_points=np.asarray(pair.target_points) + [1.0, 0.0, 0.0])
-        return pair
+    honest = np.linalg.inv(honest_poses[3]) @ honest_poses[2]
+    return corrupt(Odometry.from_default(config), honest, share=1.0, frame=3, calls=1)
 
 
 def test_a_consecutive_pair_that_would_give_way_is_matched_again(highway: Path) -> None:
@@ -114,11 +110,11 @@ def test_a_consecutive_pair_that_would_give_way_is_matched_again(highway: Path) 
     paper = frame_to_frame()
     paper.motion_model.rematch_gap = None
     paper.motion_model.match_from_prediction_m = None
-    gated = WrongFirstPair.from_default(paper)
+    gated = wrong_first_pair(paper, honest_poses)
     for points in scans:
         gated.register(points)
     assert gated.diagnostics[3].fallback == "implausible_motion"  # the prediction, as without re-matching
-    odometry = WrongFirstPair.from_default(frame_to_frame())
+    odometry = wrong_first_pair(frame_to_frame(), honest_poses)
     poses = [odometry.register(p) for p in scans]
     assert odometry.diagnostics[3].fallback == "rematched_from_prediction"
     step = np.linalg.inv(poses[3]) @ poses[2]
@@ -149,16 +145,17 @@ def test_the_wide_window_from_the_prediction_takes_over_when_the_models_own_find
         honest_match = odometry.matcher.match
         calls = []
 
-        def noisy_first_match(reference, target):  # type: ignore[no-untyped-def]
+        def noisy_first_round(reference, target):  # type: ignore[no-untyped-def]
             flow, confidence = honest_match(reference, target)
-            calls.append(len(odometry.poses))
-            if len(calls) == 1:
-                flow = np.random.default_rng(0).uniform(-40, 40, flow.shape).astype(np.float32)
+            if len(odometry.poses) == 2 + GAP:  # the scan after the gap: its own pair, then the rounds
+                calls.append(1)
+                if len(calls) == 2:
+                    flow = np.random.default_rng(0).uniform(-40, 40, flow.shape).astype(np.float32)
             return flow, confidence
 
-        odometry.matcher.match = noisy_first_match  # type: ignore[method-assign]
+        odometry.matcher.match = noisy_first_round  # type: ignore[method-assign]
         motion, truth = across_the_gap(highway, odometry)
-        results[name] = (odometry.diagnostics[-1], registration_errors(motion, truth), len(calls))
+        results[name] = (odometry.diagnostics[-1], registration_errors(motion, truth), len(calls) - 1)
     found, errors, calls = results["with wide graph"]
     assert found.fallback == "rematched_from_prediction" and found.rematch_rounds is not None and found.rematch_rounds >= 2
     assert errors.translation_mean < 0.08 and errors.angular_mean < 0.3, errors
@@ -199,24 +196,38 @@ def test_a_bad_rematch_gap_is_refused_up_front(gap: object) -> None:
 
 
 def test_frames_are_counted_from_the_timestamps() -> None:
-    clock = FrameClock()
-    assert [clock.advance(t) for t in (0.0, 0.1, 0.2, 0.5, 0.6)] == [0, 1, 2, 5, 6]  # two scans dropped
+    def frames(clock: dmlo_rs.FrameClock, times: tuple[float | None, ...]) -> list[int]:
+        return [clock.advance(t)[0] for t in times]
+
+    clock = dmlo_rs.FrameClock()
+    assert frames(clock, (0.0, 0.1, 0.2, 0.5, 0.6)) == [0, 1, 2, 5, 6]  # two scans dropped
     assert clock.period == pytest.approx(0.1)
     # Jitter of a few per cent is still one frame; an unstamped scan counts one; the first interval may
     # itself span a gap, the median of the later ones corrects the period.
-    jittery = FrameClock()
-    assert [jittery.advance(t) for t in (10.0, 10.104, 10.199, 10.305, None, 10.498, 10.9)] == [0, 1, 2, 3, 4, 5, 9]
-    late_start = FrameClock()
-    assert [late_start.advance(t) for t in (0.0, 0.7, 0.8, 0.9, 1.0, 1.1, 1.4)] == [0, 1, 2, 3, 4, 5, 8]
-    unstamped = FrameClock()
-    assert [unstamped.advance(), unstamped.advance()] == [0, 1] and unstamped.period is None
-    backwards = FrameClock()
+    assert frames(dmlo_rs.FrameClock(), (10.0, 10.104, 10.199, 10.305, None, 10.498, 10.9)) == [0, 1, 2, 3, 4, 5, 9]
+    assert frames(dmlo_rs.FrameClock(), (0.0, 0.7, 0.8, 0.9, 1.0, 1.1, 1.4)) == [0, 1, 2, 3, 4, 5, 8]
+    unstamped = dmlo_rs.FrameClock()
+    assert frames(unstamped, (None, None)) == [0, 1] and unstamped.period is None
+    backwards = dmlo_rs.FrameClock()
     backwards.advance(1.0)
+    assert backwards.advance(1.0) == (1, True)
+
+
+def test_a_timestamp_not_after_the_previous_is_warned_once_and_a_bad_one_refused() -> None:
+    check = TimestampCheck()
+    assert check.check(1.0) == 1.0 and check.check(None) is None
     with pytest.warns(TimestampWarning, match="not after the previous scan's 1.0: taken for the next frame"):
-        assert backwards.advance(1.0) == 1
+        assert check.check(np.float32(1.0)) == 1.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check.check(0.5)  # warned once
     for bad in (float("nan"), "0.1", True):
         with pytest.raises(ValueError, match="timestamp: expected a finite number"):
-            FrameClock().advance(bad)  # type: ignore[arg-type]
+            TimestampCheck().check(bad)
+    odometry = Odometry.from_default(frame_to_frame())
+    with pytest.raises(ValueError, match="timestamp: expected a finite number"):
+        odometry.register(np.zeros((10, 4), np.float32), timestamp=float("inf"))
+    assert odometry.poses == []
 
 
 def test_scans_dropped_in_time_alone_are_bridged_like_missing_files(highway: Path, tmp_path: Path) -> None:

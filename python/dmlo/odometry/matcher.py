@@ -378,29 +378,72 @@ def _cylinder_from_metadata(values: dict[str, object], graph: Path) -> dmlo_rs.C
 
 
 class CrateMatcher:
-    """`matcher` as the crate's odometry (`dmlo_rs.Odometry`) calls it: `encode`, `match`, `cylinder`,
+    """`matcher` as the crate's odometry loop (`dmlo_rs.Odometry`) calls it: `encode`, `match`, `cylinder`,
     `uses_reflectance`, and `wide_match` when the wide-window graph lies beside the model (opened on the first
-    pair far apart, with `threads` and `matching_stage` as the model's)."""
+    pair far apart, with `threads` and `matching_stage` as the model's; an `OnnxMatcher`'s only).
 
-    def __init__(self, matcher: OnnxMatcher, threads: int = 0, matching_stage: str = "auto") -> None:
+    A matcher that matches in the crate (`OnnxMatcher` on a CPU) encodes each scan with `encoder.onnx`. Any
+    other — the `frame` graph, which encodes a scan while matching the previous one against it (all of it on
+    the GPU), or a matcher with only `frame` — defers the encoding: `encode` keeps the image, and the scan's
+    first `match` as the target runs `frame`; a scan needed before that is encoded alone (`encoder.onnx`, or
+    `frame` against nothing for a model without one)."""
+
+    def __init__(self, matcher: Matcher, threads: int = 0, matching_stage: str = "auto") -> None:
         self.matcher = matcher
         self.cylinder = matcher.cylinder
-        self.uses_reflectance = matcher.uses_reflectance
-        self.encode = matcher.encode
-        self.match = matcher.match
+        self.uses_reflectance = getattr(matcher, "uses_reflectance", True)
+        self._encodes_alone = getattr(matcher, "matching_stage", None) == "crate"
         self._wide: OnnxMatcher | None = None
         self._threads, self._matching_stage = threads, matching_stage
-        if matcher.path.with_name(WIDE_FRAME_GRAPH).is_file():
+        # The wide-window graph reads its model's features: a matcher of another kind has its own.
+        if isinstance(matcher, OnnxMatcher) and matcher.path.with_name(WIDE_FRAME_GRAPH).is_file():
             self.wide_match = self._wide_match
 
+    def encode(self, image: npt.NDArray[np.float32]) -> Features | _Deferred:
+        return self.matcher.encode(image) if self._encodes_alone else _Deferred(image)
+
+    @property
+    def defers_encoding(self) -> bool:
+        """Whether scans are encoded inside `match` (the frame graph) rather than by `encode`."""
+        return not self._encodes_alone
+
+    def match(
+        self, reference: Features | _Deferred, target: Features | _Deferred
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        previous = self._features(reference)
+        if isinstance(target, _Deferred) and target.features is None:
+            output = self.matcher.frame(target.image, previous)
+            target.features = output.features
+            assert output.flow is not None and output.confidence is not None
+            return output.flow, output.confidence
+        return self.matcher.match(previous, self._features(target))
+
+    def _features(self, features: Features | _Deferred) -> Features:
+        if not isinstance(features, _Deferred):
+            return features
+        if features.features is None:
+            try:
+                features.features = self.matcher.encode(features.image)
+            except (ModelError, AttributeError):  # no encoder.onnx (or a matcher with `frame` alone)
+                features.features = self.matcher.frame(features.image, None).features
+        return features.features
+
     def _wide_match(
-        self, reference: Features, target_image: npt.NDArray[np.float32]
+        self, reference: Features | _Deferred, target_image: npt.NDArray[np.float32]
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """The wide window's flow of `reference` (features of the model's encoder) into the scan `target_image`."""
         if self._wide is None:
             self._wide = OnnxMatcher(
                 wide_graph_path(self.matcher.path), threads=self._threads, matching_stage=self._matching_stage
             )
-        output = self._wide.frame(target_image, reference)
+        output = self._wide.frame(target_image, self._features(reference))
         assert output.flow is not None and output.confidence is not None
         return output.flow, output.confidence
+
+
+@dataclass
+class _Deferred:
+    """A scan's image whose features are computed when first needed (`CrateMatcher`)."""
+
+    image: npt.NDArray[np.float32]
+    features: Features | None = None

@@ -1,15 +1,16 @@
 """DMLO odometry (§III): project → encode → match → decode, NMS, RANSAC, SVD → pose.
 
-`Odometry.register` reads like the paper's pipeline: each step is one call into `dmlo_rs` or the
-network, with the paper's section next to it.
+`Odometry.register` runs the crate's per-frame loop (`dmlo_rs.Odometry`, `odometry::pipeline` in Rust,
+which Rust users run without Python) over the network in onnxruntime; this module adds what belongs to
+Python: checking the scans handed to it, the reflectance and sensor notices, the moving-object network.
+`register_pair`, `project` and `pose_from_flow` give the paper's steps one at a time.
 """
 
 from __future__ import annotations
 
-import contextlib
+import json
 import time
 import warnings
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,23 +19,22 @@ import numpy as np
 import numpy.typing as npt
 
 import dmlo_rs
-from dmlo.metrics.trajectory import pose_difference
 from dmlo.poses import midpoint_motion
-from dmlo.odometry.clock import FrameClock
+from dmlo.odometry.clock import TimestampCheck
 from dmlo.odometry.config import OdometryConfig
-from dmlo.odometry.large_motion import register_far, rematch, search_starts
+from dmlo.odometry.large_motion import register_far
 from dmlo.odometry.pair import PairResult
 from dmlo.odometry import reflectance
 from dmlo.odometry.reflectance import ReflectanceNotice
 from dmlo.odometry.matcher import (
     ENCODER_GRAPH,
     MATCH_GRAPH,
+    CrateMatcher,
     Features,
     FrameOutput,
     Matcher,
     ModelError,
     OnnxMatcher,
-    WIDE_FRAME_GRAPH,
     available_cores,
     default_model_path,
     wide_graph_path,
@@ -126,37 +126,6 @@ class FrameDiagnostics:
         }
 
 
-@dataclass
-class _Scan:
-    cloud: npt.NDArray[np.float32]  # N×4, the points matched (moving ones and non-finite left out)
-    range: npt.NDArray[np.float32]
-    points: npt.NDArray[np.float32]  # [H, W, 3] the point each cell of `range` holds, NaN where empty
-    features: Features
-    pose: Matrix4
-    deskewed: bool = False  # motion-compensated (`deskew.enabled`)
-    times: npt.NDArray[np.float64] | None = None  # the points' sweep times given to `register`, if any
-
-
-class _Stopwatch:
-    def __init__(self, timings: dict[str, float]) -> None:
-        self._timings = timings
-        self._last = time.perf_counter()
-
-    def lap(self, stage: str) -> None:
-        now = time.perf_counter()
-        self._timings[stage] = (now - self._last) * 1e3
-        self._last = now
-
-    @contextlib.contextmanager
-    def aside(self, stage: str) -> Iterator[None]:
-        """Times a stage on its own and leaves it out of the next lap, which goes on as if it had not run."""
-        start = time.perf_counter()
-        yield
-        elapsed = time.perf_counter() - start
-        self._timings[stage] = elapsed * 1e3
-        self._last += elapsed
-
-
 class Odometry:
     """DMLO odometry with the paper's motion model and, by default, its scan-to-map NDT refinement
     (`mapping.enabled = False`: frame-to-frame DMLO).
@@ -169,42 +138,62 @@ class Odometry:
     def __init__(self, model_path: str | Path, config: OdometryConfig | None = None) -> None:
         self.config = config or OdometryConfig()
         self.config.validate()  # the whole schema again: a config's fields may change after loading
-        self.matcher: Matcher = OnnxMatcher(
+        matcher = OnnxMatcher(
             Path(model_path),
             threads=self.config.threads,
             match_graph=self.config.matching.symmetric,
             matching_stage=self.config.matching_stage,
         )
-        self.cylinder = self.matcher.cylinder
         self.poses: list[Matrix4] = []
         self.diagnostics: list[FrameDiagnostics] = []
-        self._reference: _Scan | None = None  # the last usable scan, matched against the next one
-        self._clock = FrameClock()  # frame numbers: one per scan, more across gaps in the timestamps
-        self._reference_frame = -1  # the reference scan's frame number
-        self._pose_frame = -1  # the newest pose's frame number
-        # The constant-velocity model (its velocity `T_tgt_ref` per frame, whether one was measured) and its
-        # judgement of every pair's motion (`dmlo_rs.MotionModel`, the crate's `odometry::motion`).
-        self._motion = self._make_motion_model()
-        # The local map of recent keyframes (`dmlo_rs.LocalMap`, the crate's `odometry::mapping`).
-        self._map = self._make_map() if self.config.mapping.enabled else None
-        self._wide: Matcher | None = None  # loaded on the first large-motion pair
+        self._timestamps = TimestampCheck()
+        self._wide: Matcher | None = None  # for `register_pair(large_motion=True)`, loaded on the first
+        self._pair_map: dmlo_rs.LocalMap | None = None  # `register_pair`'s NDT, made on the first
         self._warned_sensor = False
-        self._rematch_gap = self._available_rematch_gap()
-        self._wide_graph_beside = self.matcher.path.with_name(WIDE_FRAME_GRAPH).is_file()
+        self._warned_clipping = False
         # Reflectance (`dmlo.odometry.reflectance`): the scale chosen on the first scan, and the range-only model
         # beside this one (run from the first scan without usable reflectance on), unless this one is range-only.
         # It opens now, so that a broken range-only model fails before the first scan, not mid-drive.
         self._reflectance: reflectance.Choice | None = None
-        self._model_is_range_only = getattr(self.matcher, "model_config", {}).get("use_reflectance", True) is False
-        graph = None if self._model_is_range_only else reflectance.range_only_model(self.matcher.path)
-        self._range_only = None if graph is None else self._open_range_only(graph)
-        self._warned_clipping = False
+        self._model_is_range_only = not matcher.uses_reflectance
+        graph = None if self._model_is_range_only else reflectance.range_only_model(matcher.path)
+        self._range_only = None if graph is None else self._open_range_only(graph, matcher)
+        self._use_matcher(matcher)
+
+    @property
+    def matcher(self) -> Matcher:
+        """The network the odometry runs (the range-only model from the first scan without reflectance on)."""
+        return self._matcher
+
+    @matcher.setter
+    def matcher(self, matcher: Matcher) -> None:
+        """Another matcher (`dmlo.odometry.matcher.Matcher`) in place of the model's, before the first scan."""
+        if self.poses:
+            raise RuntimeError("matcher: replaced after the first scan; make a new Odometry")
+        self._use_matcher(matcher)
+
+    def _use_matcher(self, matcher: Matcher) -> None:
+        """`matcher` run by the crate's per-frame loop (`dmlo_rs.Odometry`), made again over it."""
+        self._matcher = matcher
+        self.cylinder = matcher.cylinder
         self._moving_objects = self._open_moving_objects()
+        settings = self.config.to_dict()
+        if self._available_rematch_gap() is None:  # the graphs it needs are missing (warned)
+            settings["motion_model"].update(rematch_gap=None, match_from_prediction_m=None)
+        self._loop_matcher = CrateMatcher(matcher, self.config.threads, self.config.matching_stage)
+        range_only = None if self._range_only is None else CrateMatcher(
+            self._range_only, self._beside_threads(), self.config.matching_stage
+        )
+        # Scans without reflectance and no range-only model run on zeros, with the notice of
+        # `_use_reflectance_choice` (the crate alone would refuse them).
+        self._loop = dmlo_rs.Odometry(
+            self._loop_matcher, json.dumps(settings), range_only=range_only, allow_zero_reflectance=True
+        )
 
     def _open_moving_objects(self) -> MovingObjectDetector | None:
         """The moving-object network beside the model, when `moving_objects.detect` asks for it and it is there."""
         settings = self.config.moving_objects
-        graph = moving_objects_graph(self.matcher.path) if settings.detect else None
+        graph = moving_objects_graph(self._matcher.path) if settings.detect else None
         if graph is None:
             return None
         return MovingObjectDetector(graph, settings.threshold, self._beside_threads())
@@ -217,14 +206,13 @@ class Odometry:
     def _available_rematch_gap(self) -> int | None:
         """`motion_model.rematch_gap`, or None with a warning when the model lacks the graphs it needs."""
         motion = self.config.motion_model
-        missing = [name for name in (ENCODER_GRAPH, MATCH_GRAPH) if not self.matcher.path.with_name(name).is_file()]
-        self._can_rematch = not missing
+        missing = [name for name in (ENCODER_GRAPH, MATCH_GRAPH) if not self._matcher.path.with_name(name).is_file()]
         if missing and (motion.rematch_gap is not None or motion.match_from_prediction_m is not None):
             warnings.warn(
-                f"{self.matcher.path.parent} has no {' or '.join(missing)}: pairs across missing scans are not matched "
+                f"{self._matcher.path.parent} has no {' or '.join(missing)}: pairs across missing scans are not matched "
                 "again from the prediction (motion_model.rematch_gap), nor pairs beyond the network's window "
                 "(motion_model.match_from_prediction_m); `dmlo export CHECKPOINT --out DIR` writes every graph",
-                stacklevel=3,
+                stacklevel=4,
             )
             return None
         return motion.rematch_gap
@@ -253,102 +241,52 @@ class Odometry:
         each point was measured; without it the time comes from the point's azimuth. A scan with fewer
         than `min_points` finite points is not matched: its pose comes from the motion model and the
         diagnostics say so.
+
+        The frame's steps run in the crate (`dmlo_rs.Odometry`, `odometry::pipeline` in Rust: projection,
+        the matching stage, the pair's back end, the motion model, re-matching, the local map), the network
+        in onnxruntime; here the scan is checked, its reflectance scale chosen with a notice, and the points on
+        moving objects found when the model has the network for them.
         """
-        cloud = self._scan_in(points, "points")
+        cloud = _as_scan(points, "points")
         times = None if point_times is None else _as_point_times(point_times, len(cloud))
-        self._clock.advance(timestamp)
-        diagnostics = FrameDiagnostics(index=len(self.poses), num_points=len(cloud))
-        watch = _Stopwatch(diagnostics.timings_ms)
-        keep = _finite_rows(cloud)
-        scan_fill = None  # of the whole scan, when the moving-object network projected it
-        if moving is None and self._moving_objects is not None:
-            moving, scan_fill = self._moving_objects.detect(cloud)
-            diagnostics.num_moving_predicted = int(np.count_nonzero(moving))
-            watch.lap("moving_objects")
-        if moving is not None:
-            keep = _without(keep, _as_mask(moving, len(cloud)))
-        # Also a copy, even when every point stays: the scan is kept as the next reference, and a caller
-        # streaming from a sensor may refill the same buffer for the next scan.
-        cloud = _rows(cloud, keep)
-        if len(cloud) < self.config.min_points:
-            return self._skip(diagnostics, "too_few_points")
-        times = None if times is None else _rows(times, keep)
-        deskewed = self.config.deskew.enabled and self._motion.measured
-        if deskewed:
-            with watch.aside("deskew"):  # on the first deskewed scan with its reference encoded again
-                cloud = self._deskew(cloud, times)
-                if self._reference is not None and not self._reference.deskewed:
-                    self._deskew_reference(self._reference)
-            diagnostics.deskewed = True
-
-        image, ranges, points = self._project(cloud)  # Eq. 1
-        diagnostics.image_fill = float(np.count_nonzero(ranges) / ranges.size)
-        self._check_sensor(diagnostics.image_fill if scan_fill is None else scan_fill)
-        previous = self._reference
-        if previous is not None and self._beyond_window():
-            output = FrameOutput(self.matcher.encode(image), None, None)  # matched from the prediction instead
-        else:
-            output = self.matcher.frame(image, previous.features if previous else None)  # §III-C
-        watch.lap("network")
-        if output.matching_ms is not None:  # the crate matched: its share timed apart from the encoding
-            diagnostics.timings_ms["network"] -= output.matching_ms
-            diagnostics.timings_ms["matching"] = output.matching_ms
-
-        if previous is None:
-            pose = self._predict()
-        else:
-            motion = self._motion_from_flow(previous, image, ranges, points, output, diagnostics, watch)
-            pose = previous.pose @ np.linalg.inv(motion)  # T_world_t = T_world_{t-1} · T⁻¹
-            if self._map is not None:
-                pose = self._refine_with_map(cloud, points, pose, diagnostics)
-                watch.lap("ndt")
-            # Across a gap left by skipped scans the motion spans several frames; the velocity measured
-            # before the gap stays the better per-frame estimate (only consecutive frames measure).
-            self._motion.update(previous.pose, pose, self._clock.frame - self._reference_frame)
-        if self._map is not None:
-            # Scans drawn from nearly the same place would add the same ground rings again and again, all
-            # behind the next scan: keyframes spaced in distance keep the map's samples spread out.
-            diagnostics.map_keyframe = self._map.is_keyframe(pose)
-            if diagnostics.map_keyframe:
-                self._map.insert(cloud, pose, points)
-            watch.lap("map_update")
-
-        self._reference = _Scan(
-            cloud=cloud, range=ranges, points=points, features=output.features, pose=pose, deskewed=deskewed,
-            times=times,
-        )
-        self._reference_frame = self._clock.frame
+        mask = None if moving is None else _as_mask(moving, len(cloud))
+        timestamp = self._timestamps.check(timestamp)
+        scaled = self._scaled(cloud, has_reflectance=np.shape(points)[1] == 4)
+        timings: dict[str, float] = {}
+        num_moving = scan_fill = None
+        if mask is None and self._moving_objects is not None:
+            start = time.perf_counter()
+            mask, scan_fill = self._moving_objects.detect(scaled)
+            num_moving = int(np.count_nonzero(mask))
+            timings["moving_objects"] = (time.perf_counter() - start) * 1e3
+        # The crate takes the scan's own reflectance: it chooses the same scale (config.reflectance), so that
+        # the choice is made once, where the frames run.
+        pose = self._loop.register(cloud, moving=mask, timestamp=timestamp, point_times=times)
+        diagnostics = self._newest_diagnostics(timings)
+        diagnostics.num_moving_predicted = num_moving
+        if diagnostics.image_fill is not None:
+            self._check_sensor(diagnostics.image_fill if scan_fill is None else scan_fill)
         return self._record(pose, diagnostics)
 
-    def _deskew(self, cloud: npt.NDArray[np.float32], times: npt.NDArray[np.float64] | None) -> npt.NDArray[np.float32]:
-        """The sweep moved into the sensor frame of its pose's moment by the per-frame velocity: the
-        sensor's motion over one period is the inverse of `T_tgt_ref` (a sweep lasts one period however
-        many scans went missing before it)."""
-        c = self.config.deskew
-        return np.asarray(dmlo_rs.deskew(
-            cloud, np.linalg.inv(self._motion.velocity), times, clockwise=c.clockwise,
-            reference_azimuth_deg=c.reference_azimuth_deg,
-        ))
+    def predict_skipped(self, reason: str = "unreadable_scan") -> Matrix4:
+        """Records a scan that could not be read: its pose comes from the motion model."""
+        pose = self._loop.predict_skipped(reason)
+        return self._record(pose, self._newest_diagnostics({}))
 
-    def _deskew_reference(self, reference: _Scan) -> None:
-        """The first deskewed scan's reference, measured before any velocity was, deskewed too (its own
-        motion is the velocity just measured) and encoded again: a skewed scan matched against a deskewed
-        one loses the skew's cancellation between two sweeps of the same motion (on the highway a 19 cm
-        error and a re-match), and with mapping the map then holds only deskewed scans."""
-        reference.cloud = self._deskew(reference.cloud, reference.times)
-        image, reference.range, reference.points = self._project(reference.cloud)
-        reference.features = self._encode(image)
-        reference.deskewed = True
-        if self._map is not None:
-            self._map.restart(reference.cloud, reference.pose, reference.points)
+    def _newest_diagnostics(self, timings: dict[str, float]) -> FrameDiagnostics:
+        """The crate's diagnostics of the newest frame, after the stages timed here (`timings`). Where the frame
+        graph encodes a scan while matching it (`matching_stage` "graph"), the two cannot be timed apart: the
+        matching counts as the network."""
+        fields: dict[str, Any] = self._loop.last_diagnostics  # type: ignore[assignment]
+        timings.update(fields.pop("timings_ms"))
+        if self._loop_matcher.defers_encoding and "matching" in timings:
+            timings["network"] = timings.get("network", 0.0) + timings.pop("matching")
+        return FrameDiagnostics(**fields, timings_ms=timings)
 
-    def _encode(self, image: npt.NDArray[np.float32]) -> Features:
-        """A scan's features alone: `encoder.onnx`, or for a model without one the frame graph matched
-        against nothing (the same features, a matching pass more)."""
-        try:
-            return self.matcher.encode(image)
-        except ModelError:
-            return self.matcher.frame(image, None).features
+    def _record(self, pose: Matrix4, diagnostics: FrameDiagnostics) -> Matrix4:
+        self.poses.append(pose)
+        self.diagnostics.append(diagnostics)
+        return pose.copy()
 
     def _check_sensor(self, image_fill: float) -> None:
         if image_fill < LOW_IMAGE_FILL and not self._warned_sensor:
@@ -362,11 +300,6 @@ class Odometry:
                 SensorMismatchWarning,
                 stacklevel=3,
             )
-
-    def predict_skipped(self, reason: str = "unreadable_scan") -> Matrix4:
-        """Records a scan that could not be read: its pose comes from the motion model."""
-        self._clock.advance()
-        return self._skip(FrameDiagnostics(index=len(self.poses), num_points=0), reason)
 
     def register_pair(
         self, reference: npt.ArrayLike, target: npt.ArrayLike, large_motion: bool = False
@@ -404,7 +337,9 @@ class Odometry:
             # Against the reference alone, one decision with the drive's: a standing pair by point-to-plane ICP
             # (NDT's voxels leave millimetres; the planes do not), a near one by its upright surfaces (the
             # reference's rings would hold it together), any other by NDT (`dmlo_rs.LocalMap.refine_pair`).
-            pair_map = self._map if self._map is not None else self._make_map()
+            if self._pair_map is None:
+                self._pair_map = self._make_map()
+            pair_map = self._pair_map
             refined = pair_map.refine_pair(reference_cloud, target_cloud, ref_points, tgt_points, pair.T_tgt_ref)
             pair.map_refined = refined is not None
             pair.T_tgt_ref = pair.T_tgt_ref if refined is None else refined
@@ -432,12 +367,17 @@ class Odometry:
         return self._reflectance
 
     def _scan_in(self, points: npt.ArrayLike, name: str, decide: bool = True) -> npt.NDArray[np.float32]:
-        """A scan as the model takes it: N×4 float32 with the reflectance on its [0, 1] scale. The first scan
-        decides the scale (`config.reflectance`) or the range-only model, with a `ReflectanceNotice`; a later
-        scan without usable reflectance moves to the range-only model. Only scans with `min_points` finite
-        points decide (the others are not matched); `decide=False`: none does."""
-        cloud = _as_scan(points, name)
-        given = cloud[:, 3] if np.shape(points)[1] == 4 else None  # N×3: no reflectance at all
+        """A scan as the model takes it: N×4 float32 with the reflectance on its [0, 1] scale (`_scaled`)."""
+        return self._scaled(_as_scan(points, name), np.shape(points)[1] == 4, decide)
+
+    def _scaled(self, cloud: npt.NDArray[np.float32], has_reflectance: bool, decide: bool = True) -> npt.NDArray[np.float32]:
+        """`cloud` (N×4, `_as_scan`) with the reflectance on the model's [0, 1] scale. The first scan decides the
+        scale (`config.reflectance`) or the range-only model, with a `ReflectanceNotice`; a later scan without
+        usable reflectance moves to the range-only model. Only scans with `min_points` finite points decide
+        (the others are not matched); `decide=False`: none does. The crate's loop makes the same choice from
+        the same values (`odometry::pipeline`); this one says it, and serves the pairs and the moving-object
+        network."""
+        given = cloud[:, 3] if has_reflectance else None  # N×3: no reflectance at all
         keep = _finite_rows(cloud)
         if keep is not None:
             decide = decide and int(np.count_nonzero(keep)) >= self.config.min_points
@@ -498,24 +438,20 @@ class Odometry:
             self._switch_to_range_only(self._range_only)
         warnings.warn(message, ReflectanceNotice, stacklevel=4)
 
-    def _open_range_only(self, graph: Path) -> OnnxMatcher:
-        """The range-only model beside this one, checked like it."""
+    def _open_range_only(self, graph: Path, model: OnnxMatcher) -> OnnxMatcher:
+        """The range-only model beside `model`, checked like it."""
         matcher = OnnxMatcher(
             graph, threads=self._beside_threads(), match_graph=self.config.matching.symmetric,
             matching_stage=self.config.matching_stage,
         )
-        if (matcher.cylinder.height, matcher.cylinder.width) != (self.cylinder.height, self.cylinder.width):
-            raise ModelError(f"{graph}: its cylinder image differs from {self.matcher.path}'s")
+        if (matcher.cylinder.height, matcher.cylinder.width) != (model.cylinder.height, model.cylinder.width):
+            raise ModelError(f"{graph}: its cylinder image differs from {model.path}'s")
         return matcher
 
     def _switch_to_range_only(self, matcher: OnnxMatcher) -> None:
-        self.matcher, self._wide, self._range_only = matcher, None, None
+        """The pairs run the range-only model from now on, as the crate's loop does from this scan on."""
+        self._matcher, self._wide, self._range_only = matcher, None, None
         self._model_is_range_only = True
-        self._rematch_gap = self._available_rematch_gap()
-        self._wide_graph_beside = self.matcher.path.with_name(WIDE_FRAME_GRAPH).is_file()
-        if self._reference is not None:  # features of the other model: encoded again by this one
-            image, _, _ = self._project(self._reference.cloud)
-            self._reference.features = self._encode(image)
 
     def _register_far(
         self,
@@ -580,7 +516,6 @@ class Odometry:
         tgt_range: npt.NDArray[np.float32],
         flow: npt.NDArray[np.float32],
         confidence: npt.NDArray[np.float32],
-        watch: _Stopwatch | None = None,
         leave_out: npt.NDArray[np.bool_] | None = None,
         ref_points: npt.NDArray[np.float32] | None = None,
         tilt_votes: bool = True,
@@ -603,8 +538,6 @@ class Odometry:
             refit=r.refit, range_ratio=r.ray_range_ratio, bearing_threshold_deg=r.ray_bearing_threshold_deg,
             tilt_vote_floor=r.min_vote if r.vote_by_tilt else None, vote_voxel=r.vote_voxel,
         )
-        if watch:
-            watch.lap("pair")
         return PairResult(
             T_tgt_ref=np.asarray(pair.transform, dtype=np.float64),
             num_matches=len(pair.source),
@@ -623,17 +556,14 @@ class Odometry:
         ref_features: Features,
         ref_points: npt.NDArray[np.float32],
         tgt_points: npt.NDArray[np.float32],
-        watch: _Stopwatch | None = None,
     ) -> tuple[PairResult, PairResult, PairResult | None]:
         """The pair's motion from the frame graph's `output`, and the one-way pairs it came from: the
         forward pair alone, or with `matching.symmetric` the forward and the backward pair combined."""
         assert output.flow is not None and output.confidence is not None
         if not self.config.matching.symmetric:
-            forward = self._match(ref_range, tgt_range, output.flow, output.confidence, watch, ref_points=ref_points)
+            forward = self._match(ref_range, tgt_range, output.flow, output.confidence, ref_points=ref_points)
             return forward, forward, None
-        forward, backward = self._match_both_ways(ref_range, tgt_range, output, ref_features, ref_points, tgt_points, watch)
-        if watch:
-            watch.lap("backward")
+        forward, backward = self._match_both_ways(ref_range, tgt_range, output, ref_features, ref_points, tgt_points)
         return _symmetric(forward, backward, self.config.motion_model.min_inliers), forward, backward
 
     def _match_both_ways(
@@ -644,187 +574,21 @@ class Odometry:
         ref_features: Features,
         ref_points: npt.NDArray[np.float32],
         tgt_points: npt.NDArray[np.float32],
-        watch: _Stopwatch | None,
     ) -> tuple[PairResult, PairResult]:
         """The forward pair of `output` (reference → target) and the target matched back against the
         reference (`T_ref_tgt`, from the cached features), each without the cells whose flow the other
         direction's flow does not lead back (`matching.consistency_px`)."""
         assert output.flow is not None and output.confidence is not None
         back_flow, back_confidence = self.matcher.match(output.features, ref_features)
-        if watch:
-            watch.lap("network_backward")
         limit = self.config.matching.consistency_px
         wraps = self.cylinder.wraps_azimuth
         forward_out = backward_out = None
         if limit is not None:
             forward_out = _round_trip_error(output.flow, back_flow, wraps) > limit
             backward_out = _round_trip_error(back_flow, output.flow, wraps) > limit
-        forward = self._match(ref_range, tgt_range, output.flow, output.confidence, watch, forward_out, ref_points)
-        backward = self._match(tgt_range, ref_range, back_flow, back_confidence, None, backward_out, tgt_points)
+        forward = self._match(ref_range, tgt_range, output.flow, output.confidence, forward_out, ref_points)
+        backward = self._match(tgt_range, ref_range, back_flow, back_confidence, backward_out, tgt_points)
         return forward, backward
-
-    def _motion_from_flow(
-        self,
-        previous: _Scan,
-        tgt_image: npt.NDArray[np.float32],
-        tgt_range: npt.NDArray[np.float32],
-        tgt_points: npt.NDArray[np.float32],
-        output: FrameOutput,
-        diagnostics: FrameDiagnostics,
-        watch: _Stopwatch,
-    ) -> Matrix4:
-        gap = diagnostics.gap = self._clock.frame - self._reference_frame
-        predicted = self._motion.predicted(gap)
-        if output.flow is None:  # `_beyond_window`
-            pair = self._matched_from_prediction(previous, tgt_range, output.features, predicted, diagnostics)
-            if watch:
-                watch.lap("rematch")
-        else:
-            pair, forward, backward = self._pair(
-                previous.range, tgt_range, output, previous.features, previous.points, tgt_points, watch
-            )
-            diagnostics.count_matches(forward)
-            diagnostics.backward_inliers = None if backward is None else backward.num_inliers
-            pair = self._rematched_if_better(pair, previous, tgt_image, tgt_range, output.features, predicted, gap, diagnostics)
-            if watch and diagnostics.rematch_rounds is not None:
-                watch.lap("rematch")
-        diagnostics.inlier_votes = pair.inlier_votes
-        # The motion model of §III-D-c takes over from too few inliers, and beyond the paper from inliers
-        # nearly all on the road (they fix the height, roll and pitch but not where the car went) and from a
-        # motion a car cannot have changed to in a frame: a wrong RANSAC consensus (a metre off on a simulated
-        # drive) gives way to the solve of the matches that agree with the prediction, or to the prediction
-        # itself, rather than being chained into the trajectory.
-        motion, fallback = self._motion.judge(
-            pair.T_tgt_ref, pair.num_inliers, pair.inlier_votes, pair.source_points, pair.target_points, predicted, gap
-        )
-        if fallback is not None:
-            diagnostics.fallback = fallback
-        return motion
-
-    def _beyond_window(self) -> bool:
-        """Whether the predicted motion since the reference scan exceeds `motion_model.match_from_prediction_m`
-        (the network's window cannot reach the near scene's flow) between consecutive scans; never before a
-        velocity is measured."""
-        limit = self.config.motion_model.match_from_prediction_m
-        gap = self._clock.frame - self._reference_frame
-        if limit is None or not self._can_rematch or not self._motion.measured:
-            return False
-        if gap > self.config.motion_model.prediction_horizon:
-            return False
-        if self._rematch_gap is not None and gap >= self._rematch_gap:
-            return False  # across missing scans `_rematched_if_better` also tries the wide window
-        moved, _ = pose_difference(np.eye(4), self._motion.predicted(gap))
-        return bool(moved > limit)
-
-    def _prediction_rounds(self) -> int:
-        rounds = self.config.motion_model.prediction_rounds
-        return rounds if rounds is not None else 1 if self.config.mapping.enabled else 2
-
-    def _matched_from_prediction(
-        self,
-        previous: _Scan,
-        tgt_range: npt.NDArray[np.float32],
-        tgt_features: Features,
-        predicted: Matrix4,
-        diagnostics: FrameDiagnostics,
-    ) -> PairResult:
-        """The pair matched in rounds from the prediction (`_beyond_window`), its matches voted as for
-        consecutive scans; no inliers when not one round kept `motion_model.min_inliers` of them."""
-        again = rematch(
-            previous.cloud, predicted, tgt_range, tgt_features, rounds=range(1, self._prediction_rounds() + 1),
-            last_correction=None, matcher=self.matcher, project=self._project, match=self._match,
-            config=self.config.large_motion, min_inliers=self.config.motion_model.min_inliers, tilt_votes=True,
-        )
-        diagnostics.rematch_rounds = 0 if again is None else again.rounds
-        if again is None:
-            nothing = np.zeros((0, 3))
-            return PairResult(predicted, 0, 0, nothing, nothing, np.zeros(0, dtype=bool))
-        diagnostics.count_matches(again)
-        return again
-
-    def _rematched_if_better(
-        self,
-        pair: PairResult,
-        previous: _Scan,
-        tgt_image: npt.NDArray[np.float32],
-        tgt_range: npt.NDArray[np.float32],
-        tgt_features: Features,
-        predicted: Matrix4,
-        gap: int,
-        diagnostics: FrameDiagnostics,
-    ) -> PairResult:
-        """The pair, or the pair matched again from the prediction (`motion_model.rematch_gap`): across missing
-        scans the motion outgrows the network's window, while the prediction's error mostly stays within it.
-        When it does not (a turn during the gap: 10° off after 12 frames; the highway's 17 m), the wide-window
-        graph, when the model has one, started from the prediction does better: both start the rounds, and the
-        one with more inliers wins."""
-        if self._rematch_gap is None or not self._motion.measured:
-            return pair  # before any velocity is measured the prediction is "standing still", the pair itself
-        # As the gate below has it: after a replaced motion the prediction is the stale one, not the pair.
-        gives_way = pair.num_inliers < self.config.motion_model.min_inliers or (
-            not self._motion.gated_last and self._implausible(pair, predicted, gap)
-        )
-        if gap < self._rematch_gap and not gives_way:
-            return pair
-        min_inliers = self.config.motion_model.min_inliers
-        tried = [
-            rematch(
-                previous.cloud, predicted, tgt_range, tgt_features, rounds=range(1, self.config.large_motion.max_rounds + 1),
-                last_correction=None, matcher=self.matcher, project=self._project, match=self._match,
-                config=self.config.large_motion, min_inliers=min_inliers,
-            )
-        ]
-        if self._wide_graph_beside:
-            starts = [predicted]
-            if gap > self.config.motion_model.prediction_horizon:
-                large = self.config.large_motion
-                starts += search_starts(large.search_ahead_m, large.search_yaw_deg)
-            tried.append(self._register_far(previous.cloud, tgt_image, tgt_range, starts))
-        usable = [
-            result for result in tried
-            if result is not None and result.num_inliers >= min_inliers and not self._implausible(result, predicted, gap)
-        ]
-        diagnostics.rematch_rounds = 0
-        if not usable:
-            return pair
-        again = max(usable, key=lambda result: result.num_inliers)  # the model's own window first on a tie
-        if not gives_way and again.num_inliers <= pair.num_inliers:
-            return pair
-        diagnostics.rematch_rounds = again.rounds
-        diagnostics.fallback = "rematched_from_prediction"
-        diagnostics.count_matches(again)
-        return again
-
-    def _implausible(self, pair: PairResult, predicted: Matrix4, gap: int) -> bool:
-        """Whether a motion lies further from the prediction than a car's change of speed allows; never
-        beyond the prediction's horizon, where the prediction is a guess."""
-        return bool(self._motion.implausible(pair.T_tgt_ref, predicted, gap))
-
-    # -- motion model ---------------------------------------------------------------------------
-
-    def _make_motion_model(self) -> dmlo_rs.MotionModel:
-        m, r = self.config.motion_model, self.config.ransac
-        return dmlo_rs.MotionModel(
-            min_inliers=m.min_inliers, min_inlier_votes=m.min_inlier_votes, max_deviation=m.max_deviation,
-            max_deviation_deg=m.max_deviation_deg, guided_fraction=m.guided_fraction,
-            prediction_horizon=m.prediction_horizon, threshold=r.threshold, refit=r.refit, range_ratio=r.ray_range_ratio,
-        )
-
-    def _predict(self) -> Matrix4:
-        """The constant-velocity pose of the newest scan; the first scan defines the world."""
-        if not self.poses:
-            return np.eye(4)
-        return self.poses[-1] @ np.linalg.inv(self._motion.predicted(self._clock.frame - self._pose_frame))
-
-    def _skip(self, diagnostics: FrameDiagnostics, reason: str) -> Matrix4:
-        diagnostics.fallback = reason
-        return self._record(self._predict(), diagnostics)
-
-    def _record(self, pose: Matrix4, diagnostics: FrameDiagnostics) -> Matrix4:
-        self._pose_frame = self._clock.frame
-        self.poses.append(pose)
-        self.diagnostics.append(diagnostics)
-        return pose.copy()
 
     # -- mapping --------------------------------------------------------------------------------
 
@@ -838,28 +602,6 @@ class Odometry:
             max_iterations=c.max_iterations, degeneracy_threshold=c.degeneracy_threshold,
             rotation_degeneracy_threshold=c.rotation_degeneracy_threshold,
         )
-
-    def _refine_with_map(
-        self, cloud: npt.NDArray[np.float32], points: npt.NDArray[np.float32], pose: Matrix4,
-        diagnostics: FrameDiagnostics,
-    ) -> Matrix4:
-        """The DMLO `pose` refined against the local map (`dmlo_rs.LocalMap.refine`, `points` the scan's point
-        image): near the newest keyframe a standing car by point-to-plane ICP and a creeping one by the upright
-        surfaces' split (the keyframe's ground rings would hold it in place); elsewhere NDT from the DMLO pose
-        and, when that pose leaves the motion model far behind, also from the constant-velocity prediction: a
-        wrong RANSAC consensus (a metre off, seen on a simulated drive) lies outside NDT's basin, and the start
-        whose alignment scores higher wins."""
-        assert self._map is not None
-        within_horizon = self._clock.frame - self._reference_frame <= self.config.motion_model.prediction_horizon
-        # Before any velocity is measured the prediction is "standing still", and the map's ground rings, which
-        # move with the sensor, would score that wrong start highly.
-        prediction = self._predict() if self._motion.measured and within_horizon else None
-        refined = self._map.refine(cloud, points, pose, prediction)
-        diagnostics.ndt_converged = refined.converged
-        diagnostics.ndt_start = refined.start
-        diagnostics.ndt_degenerate_directions = refined.degenerate_directions
-        diagnostics.ndt_upright_only = refined.upright_only
-        return np.asarray(refined.pose, dtype=np.float64)
 
 
 def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> PairResult:

@@ -258,6 +258,23 @@ fn reflectance_on_another_scale_is_brought_to_the_models() {
 }
 
 #[test]
+fn allowed_zero_reflectance_runs_the_reflectance_model_on_zeros() {
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(false))
+        .unwrap()
+        .allowing_zero_reflectance();
+    for i in 0..3 {
+        let dark: Vec<[f32; 4]> = scan(i).iter().map(|&[x, y, z, _]| [x, y, z, 0.0]).collect();
+        if i > 0 {
+            odometry.matcher.truth.set(true_pose(i).inverse() * true_pose(i - 1));
+        }
+        let pose = odometry.register(Scan::new(&dark)).unwrap();
+        assert!(error_to_truth(&pose, i).0 < 0.02, "frame {i}");
+    }
+    assert_eq!(odometry.reflectance_scale(), Some(ReflectanceScale::Ignored));
+    assert!(odometry.matcher.uses_reflectance() && odometry.matcher.encoded.get() == 3);
+}
+
+#[test]
 fn bad_settings_and_a_matching_stage_the_matcher_does_not_run_are_named() {
     for (change, key) in [
         (
