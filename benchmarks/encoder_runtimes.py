@@ -1,10 +1,12 @@
-"""The network's encoder in two runtimes on the same real scan, in one run: onnxruntime (what `dmlo run` uses)
-and tract (the crate's `inference` feature, pure Rust), both on the same number of threads (issue 24).
+"""The network's encoder in three runtimes on the same real scan, in one run: onnxruntime from Python (what
+`dmlo run` uses), tract from Rust (the crate's `inference` feature, pure Rust) and the same onnxruntime library
+from Rust (the crate's `onnxruntime` feature: `ort`, the library loaded at run time), all on the same number of
+threads (issue 24).
 
     .venv/bin/python benchmarks/encoder_runtimes.py [--scan SCAN.bin] [--threads 2] [--repeat 20]
 
-Builds `cargo build --release --features inference --example encoder_speed` first when its binary is
-missing; prints the median and fastest encode of each and tract's time over onnxruntime's.
+Builds `cargo build --release --features inference,onnxruntime --example encoder_speed` first; prints the
+median and fastest encode of each and each one's time over Python onnxruntime's.
 """
 
 from __future__ import annotations
@@ -44,16 +46,26 @@ def onnxruntime_ms(scan: Path, threads: int, repeat: int) -> tuple[float, float]
     return float(np.median(times)), float(np.min(times))
 
 
-def tract_ms(scan: Path, threads: int, repeat: int) -> tuple[float, float]:
-    binary = ROOT / "target/release/examples/encoder_speed"
-    if not binary.is_file():
-        subprocess.run(["cargo", "build", "--release", "--features", "inference", "--example", "encoder_speed"],
-                       cwd=ROOT, check=True)
+def rust_ms(scan: Path, threads: int, repeat: int, onnxruntime: bool) -> tuple[float, float]:
+    """The encoder timed by `examples/encoder_speed.rs`: tract, or with `onnxruntime` the library of this
+    Python's `onnxruntime` wheel through `ort`."""
+    subprocess.run(["cargo", "build", "--release", "--features", "inference,onnxruntime", "--example", "encoder_speed"],
+                   cwd=ROOT, check=True)
+    command = [str(ROOT / "target/release/examples/encoder_speed"), str(ENCODER), str(scan), str(repeat)]
+    if onnxruntime:
+        command += ["--onnxruntime", str(onnxruntime_library()), str(threads)]
     env = dict(os.environ, RAYON_NUM_THREADS=str(threads))
-    out = subprocess.run([str(binary), str(ENCODER), str(scan), str(repeat)], env=env, check=True,
-                         capture_output=True, text=True).stdout
+    out = subprocess.run(command, env=env, check=True, capture_output=True, text=True).stdout
     result = json.loads(out)
     return result["median_ms"], result["min_ms"]
+
+
+def onnxruntime_library() -> Path:
+    """The shared library inside the installed `onnxruntime` wheel."""
+    import onnxruntime
+
+    capi = Path(onnxruntime.__file__).parent / "capi"
+    return next(path for path in sorted(capi.iterdir()) if path.name.startswith("libonnxruntime.so."))
 
 
 def main() -> None:
@@ -62,13 +74,16 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeat", type=int, default=20)
     args = parser.parse_args()
-    rows = {"onnxruntime": onnxruntime_ms(args.scan, args.threads, args.repeat),
-            "tract": tract_ms(args.scan, args.threads, args.repeat)}
+    rows = {
+        "onnxruntime (Python)": onnxruntime_ms(args.scan, args.threads, args.repeat),
+        "tract (Rust)": rust_ms(args.scan, args.threads, args.repeat, onnxruntime=False),
+        "onnxruntime (Rust, ort)": rust_ms(args.scan, args.threads, args.repeat, onnxruntime=True),
+    }
     print(f"encoder.onnx on {args.scan.name}, {args.threads} threads, {args.repeat} encodes each\n")
-    print("| runtime | median ms | fastest ms |\n|---|---|---|")
+    print("| runtime | median ms | fastest ms | median / Python onnxruntime's |\n|---|---|---|---|")
+    python_median = rows["onnxruntime (Python)"][0]
     for name, (median, fastest) in rows.items():
-        print(f"| {name} | {median:.1f} | {fastest:.1f} |")
-    print(f"\ntract / onnxruntime (median): {rows['tract'][0] / rows['onnxruntime'][0]:.2f}")
+        print(f"| {name} | {median:.1f} | {fastest:.1f} | {median / python_median:.2f} |")
 
 
 if __name__ == "__main__":

@@ -1,8 +1,10 @@
-//! Times the network's encoder run by tract on one real scan (feature `inference`), for
-//! `benchmarks/encoder_runtimes.py`, which times onnxruntime on the same scan in the same run.
+//! Times the network's encoder run from Rust on one real scan — by tract (feature `inference`), or with
+//! `--onnxruntime LIB` by onnxruntime through `ort` (feature `onnxruntime`, on `THREADS` intra-op threads) — for
+//! `benchmarks/encoder_runtimes.py`, which times Python's onnxruntime on the same scan in the same run.
 //!
 //! ```text
-//! cargo run --release --features inference --example encoder_speed -- ENCODER.onnx SCAN.bin [REPEATS]
+//! cargo run --release --features inference,onnxruntime --example encoder_speed -- \
+//!     ENCODER.onnx SCAN.bin [REPEATS] [--onnxruntime LIB THREADS]
 //! ```
 //!
 //! Prints one JSON line: the median and fastest encode in milliseconds and rayon's thread count.
@@ -12,9 +14,23 @@ use std::process::ExitCode;
 use dmlo_rs::inference::{Encoder, TractEncoder};
 use dmlo_rs::projection::{project_flat, CylinderConfig};
 
+const USAGE: &str = "usage: encoder_speed ENCODER.onnx SCAN.bin [REPEATS] [--onnxruntime LIB THREADS]";
+
 fn run(args: &[String]) -> Result<String, String> {
+    let (args, onnxruntime) = match args.iter().position(|a| a == "--onnxruntime") {
+        Some(at) => match &args[at..] {
+            [_, library, threads] => {
+                let threads: usize = threads
+                    .parse()
+                    .map_err(|_| format!("THREADS: not a count: {threads}"))?;
+                (&args[..at], Some((library.clone(), threads)))
+            }
+            _ => return Err(USAGE.into()),
+        },
+        None => (args, None),
+    };
     let [encoder, scan, rest @ ..] = args else {
-        return Err("usage: encoder_speed ENCODER.onnx SCAN.bin [REPEATS]".into());
+        return Err(USAGE.into());
     };
     let repeats: usize = match rest.first() {
         Some(text) => text
@@ -33,14 +49,42 @@ fn run(args: &[String]) -> Result<String, String> {
     let projection =
         project_flat(&points, 4, &CylinderConfig::kitti()).map_err(|e| e.to_string())?;
     let image = [projection.range, projection.reflectance].concat();
-    let encoder = TractEncoder::open(encoder).map_err(|e| e.to_string())?;
+    match onnxruntime {
+        None => {
+            let encoder = TractEncoder::open(encoder).map_err(|e| e.to_string())?;
+            time_encodes(&encoder, &image, repeats)
+        }
+        Some((library, threads)) => onnxruntime_encodes(encoder, &library, threads, &image, repeats),
+    }
+}
+
+#[cfg(feature = "onnxruntime")]
+fn onnxruntime_encodes(
+    encoder: &str,
+    library: &str,
+    threads: usize,
+    image: &[f32],
+    repeats: usize,
+) -> Result<String, String> {
+    let encoder = dmlo_rs::inference::OrtEncoder::open(encoder, library, threads)
+        .map_err(|e| e.to_string())?;
+    time_encodes(&encoder, image, repeats)
+}
+
+#[cfg(not(feature = "onnxruntime"))]
+fn onnxruntime_encodes(_: &str, _: &str, _: usize, _: &[f32], _: usize) -> Result<String, String> {
+    Err("--onnxruntime: built without the `onnxruntime` feature".into())
+}
+
+/// The median and fastest of `repeats` encodes of `image`, after three to warm up.
+fn time_encodes(encoder: &impl Encoder, image: &[f32], repeats: usize) -> Result<String, String> {
     for _ in 0..3 {
-        encoder.encode(&image).map_err(|e| e.to_string())?;
+        encoder.encode(image).map_err(|e| e.to_string())?;
     }
     let mut times = Vec::with_capacity(repeats);
     for _ in 0..repeats.max(1) {
         let start = std::time::Instant::now();
-        encoder.encode(&image).map_err(|e| e.to_string())?;
+        encoder.encode(image).map_err(|e| e.to_string())?;
         times.push(start.elapsed().as_secs_f64() * 1000.0);
     }
     times.sort_by(f64::total_cmp);

@@ -1,10 +1,11 @@
 //! DMLO odometry over a folder of KITTI `.bin` scans from Rust alone, no Python (feature `inference`):
-//! the network's encoder run by tract, the crate's matching stage and [`dmlo_rs::odometry::pipeline::Odometry`]
-//! (the motion model, matching from the prediction, the local map), writing the poses as `dmlo run` does.
+//! the network's encoder run by tract (or with `--onnxruntime LIB` by the onnxruntime shared library `LIB`,
+//! feature `onnxruntime`), the crate's matching stage and [`dmlo_rs::odometry::pipeline::Odometry`] (the
+//! motion model, matching from the prediction, the local map), writing the poses as `dmlo run` does.
 //!
 //! ```text
 //! cargo run --release --features inference --example odometry -- SCANS_DIR --out OUT_DIR \
-//!     [--model MODEL_DIR] [--config CONFIG.json] [--threads N]
+//!     [--model MODEL_DIR] [--config CONFIG.json] [--threads N] [--onnxruntime LIB]
 //! ```
 //!
 //! `SCANS_DIR` holds the scans (`*.bin`, N × 4 float32: x, y, z, reflectance), registered in name
@@ -14,8 +15,8 @@
 //! config as `dmlo run` writes it (default: the defaults). `OUT_DIR` gets `poses_kitti.txt`
 //! (`T_world_lidar`, the first scan the world: one row of 12 numbers a scan, readable by evo) and
 //! `diagnostics.jsonl` (one JSON object a scan), both appended and flushed scan by scan, so an interrupted
-//! run keeps every scan done. `--threads` sizes rayon's pool (tract and the crate's stages); 0 or absent:
-//! the config's `threads`, and when that is 0 rayon's default.
+//! run keeps every scan done. `--threads` sizes rayon's pool (tract and the crate's stages) and onnxruntime's
+//! threads; 0 or absent: the config's `threads`, and when that is 0 the runtimes' defaults.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -23,11 +24,11 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use dmlo_rs::inference::{graph_metadata, LearnedMatcher, TractEncoder};
+use dmlo_rs::inference::{graph_metadata, Encoder, LearnedMatcher, TractEncoder};
 use dmlo_rs::odometry::config::OdometryConfig;
 use dmlo_rs::odometry::pipeline::{Odometry, Scan};
 
-const USAGE: &str = "usage: odometry SCANS_DIR --out OUT_DIR [--model MODEL_DIR] [--config CONFIG.json] [--threads N]";
+const USAGE: &str = "usage: odometry SCANS_DIR --out OUT_DIR [--model MODEL_DIR] [--config CONFIG.json] [--threads N] [--onnxruntime LIB]";
 
 struct Arguments {
     scans: PathBuf,
@@ -35,11 +36,12 @@ struct Arguments {
     model: PathBuf,
     config: Option<PathBuf>,
     threads: Option<usize>,
+    onnxruntime: Option<PathBuf>,
 }
 
 fn parse(args: &[String]) -> Result<Arguments, String> {
     let mut scans = None;
-    let (mut out, mut model, mut config, mut threads) = (None, None, None, None);
+    let (mut out, mut model, mut config, mut threads, mut onnxruntime) = (None, None, None, None, None);
     let mut rest = args.iter();
     while let Some(arg) = rest.next() {
         let mut value = |flag: &str| {
@@ -51,6 +53,7 @@ fn parse(args: &[String]) -> Result<Arguments, String> {
             "--out" => out = Some(PathBuf::from(value("--out")?)),
             "--model" => model = Some(PathBuf::from(value("--model")?)),
             "--config" => config = Some(PathBuf::from(value("--config")?)),
+            "--onnxruntime" => onnxruntime = Some(PathBuf::from(value("--onnxruntime")?)),
             "--threads" => {
                 let text = value("--threads")?;
                 threads = Some(
@@ -71,6 +74,7 @@ fn parse(args: &[String]) -> Result<Arguments, String> {
         model: model.unwrap_or_else(|| PathBuf::from("python/dmlo/models/default")),
         config,
         threads,
+        onnxruntime,
     })
 }
 
@@ -128,10 +132,13 @@ fn python_exponent(text: &str) -> String {
     }
 }
 
-/// The model in `folder`: its `encoder.onnx` run by tract, with the wide window of `frame_wide.onnx`
-/// beside it when there is one.
-fn learned_matcher(folder: &Path) -> dmlo_rs::Result<LearnedMatcher<TractEncoder>> {
-    let matcher = LearnedMatcher::new(TractEncoder::open(folder.join("encoder.onnx"))?)?;
+/// The model in `folder` over `encoder` (its `encoder.onnx` opened by the runtime), with the wide window of
+/// `frame_wide.onnx` beside it when there is one.
+fn learned_matcher<E: Encoder>(
+    folder: &Path,
+    encoder: impl Fn(&Path) -> dmlo_rs::Result<E>,
+) -> dmlo_rs::Result<LearnedMatcher<E>> {
+    let matcher = LearnedMatcher::new(encoder(&folder.join("encoder.onnx"))?)?;
     let wide = folder.join("frame_wide.onnx");
     if !wide.is_file() {
         return Ok(matcher);
@@ -151,11 +158,44 @@ fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error>> {
             .num_threads(threads)
             .build_global()?;
     }
+    match &arguments.onnxruntime {
+        None => drive(&arguments, config, |path: &Path| TractEncoder::open(path)),
+        Some(library) => with_onnxruntime(&arguments, config, library, threads),
+    }
+}
+
+#[cfg(feature = "onnxruntime")]
+fn with_onnxruntime(
+    arguments: &Arguments,
+    config: OdometryConfig,
+    library: &Path,
+    threads: usize,
+) -> Result<(), Box<dyn std::error::Error>> {
+    use dmlo_rs::inference::OrtEncoder;
+    drive(arguments, config, |path: &Path| OrtEncoder::open(path, library, threads))
+}
+
+#[cfg(not(feature = "onnxruntime"))]
+fn with_onnxruntime(
+    _: &Arguments,
+    _: OdometryConfig,
+    _: &Path,
+    _: usize,
+) -> Result<(), Box<dyn std::error::Error>> {
+    Err("--onnxruntime: built without the `onnxruntime` feature (cargo run --features inference,onnxruntime …)".into())
+}
+
+/// The odometry over every scan of the folder, the encoders opened by `encoder`.
+fn drive<E: Encoder>(
+    arguments: &Arguments,
+    config: OdometryConfig,
+    encoder: impl Fn(&Path) -> dmlo_rs::Result<E>,
+) -> Result<(), Box<dyn std::error::Error>> {
     let files = scan_files(&arguments.scans)?;
-    let mut odometry = Odometry::new(learned_matcher(&arguments.model)?, config)?;
+    let mut odometry = Odometry::new(learned_matcher(&arguments.model, &encoder)?, config)?;
     let range_only = arguments.model.join("range_only");
     if range_only.join("encoder.onnx").is_file() {
-        odometry = odometry.with_range_only(learned_matcher(&range_only)?)?;
+        odometry = odometry.with_range_only(learned_matcher(&range_only, &encoder)?)?;
     }
     std::fs::create_dir_all(&arguments.out)?;
     let mut poses = BufWriter::new(File::create(arguments.out.join("poses_kitti.txt"))?);

@@ -1,18 +1,20 @@
 #![forbid(unsafe_code)]
-//! The learned matcher from Rust (feature `inference`): the network's encoder run by
-//! [tract](https://github.com/sonos/tract) (pure Rust, no C/C++ runtime, cross-compiles to ARM
-//! robots) on the exported `encoder.onnx`, and the crate's own matching stage
-//! ([`crate::dense_match`]) on its features — the flow and confidence of every reference cell,
-//! as `dmlo run` computes them, without Python.
+//! The learned matcher from Rust: the network's encoder run on the exported `encoder.onnx` by
+//! [tract](https://github.com/sonos/tract) (feature `inference`: pure Rust, no C/C++ runtime,
+//! cross-compiles to ARM robots) or by onnxruntime (feature `onnxruntime`: `ort` loading the shared
+//! library the system or the `onnxruntime` Python wheel has, `dmlo run`'s own runtime), and the crate's
+//! own matching stage ([`crate::dense_match`]) on its features — the flow and confidence of every
+//! reference cell, as `dmlo run` computes them, without Python.
 //!
 //! The model is found by an explicit path (nothing is downloaded); its settings travel in the graph's
 //! metadata, written by `dmlo export`: the input size, the windows of the matching stage
 //! (`dmlo.model_config`) and its two learned softmax scales (`dmlo.similarity_scales`).
 //!
 //! ```no_run
+//! # #[cfg(feature = "inference")]
+//! # fn main() -> dmlo_rs::error::Result<()> {
 //! use dmlo_rs::inference::{Encoder, LearnedMatcher, TractEncoder};
 //!
-//! # fn main() -> dmlo_rs::error::Result<()> {
 //! let matcher = LearnedMatcher::new(TractEncoder::open("python/dmlo/models/default/encoder.onnx")?)?;
 //! let [height, width] = matcher.encoder().input_size();
 //! // Two scans' images: range (m) then reflectance ([0, 1]), channel-major, 0 where empty
@@ -24,12 +26,20 @@
 //! # let _ = flow;
 //! # Ok(())
 //! # }
+//! # #[cfg(not(feature = "inference"))]
+//! # fn main() {}
 //! ```
 
 mod metadata;
+#[cfg(feature = "onnxruntime")]
+mod onnxruntime;
+#[cfg(feature = "inference")]
 mod tract;
 
 pub use metadata::ModelMetadata;
+#[cfg(feature = "onnxruntime")]
+pub use onnxruntime::OrtEncoder;
+#[cfg(feature = "inference")]
 pub use tract::{graph_metadata, TractEncoder};
 
 use crate::dense_match::{self, DenseFlow, DenseMatchConfig, FeatureMap, ScanFeatures};
@@ -206,5 +216,5 @@ pub(crate) fn check_image(image: &[f32], [rows, columns]: [usize; 2]) -> Result<
     Ok(())
 }
 
-#[cfg(test)]
+#[cfg(all(test, feature = "inference"))]
 mod tests;
