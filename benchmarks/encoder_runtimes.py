@@ -33,9 +33,10 @@ def onnxruntime_ms(scan: Path, threads: int, repeat: int) -> tuple[float, float]
     points = np.fromfile(scan, dtype=np.float32).reshape(-1, 4)
     projection = dmlo_rs.project(points, dmlo_rs.CylinderConfig.kitti())
     image = np.stack([projection.range, projection.reflectance]).astype(np.float32)[None]
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    session = ort.InferenceSession(str(ENCODER), options, providers=["CPUExecutionProvider"])
+    from dmlo.odometry.matcher import session_options
+
+    # The odometry's own options (no spinning between calls), as `OrtEncoder` sets them.
+    session = ort.InferenceSession(str(ENCODER), session_options(threads), providers=["CPUExecutionProvider"])
     for _ in range(3):
         session.run(None, {"scan": image})
     times = []
@@ -53,19 +54,14 @@ def rust_ms(scan: Path, threads: int, repeat: int, onnxruntime: bool) -> tuple[f
                    cwd=ROOT, check=True)
     command = [str(ROOT / "target/release/examples/encoder_speed"), str(ENCODER), str(scan), str(repeat)]
     if onnxruntime:
+        from dmlo.odometry.matcher import onnxruntime_library
+
         command += ["--onnxruntime", str(onnxruntime_library()), str(threads)]
     env = dict(os.environ, RAYON_NUM_THREADS=str(threads))
     out = subprocess.run(command, env=env, check=True, capture_output=True, text=True).stdout
     result = json.loads(out)
     return result["median_ms"], result["min_ms"]
 
-
-def onnxruntime_library() -> Path:
-    """The shared library inside the installed `onnxruntime` wheel."""
-    import onnxruntime
-
-    capi = Path(onnxruntime.__file__).parent / "capi"
-    return next(path for path in sorted(capi.iterdir()) if path.name.startswith("libonnxruntime.so."))
 
 
 def main() -> None:

@@ -225,7 +225,7 @@ fn drive<E: Encoder>(
         .filter(|d| d.fallback.is_some())
         .count();
     println!(
-        "{} scans in {seconds:.1} s ({:.1} Hz), {fallbacks} on a fallback; poses in {}",
+        "{} scans in {seconds:.3} s ({:.1} Hz), {fallbacks} on a fallback; poses in {}",
         files.len(),
         files.len() as f64 / seconds,
         arguments.out.join("poses_kitti.txt").display()

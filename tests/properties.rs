@@ -304,8 +304,13 @@ impl FrameMatcher for ConstantFlowMatcher {
         true
     }
 
-    fn wide_flow(&self, reference: &Vec<f32>, _target_image: &[f32]) -> dmlo_rs::Result<DenseFlow> {
-        self.flow(reference, reference)
+    fn wide_flow(
+        &self,
+        reference: &Vec<f32>,
+        target: &Vec<f32>,
+        _target_image: &[f32],
+    ) -> dmlo_rs::Result<DenseFlow> {
+        self.flow(reference, target)
     }
 }
 

@@ -83,3 +83,18 @@ def frame_to_frame(**settings: object) -> OdometryConfig:
     for name, value in settings.items():
         setattr(config, name, value)
     return config
+
+
+def rust_example(name: str) -> Path:
+    """`target/release/examples/<name>`, as `cargo test --release --features inference,onnxruntime` builds it (CI
+    builds it before pytest); the test skips when it is missing or older than the crate's sources."""
+    import pytest
+
+    example = Path(os.environ.get("CARGO_TARGET_DIR", REPO / "target")) / "release" / "examples" / name
+    if not example.is_file():
+        pytest.skip(f"{example} not built: cargo test --release --features inference,onnxruntime builds it")
+    sources = [*REPO.joinpath("src").rglob("*.rs"), REPO / "examples" / f"{name}.rs", REPO / "Cargo.toml"]
+    if example.stat().st_mtime < max(path.stat().st_mtime for path in sources):
+        pytest.skip(f"{example} is older than the crate's sources: rebuild it with cargo test --release "
+                    "--features inference,onnxruntime")
+    return example

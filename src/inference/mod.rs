@@ -179,12 +179,16 @@ impl<E: Encoder> FrameMatcher for LearnedMatcher<E> {
         self.wide.is_some()
     }
 
-    fn wide_flow(&self, reference: &EncodedScan, target_image: &[f32]) -> Result<DenseFlow> {
+    fn wide_flow(
+        &self,
+        reference: &EncodedScan,
+        target: &EncodedScan,
+        _target_image: &[f32],
+    ) -> Result<DenseFlow> {
         let wide = self
             .wide
             .as_ref()
             .ok_or_else(|| Error::Model("the matcher has no wide window".into()))?;
-        let target = self.encoder.encode(target_image)?;
         dense_match::match_features(&reference.features(), &target.features(), wide)
     }
 }

@@ -110,10 +110,11 @@ fn the_wide_window_is_the_bundled_frame_wide_graphs_and_matches_wider() {
         return;
     };
     let reference = matcher.encoder().encode(&image).unwrap();
-    let wide = matcher.wide_flow(&reference, &target).unwrap();
+    let target_features = matcher.encoder().encode(&target).unwrap();
+    let wide = matcher.wide_flow(&reference, &target_features, &target).unwrap();
     let expected = crate::dense_match::match_features(
         &reference.features(),
-        &matcher.encoder().encode(&target).unwrap().features(),
+        &target_features.features(),
         &DenseMatchConfig {
             coarse_window,
             ..*matcher.config()
@@ -382,7 +383,7 @@ fn real_drive(name: &str) -> Option<Vec<Vec<[f32; 4]>>> {
     Some(scans)
 }
 
-/// The runs of `odometry_poses.json` whose chains tract's features keep (to 1e-6 m).
+/// The runs of `odometry_poses.json` whose chains tract's features keep (within `assert_pose_is`'s bound).
 const TRACT_AGREES: [&str; 4] = [
     "odometry_03/mapping",
     "odometry_03/frame_to_frame",
@@ -537,7 +538,10 @@ fn the_rust_odometry_over_onnxruntime_equals_the_python_odometry_on_every_real_d
     }
 }
 
-/// `pose` against a KITTI row of `dmlo.Odometry`'s, within 1e-6 m and 1e-6 rad.
+/// `pose` against a KITTI row of `dmlo.Odometry`'s, within 1e-5 m and 1e-5 rad: the fixture was recorded on
+/// another processor, and onnxruntime's CPU kernels differ between processors in the last bits of the
+/// features, which a frame-to-frame chain accumulates. The same run on one machine agrees to 1e-6
+/// (`tests/odometry/test_rust_example.py`); a flipped inlier parts chains by millimetres and fails here.
 fn assert_pose_is(pose: &nalgebra::Matrix4<f64>, row: &Value, context: &str) {
     let row: Vec<f64> = row
         .as_array()
@@ -551,7 +555,7 @@ fn assert_pose_is(pose: &nalgebra::Matrix4<f64>, row: &Value, context: &str) {
         .copy_from(&nalgebra::Matrix3x4::from_row_slice(&row));
     let (moved, turned) = crate::odometry::motion::pose_difference(&expected, pose);
     assert!(
-        moved < 1e-6 && turned.to_radians() < 1e-6,
+        moved < 1e-5 && turned.to_radians() < 1e-5,
         "{context}: {moved} m, {} rad from dmlo.Odometry's pose",
         turned.to_radians()
     );

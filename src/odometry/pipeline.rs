@@ -63,9 +63,15 @@ pub trait FrameMatcher {
     fn has_wide_window(&self) -> bool {
         false
     }
-    /// The wide window's flow of `reference` into the scan whose `(2, H, W)` image is `target_image`.
-    fn wide_flow(&self, reference: &Self::Features, target_image: &[f32]) -> Result<DenseFlow> {
-        let _ = (reference, target_image);
+    /// The wide window's flow of `reference` into `target` (its features, and its `(2, H, W)` image for a
+    /// matcher whose wide window encodes the scan itself).
+    fn wide_flow(
+        &self,
+        reference: &Self::Features,
+        target: &Self::Features,
+        target_image: &[f32],
+    ) -> Result<DenseFlow> {
+        let _ = (reference, target, target_image);
         Err(Error::Model("the matcher has no wide window".into()))
     }
 }
@@ -347,41 +353,26 @@ impl<M: FrameMatcher> Odometry<M> {
     /// reflectance the model cannot use); the odometry's state is then as before the call, apart from
     /// the clock of a scan whose error came from the matcher.
     pub fn register(&mut self, scan: Scan<'_>) -> Result<Matrix4<f64>> {
-        if let Some(moving) = scan.moving {
-            if moving.len() != scan.points.len() {
-                return Err(Error::invalid(
-                    "moving",
-                    format!(
-                        "expected one flag per point ({}), got {}",
-                        scan.points.len(),
-                        moving.len()
-                    ),
-                ));
-            }
-        }
-        if let Some(times) = scan.point_times {
-            if times.len() != scan.points.len() {
-                return Err(Error::invalid(
-                    "point_times",
-                    format!(
-                        "expected one time per point ({}), got {}",
-                        scan.points.len(),
-                        times.len()
-                    ),
-                ));
-            }
-        }
-        let finite = |p: &[f32; 4]| p.iter().all(|v| v.is_finite());
+        let count = scan.points.len();
+        check_one_per_point(scan.moving, "moving", "flag", count)?;
+        check_one_per_point(scan.point_times, "point_times", "time", count)?;
+        let mut finite_reflectance = Vec::with_capacity(count);
         let keep: Vec<bool> = scan
             .points
             .iter()
             .enumerate()
-            .map(|(i, p)| finite(p) && !scan.moving.is_some_and(|m| m[i]))
+            .map(|(i, p)| {
+                let finite = p.iter().all(|v| v.is_finite());
+                if finite {
+                    finite_reflectance.push(p[3]);
+                }
+                finite && !scan.moving.is_some_and(|m| m[i])
+            })
             .collect();
         let kept: Vec<[f32; 4]> = kept_rows(scan.points, &keep);
         let times = scan.point_times.map(|times| kept_rows(times, &keep));
         let min_points = self.config.min_points as usize;
-        let scale = self.reflectance_for(scan.points, min_points)?;
+        let scale = self.reflectance_for(&finite_reflectance, min_points)?;
         let tick = self.clock.advance(scan.timestamp)?;
         let mut diagnostics = FrameDiagnostics {
             index: self.poses.len(),
@@ -514,22 +505,18 @@ impl<M: FrameMatcher> Odometry<M> {
     }
 
     /// The reflectance scale of the sequence, chosen on the first scan with `min_points` finite points
-    /// (`None` before it); errors when the scans have no reflectance the model can use.
+    /// (`finite`: their reflectance; `None` before it); errors when the scans have no reflectance the
+    /// model can use.
     fn reflectance_for(
         &mut self,
-        points: &[[f32; 4]],
+        finite: &[f32],
         min_points: usize,
     ) -> Result<Option<ReflectanceScale>> {
-        let finite: Vec<f32> = points
-            .iter()
-            .filter(|p| p.iter().all(|v| v.is_finite()))
-            .map(|p| p[3])
-            .collect();
         if finite.len() < min_points {
             // Not matched (too few points): it decides nothing, and its reflectance is never read.
             return Ok(self.reflectance);
         }
-        let detected = detect_reflectance(&finite);
+        let detected = detect_reflectance(finite);
         let choice = match self.reflectance {
             Some(chosen) => {
                 if chosen != ReflectanceScale::Ignored && detected.0 == ReflectanceScale::Ignored {
@@ -927,7 +914,7 @@ impl<M: FrameMatcher> Odometry<M> {
         for start in starts {
             let moved = self.project(&moved_cloud(reference, start))?;
             let encoded = self.matcher.encode(&moved.image)?;
-            let flow = self.matcher.wide_flow(&encoded, &target.image)?;
+            let flow = self.matcher.wide_flow(&encoded, tgt_features, &target.image)?;
             let pair =
                 self.match_flow(&moved.range, &target.range, &flow, &moved.points, None, false)?;
             if best
@@ -1140,6 +1127,22 @@ fn moved_cloud(cloud: &[[f32; 4]], transform: &Matrix4<f64>) -> Vec<[f32; 4]> {
             [row(0), row(1), row(2), reflectance]
         })
         .collect()
+}
+
+/// Checks that `values` (the scan's `name`: one `what` a point), when given, has one entry per point.
+fn check_one_per_point<T>(
+    values: Option<&[T]>,
+    name: &'static str,
+    what: &str,
+    points: usize,
+) -> Result<()> {
+    match values {
+        Some(values) if values.len() != points => Err(Error::invalid(
+            name,
+            format!("expected one {what} per point ({points}), got {}", values.len()),
+        )),
+        _ => Ok(()),
+    }
 }
 
 /// The rows of `values` whose `keep` flag is set.

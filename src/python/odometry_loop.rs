@@ -1,6 +1,6 @@
 //! Binding of the crate's per-frame odometry (`crate::odometry::pipeline::Odometry`) over a matcher
 //! written in Python: any object with `cylinder`, `encode(image)` and `match(reference, target)`, and
-//! optionally `wide_match(reference, target_image)` (the wide window), as
+//! optionally `wide_match(reference, target, target_image)` (the wide window), as
 //! `dmlo.odometry.matcher.OnnxMatcher` gives them, so the loop runs in the crate while the network runs
 //! wherever the caller runs it (onnxruntime in `dmlo`).
 
@@ -120,10 +120,15 @@ impl FrameMatcher for PythonMatcher {
         self.wide_window
     }
 
-    fn wide_flow(&self, reference: &Py<PyAny>, target_image: &[f32]) -> Result<DenseFlow> {
+    fn wide_flow(
+        &self,
+        reference: &Py<PyAny>,
+        target: &Py<PyAny>,
+        target_image: &[f32],
+    ) -> Result<DenseFlow> {
         Python::attach(|py| {
             let image = self.image(py, target_image)?;
-            let output = self.object.call_method1(py, "wide_match", (reference, image))?;
+            let output = self.object.call_method1(py, "wide_match", (reference, target, image))?;
             self.dense_flow(py, "wide_match", &output)
         })
         .map_err(|e| self.failed("wide_match", e))

@@ -16,7 +16,7 @@ import pytest
 
 from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
-from support import REPO
+from support import REPO, rust_example
 
 SCRIPTS = REPO / "benchmarks"
 
@@ -193,3 +193,23 @@ def test_moving_objects_benchmark_scores_the_network_on_a_labelled_drive(drive: 
     scores = json.loads(out.read_text())[drive.name]
     assert scores["scans"] == 4 and scores["points"] > 100_000 and scores["moving"] > 0
     assert 0 <= scores["precision"] <= 1 and 0 <= scores["recall"] <= 1
+
+
+def test_rust_odometry_benchmark_times_both_languages_on_the_same_scans(drive: Path, tmp_path: Path) -> None:
+    from dmlo.odometry import OdometryConfig
+    from dmlo.odometry.matcher import onnxruntime_library
+
+    rust_odometry = script("rust_odometry")
+    rust_odometry.EXAMPLE = rust_example("odometry")
+    config = OdometryConfig()
+    config.moving_objects.detect = False
+    config.threads = 2
+    config.save(tmp_path / "config.json")
+    python_rate, python_moved = rust_odometry.python_run(drive / "velodyne", tmp_path / "config.json")
+    ort_rate, ort_moved = rust_odometry.rust_run(drive / "velodyne", tmp_path / "config.json", 2, onnxruntime_library())
+    tract_rate, tract_moved = rust_odometry.rust_run(drive / "velodyne", tmp_path / "config.json", 2, None)
+    assert min(python_rate, ort_rate, tract_rate) > 0
+    assert python_moved.shape == ort_moved.shape == tract_moved.shape == (4, 3)
+    assert np.linalg.norm(python_moved[-1]) > 1.0
+    np.testing.assert_allclose(ort_moved, python_moved, rtol=0, atol=1e-6)
+    assert np.isfinite(tract_moved).all()

@@ -64,8 +64,10 @@ def test_the_crate_refuses_what_python_refuses_naming_the_same_key(settings: dic
 
 
 def test_the_crate_odometry_fixture_is_what_python_gives_today(shared_data: Path) -> None:
-    """`odometry_poses.json`, the poses the crate's `Odometry` over tract must equal (`cargo test --features
-    inference`), is what `dmlo.Odometry` gives today: a change of the odometry's behaviour shows in both."""
+    """`odometry_poses.json`, the poses the crate's `Odometry` over onnxruntime and tract must equal (`cargo test
+    --features inference,onnxruntime`), is what `dmlo.Odometry` gives today: a change of the odometry's behaviour
+    shows in both. Within 1e-5 (metres, and rotation entries), the crate test's bound: the fixture may have been
+    recorded on another processor, whose onnxruntime kernels round the features differently."""
     spec = importlib.util.spec_from_file_location("make_odometry_poses", FIXTURES / "make_odometry_poses.py")
     assert spec is not None and spec.loader is not None
     maker = importlib.util.module_from_spec(spec)
@@ -74,4 +76,4 @@ def test_the_crate_odometry_fixture_is_what_python_gives_today(shared_data: Path
     today = maker.odometry_poses(shared_data)
     assert fixture.keys() == today.keys()
     for key in fixture:
-        np.testing.assert_allclose(fixture[key], today[key], atol=1e-9, err_msg=f"{key}: re-run {maker.__file__}")
+        np.testing.assert_allclose(fixture[key], today[key], rtol=0, atol=1e-5, err_msg=f"{key}: re-run {maker.__file__}")

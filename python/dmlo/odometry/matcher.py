@@ -122,6 +122,20 @@ def default_model_path() -> Path:
     return Path(__file__).resolve().parent.parent / "models" / "default"
 
 
+def onnxruntime_library() -> Path:
+    """The shared library inside the installed `onnxruntime` wheel (`onnxruntime/capi/libonnxruntime.*`): the one
+    the crate's `onnxruntime` feature loads (`OrtEncoder`, `examples/odometry.rs --onnxruntime`) to run the
+    network as `dmlo run` does. `ModelError` when the wheel holds none."""
+    import onnxruntime
+
+    capi = Path(onnxruntime.__file__).parent / "capi"
+    found = sorted(path for path in capi.iterdir() if path.name.startswith("libonnxruntime.")
+                   or path.name == "onnxruntime.dll") if capi.is_dir() else []
+    if not found:
+        raise ModelError(f"{capi}: no onnxruntime shared library in the installed onnxruntime wheel")
+    return found[0]
+
+
 def wide_graph_path(frame_graph: Path) -> Path:
     """The large-motion graph stored beside a model's `frame.onnx`."""
     wide = frame_graph.with_name(WIDE_FRAME_GRAPH)
@@ -429,13 +443,16 @@ class CrateMatcher:
         return features.features
 
     def _wide_match(
-        self, reference: Features | _Deferred, target_image: npt.NDArray[np.float32]
+        self, reference: Features | _Deferred, target: Features | _Deferred, target_image: npt.NDArray[np.float32]
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
-        """The wide window's flow of `reference` (features of the model's encoder) into the scan `target_image`."""
+        """The wide window's flow of `reference` into `target` (features of the model's encoder; the scan's
+        image `target_image` for a wide graph that matches in the graph, which encodes it itself)."""
         if self._wide is None:
             self._wide = OnnxMatcher(
                 wide_graph_path(self.matcher.path), threads=self._threads, matching_stage=self._matching_stage
             )
+        if self._wide.matching_stage == "crate":
+            return self._wide.match(self._features(reference), self._features(target))
         output = self._wide.frame(target_image, self._features(reference))
         assert output.flow is not None and output.confidence is not None
         return output.flow, output.confidence

@@ -1,0 +1,118 @@
+"""The whole odometry from Rust against `dmlo.Odometry` from Python, on the same scans in one run (issue 24):
+`examples/odometry.rs` with the encoder in tract and in onnxruntime (`--onnxruntime`: the library of this
+Python's `onnxruntime` wheel through `ort`), and `dmlo.Odometry` (onnxruntime from Python), with the same model,
+the same config and the same threads, in turns.
+
+    .venv/bin/python benchmarks/rust_odometry.py [SCANS_DIR ...] [--rounds 3] [--threads 2]
+
+Without folders: every set of `../shared/data/kitti_real`. Each set runs with the local map and frame to frame.
+The moving-object network is off in all three (the crate does not run it; a Rust user passes their own mask).
+Each side's time covers the same loop: reading each `.bin` scan and registering it, the model already open.
+Prints each runtime's median rate (Hz) over the rounds, its rate over Python's, and how far its poses are from
+Python's (the largest translation difference over the drive).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import statistics
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_REAL = ROOT.parent / "shared/data/kitti_real"
+MODEL = ROOT / "python/dmlo/models/default"
+EXAMPLE = ROOT / "target/release/examples/odometry"
+RUST_RATE = re.compile(r"(\d+) scans in ([0-9.]+) s")
+
+
+def scan_folders(given: list[Path]) -> list[Path]:
+    if given:
+        return given
+    return sorted(path / "velodyne" for path in SHARED_REAL.iterdir() if (path / "velodyne").is_dir())
+
+
+def python_run(scans: Path, config_path: Path) -> tuple[float, np.ndarray]:
+    """Scans a second and the translations of `dmlo.Odometry` over the folder."""
+    from dmlo.odometry import Odometry, OdometryConfig
+
+    odometry = Odometry(MODEL / "frame.onnx", OdometryConfig.load(config_path))
+    files = sorted(scans.glob("*.bin"))
+    start = time.perf_counter()
+    for path in files:
+        odometry.register(np.fromfile(path, dtype=np.float32).reshape(-1, 4))
+    seconds = time.perf_counter() - start
+    return len(files) / seconds, np.stack([np.asarray(pose)[:3, 3] for pose in odometry.poses])
+
+
+def rust_run(scans: Path, config_path: Path, threads: int, library: Path | None) -> tuple[float, np.ndarray]:
+    """Scans a second and the translations of `examples/odometry.rs` (tract, or onnxruntime's `library`)."""
+    with tempfile.TemporaryDirectory() as out:
+        command = [str(EXAMPLE), str(scans), "--out", out, "--model", str(MODEL), "--config", str(config_path),
+                   "--threads", str(threads)]
+        if library is not None:
+            command += ["--onnxruntime", str(library)]
+        printed = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+        match = RUST_RATE.search(printed)
+        if match is None:
+            raise RuntimeError(f"no rate in the example's output: {printed!r}")
+        poses = np.loadtxt(Path(out) / "poses_kitti.txt", ndmin=2).reshape(-1, 3, 4)
+    return int(match[1]) / float(match[2]), poses[:, :, 3]
+
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scans", type=Path, nargs="*", help="folders of KITTI .bin scans")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    subprocess.run(["cargo", "build", "--release", "--features", "inference,onnxruntime", "--example", "odometry"],
+                   cwd=ROOT, check=True)
+    from dmlo.odometry import OdometryConfig
+    from dmlo.odometry.matcher import onnxruntime_library
+
+    library = onnxruntime_library()
+    runtimes = {"dmlo.Odometry (Python, onnxruntime)": None, "Rust, tract": "tract", "Rust, onnxruntime": "ort"}
+    print("| scans | mode | " + " | ".join(f"{name} Hz" for name in runtimes)
+          + " | tract / Python | onnxruntime (Rust) / Python | largest difference from Python, tract / onnxruntime (m) |")
+    print("|---|---|" + "---|" * (len(runtimes) + 3))
+    with tempfile.TemporaryDirectory() as folder:
+        for scans in scan_folders(args.scans):
+            for mapping in (True, False):
+                config = OdometryConfig()
+                config.mapping.enabled = mapping
+                config.moving_objects.detect = False
+                config.threads = args.threads
+                config_path = Path(folder) / "config.json"
+                config.save(config_path)
+                rates: dict[str, list[float]] = {name: [] for name in runtimes}
+                translations: dict[str, np.ndarray] = {}
+                for _ in range(args.rounds):
+                    for name, kind in runtimes.items():
+                        if kind is None:
+                            rate, moved = python_run(scans, config_path)
+                        else:
+                            rate, moved = rust_run(scans, config_path, args.threads,
+                                                   library if kind == "ort" else None)
+                        rates[name].append(rate)
+                        translations[name] = moved
+                python_name, tract_name, ort_name = runtimes
+                median = {name: statistics.median(values) for name, values in rates.items()}
+                reference = translations[python_name]
+                apart = [float(np.abs(translations[name] - reference).max()) for name in (tract_name, ort_name)]
+                label = scans.parent.name if scans.name == "velodyne" else scans.name
+                print(f"| {label} | {'mapping' if mapping else 'frame to frame'} | "
+                      + " | ".join(f"{median[name]:.1f}" for name in runtimes)
+                      + f" | {median[tract_name] / median[python_name]:.2f}"
+                      + f" | {median[ort_name] / median[python_name]:.2f}"
+                      + f" | {apart[0]:.1e} / {apart[1]:.1e} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

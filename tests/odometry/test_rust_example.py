@@ -1,0 +1,70 @@
+"""The Rust example `examples/odometry.rs` (the crate's odometry over onnxruntime loaded by `ort`, no Python)
+gives `dmlo run`'s poses on a simulated drive and on every shared real set, on the same machine in the same run,
+with the config `dmlo run` wrote (issue 24: 1e-6 m / 1e-6 rad).
+
+The example binary is the one `cargo test --release --features inference,onnxruntime` builds (CI builds it
+before pytest); the test skips when it is missing or older than the crate's sources. The crate's own test
+(`src/inference/tests.rs`) holds the same runs against poses recorded on another machine
+(`odometry_poses.json`), to the tolerance onnxruntime's kernels allow between processors."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from dmlo.odometry.matcher import onnxruntime_library
+from support import REPO, rust_example
+
+MODEL = REPO / "python/dmlo/models/default"
+
+
+def _poses(path: Path) -> np.ndarray:
+    return np.loadtxt(path, ndmin=2).reshape(-1, 3, 4)
+
+
+def _dmlo_run_and_example(scans: Path, dataset: Path, out: Path, mapping: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The poses of `dmlo run` over `dataset` and of the example over its `.bin` folder `scans`, with the config
+    `dmlo run` wrote; moving points kept by both (the crate runs no moving-object network)."""
+    from dmlo.cli import main
+
+    example = rust_example("odometry")
+    python_out, rust_out = out / "dmlo_run", out / "rust"
+    assert main(["run", str(dataset), "--out", str(python_out), "--keep-moving",
+                 "--mapping" if mapping else "--no-mapping"]) == 0
+    printed = subprocess.run(
+        [str(example), str(scans), "--out", str(rust_out), "--model", str(MODEL),
+         "--config", str(python_out / "config.json"), "--onnxruntime", str(onnxruntime_library())],
+        check=True, capture_output=True, text=True,
+    ).stdout
+    assert f"{len(list(scans.glob('*.bin')))} scans" in printed, printed
+    return _poses(python_out / "poses_kitti.txt"), _poses(rust_out / "poses_kitti.txt")
+
+
+def _assert_same_poses(expected: np.ndarray, got: np.ndarray) -> None:
+    """Within 1e-6 m and 1e-6 rad, pose by pose; the drive moves (equal poses are not the identity repeated)."""
+    assert got.shape == expected.shape
+    assert np.linalg.norm(expected[-1, :, 3]) > 1.0
+    np.testing.assert_allclose(got[:, :, 3], expected[:, :, 3], rtol=0, atol=1e-6)
+    turns = Rotation.from_matrix(np.einsum("nji,njk->nik", expected[:, :, :3], got[:, :, :3])).magnitude()
+    assert turns.max() <= 1e-6, turns
+
+
+@pytest.mark.parametrize("mapping", [True, False], ids=["mapping", "frame_to_frame"])
+def test_the_rust_example_gives_dmlo_runs_poses_on_a_simulated_drive(drive: Path, tmp_path: Path,
+                                                                      mapping: bool) -> None:
+    expected, got = _dmlo_run_and_example(drive / "velodyne", drive, tmp_path, mapping)
+    assert got.shape == (5, 3, 4)
+    _assert_same_poses(expected, got)
+
+
+@pytest.mark.parametrize("mapping", [True, False], ids=["mapping", "frame_to_frame"])
+@pytest.mark.parametrize("name", ["odometry_01", "odometry_02", "odometry_03", "raw_drive_22"])
+def test_the_rust_example_gives_dmlo_runs_poses_on_real_scans(shared_data: Path, tmp_path: Path, name: str,
+                                                              mapping: bool) -> None:
+    dataset = shared_data / "kitti_real" / name
+    expected, got = _dmlo_run_and_example(dataset / "velodyne", dataset, tmp_path, mapping)
+    _assert_same_poses(expected, got)
