@@ -20,7 +20,7 @@
 //! | [`ndt`] | §III-D-c | scan-to-map NDT refinement |
 //! | [`odometry`] | §III | the odometry's loop over scans (`Odometry`), its config, the frame clock, the motion model and its judgement, the local map |
 //! | [`raycast`] | — | the LiDAR simulator's ray casting |
-//! | `inference` | §III-C | the network's encoder run by tract, and the learned matcher (feature `inference`) |
+//! | `inference` | §III-C | the network's encoder run by tract (feature `inference`) or onnxruntime (feature `onnxruntime`), and the learned matcher |
 //!
 //! Conventions: LiDAR frame x forward, y left, z up; a scan is `N×4` `f32` (x, y, z, reflectance);
 //! transforms are named by frames, `T_tgt_ref` maps reference points into the target frame

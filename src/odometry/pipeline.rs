@@ -18,6 +18,63 @@
 //! folder without `moving.onnx`). Re-matching tries the wide window when the matcher has one
 //! ([`FrameMatcher::has_wide_window`]). Scans without usable reflectance switch to the range-only model
 //! ([`Odometry::with_range_only`]).
+//!
+//! A matcher is any type with the four required methods. Here a stand-in for the network, under which
+//! every cell stays where it is, registers a scan of a room three times: the sensor stood still.
+//! `dmlo_rs::inference::LearnedMatcher` (features `inference` / `onnxruntime`) is the real one.
+//!
+//! ```
+//! use dmlo_rs::dense_match::DenseFlow;
+//! use dmlo_rs::odometry::config::OdometryConfig;
+//! use dmlo_rs::odometry::pipeline::{FrameMatcher, Odometry, Scan};
+//! use dmlo_rs::projection::CylinderConfig;
+//!
+//! struct StandingStill(CylinderConfig);
+//!
+//! impl FrameMatcher for StandingStill {
+//!     type Features = ();
+//!     fn cylinder(&self) -> &CylinderConfig {
+//!         &self.0
+//!     }
+//!     fn encode(&self, _image: &[f32]) -> dmlo_rs::Result<()> {
+//!         Ok(())
+//!     }
+//!     fn flow(&self, _reference: &(), _target: &()) -> dmlo_rs::Result<DenseFlow> {
+//!         let (height, width) = (self.0.height, self.0.width);
+//!         Ok(DenseFlow {
+//!             flow: vec![0.0; 2 * height * width],
+//!             confidence: vec![1.0; height * width],
+//!             height,
+//!             width,
+//!         })
+//!     }
+//! }
+//!
+//! # fn main() -> dmlo_rs::Result<()> {
+//! // A room of 20 × 16 m seen from 1.7 m above its floor: x, y, z and reflectance (0–1) of each point.
+//! let mut points: Vec<[f32; 4]> = Vec::new();
+//! for step in 0..400 {
+//!     let along = -10.0 + step as f32 * 0.05;
+//!     for height in 0..12 {
+//!         let z = -1.6 + height as f32 * 0.3;
+//!         points.push([along, 8.0, z, 0.4]);
+//!         points.push([along, -8.0, z, 0.6]);
+//!         points.push([10.0, along * 0.8, z, 0.5]);
+//!         points.push([-10.0, along * 0.8, z, 0.3]);
+//!     }
+//!     for across in 0..8 {
+//!         points.push([along * 0.9, -7.0 + across as f32 * 2.0, -1.7, 0.2]);
+//!     }
+//! }
+//! let mut odometry = Odometry::new(StandingStill(CylinderConfig::kitti()), OdometryConfig::default())?;
+//! for _ in 0..3 {
+//!     let pose = odometry.register(Scan::new(&points))?; // T_world_lidar, the first scan the world
+//!     assert!(pose.fixed_view::<3, 1>(0, 3).norm() < 0.01);
+//! }
+//! assert_eq!(odometry.diagnostics().len(), 3);
+//! # Ok(())
+//! # }
+//! ```
 
 use std::collections::BTreeMap;
 use std::time::Instant;
