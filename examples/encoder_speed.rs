@@ -14,7 +14,8 @@ use std::process::ExitCode;
 use dmlo_rs::inference::{Encoder, TractEncoder};
 use dmlo_rs::projection::{project_flat, CylinderConfig};
 
-const USAGE: &str = "usage: encoder_speed ENCODER.onnx SCAN.bin [REPEATS] [--onnxruntime LIB THREADS]";
+const USAGE: &str =
+    "usage: encoder_speed ENCODER.onnx SCAN.bin [REPEATS] [--onnxruntime LIB THREADS]";
 
 fn run(args: &[String]) -> Result<String, String> {
     let (args, onnxruntime) = match args.iter().position(|a| a == "--onnxruntime") {
@@ -54,7 +55,9 @@ fn run(args: &[String]) -> Result<String, String> {
             let encoder = TractEncoder::open(encoder).map_err(|e| e.to_string())?;
             time_encodes(&encoder, &image, repeats)
         }
-        Some((library, threads)) => onnxruntime_encodes(encoder, &library, threads, &image, repeats),
+        Some((library, threads)) => {
+            onnxruntime_encodes(encoder, &library, threads, &image, repeats)
+        }
     }
 }
 

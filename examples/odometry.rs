@@ -41,7 +41,8 @@ struct Arguments {
 
 fn parse(args: &[String]) -> Result<Arguments, String> {
     let mut scans = None;
-    let (mut out, mut model, mut config, mut threads, mut onnxruntime) = (None, None, None, None, None);
+    let (mut out, mut model, mut config, mut threads, mut onnxruntime) =
+        (None, None, None, None, None);
     let mut rest = args.iter();
     while let Some(arg) = rest.next() {
         let mut value = |flag: &str| {
@@ -172,7 +173,9 @@ fn with_onnxruntime(
     threads: usize,
 ) -> Result<(), Box<dyn std::error::Error>> {
     use dmlo_rs::inference::OrtEncoder;
-    drive(arguments, config, |path: &Path| OrtEncoder::open(path, library, threads))
+    drive(arguments, config, |path: &Path| {
+        OrtEncoder::open(path, library, threads)
+    })
 }
 
 #[cfg(not(feature = "onnxruntime"))]

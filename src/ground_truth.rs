@@ -35,7 +35,12 @@ pub(crate) fn check_range_image(
     range: &[f32],
     config: &CylinderConfig,
 ) -> Result<()> {
-    check_non_negative_image(argument, range, config, "ranges must be finite and >= 0; 0 = empty")
+    check_non_negative_image(
+        argument,
+        range,
+        config,
+        "ranges must be finite and >= 0; 0 = empty",
+    )
 }
 
 /// Checks that an image of `config` has its size and only finite, non-negative values (`rule` says so

@@ -318,9 +318,13 @@ impl FrameMatcher for ConstantFlowMatcher {
 /// flow to find matches), some of its values replaced by what breaks arithmetic or reflectance scales.
 fn odometry_scan(x: f64, seed: u64, corrupt: usize) -> Vec<[f32; 4]> {
     let mut points = Vec::with_capacity(20_000);
-    let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let mut state = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
     let mut next = || {
-        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (state >> 11) as f64 / (1u64 << 53) as f64
     };
     for _ in 0..20_000 {
@@ -328,16 +332,39 @@ fn odometry_scan(x: f64, seed: u64, corrupt: usize) -> Vec<[f32; 4]> {
         let elevation = (-24.0 + next() * 26.0f64).to_radians();
         let (dx, dy) = (azimuth.cos(), azimuth.sin());
         // The yard's walls: x in [-20, 25], y in [-15, 15] around the origin, the ground 1.7 m below.
-        let to_wall = [((25.0 - x) / dx), ((-20.0 - x) / dx), (15.0 / dy), (-15.0 / dy)]
-            .into_iter()
-            .filter(|t| *t > 0.0)
-            .fold(f64::INFINITY, f64::min);
-        let to_ground = if elevation < 0.0 { 1.7 / -elevation.tan() } else { f64::INFINITY };
+        let to_wall = [
+            ((25.0 - x) / dx),
+            ((-20.0 - x) / dx),
+            (15.0 / dy),
+            (-15.0 / dy),
+        ]
+        .into_iter()
+        .filter(|t| *t > 0.0)
+        .fold(f64::INFINITY, f64::min);
+        let to_ground = if elevation < 0.0 {
+            1.7 / -elevation.tan()
+        } else {
+            f64::INFINITY
+        };
         let reach = to_wall.min(to_ground);
         let z = (reach * elevation.tan()).max(-1.7);
-        points.push([(reach * dx) as f32, (reach * dy) as f32, z as f32, next() as f32]);
+        points.push([
+            (reach * dx) as f32,
+            (reach * dy) as f32,
+            z as f32,
+            next() as f32,
+        ]);
     }
-    let bad = [f32::NAN, f32::INFINITY, -f32::INFINITY, 3.4e38, 0.0, 1e-30, 300.0, 70000.0];
+    let bad = [
+        f32::NAN,
+        f32::INFINITY,
+        -f32::INFINITY,
+        3.4e38,
+        0.0,
+        1e-30,
+        300.0,
+        70000.0,
+    ];
     for k in 0..corrupt.min(points.len()) {
         let point = (next() * points.len() as f64) as usize;
         points[point][k % 4] = bad[(next() * bad.len() as f64) as usize];

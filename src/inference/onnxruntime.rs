@@ -81,15 +81,16 @@ impl OrtEncoder {
                 .map_err(|e| failed("onnxruntime cannot open it", e))
         })?;
         let entries = {
-            let metadata = session
-                .metadata()
-                .map_err(|e| failed("its metadata", e))?;
+            let metadata = session.metadata().map_err(|e| failed("its metadata", e))?;
             let keys = metadata
                 .custom_keys()
                 .map_err(|e| failed("its metadata", e))?;
             let mut entries = HashMap::new();
             for key in keys {
-                if let Some(value) = metadata.custom(&key).map_err(|e| failed("its metadata", e))? {
+                if let Some(value) = metadata
+                    .custom(&key)
+                    .map_err(|e| failed("its metadata", e))?
+                {
                     entries.insert(key, value);
                 }
             }
@@ -130,7 +131,8 @@ impl Encoder for OrtEncoder {
         let [rows, columns] = self.input_size();
         check_image(image, [rows, columns])?;
         let failed = |e: ort::Error| Error::Model(format!("{}: {e}", self.path));
-        let input = TensorRef::from_array_view(([1usize, 2, rows, columns], image)).map_err(failed)?;
+        let input =
+            TensorRef::from_array_view(([1usize, 2, rows, columns], image)).map_err(failed)?;
         // A poisoned lock only means another thread's encode failed: the session itself is intact.
         let mut session = self.session.lock().unwrap_or_else(|p| p.into_inner());
         let outputs = session.run(ort::inputs![input]).map_err(failed)?;

@@ -99,19 +99,25 @@ fn the_wide_window_is_the_bundled_frame_wide_graphs_and_matches_wider() {
         .unwrap()
         .with_wide_window(15)
         .unwrap_err();
-    assert!(narrower.to_string().starts_with("coarse_window:"), "{narrower}");
+    assert!(
+        narrower.to_string().starts_with("coarse_window:"),
+        "{narrower}"
+    );
     let matcher = matcher.with_wide_window(coarse_window).unwrap();
     assert!(FrameMatcher::has_wide_window(&matcher));
     let Some((image, _, _)) = real_scan_images("kitti_real/odometry_03/velodyne/000000.bin") else {
         eprintln!("no shared KITTI scans: skipped");
         return;
     };
-    let Some((target, _, _)) = real_scan_images("kitti_real/odometry_03/velodyne/000001.bin") else {
+    let Some((target, _, _)) = real_scan_images("kitti_real/odometry_03/velodyne/000001.bin")
+    else {
         return;
     };
     let reference = matcher.encoder().encode(&image).unwrap();
     let target_features = matcher.encoder().encode(&target).unwrap();
-    let wide = matcher.wide_flow(&reference, &target_features, &target).unwrap();
+    let wide = matcher
+        .wide_flow(&reference, &target_features, &target)
+        .unwrap();
     let expected = crate::dense_match::match_features(
         &reference.features(),
         &target_features.features(),
@@ -439,7 +445,9 @@ fn onnxruntime_library() -> Option<PathBuf> {
         .find(|path| {
             path.file_name()
                 .and_then(|name| name.to_str())
-                .is_some_and(|name| name.starts_with("libonnxruntime.so.") || name == "libonnxruntime.dylib")
+                .is_some_and(|name| {
+                    name.starts_with("libonnxruntime.so.") || name == "libonnxruntime.dylib"
+                })
         })
 }
 
@@ -488,19 +496,36 @@ fn onnxruntime_features_from_rust_are_pythons() {
             .zip(&expected)
             .map(|(a, b)| (a - b).abs())
             .fold(0.0f32, f32::max);
-        assert!(worst < 1e-6, "{name}: largest difference from Python's {worst}");
+        assert!(
+            worst < 1e-6,
+            "{name}: largest difference from Python's {worst}"
+        );
     }
     let dark = vec![0.0f32; image.len()];
     assert!(encoder.encode(&dark).is_ok());
-    assert!(encoder.encode(&image[1..]).unwrap_err().to_string().starts_with("image:"));
+    assert!(encoder
+        .encode(&image[1..])
+        .unwrap_err()
+        .to_string()
+        .starts_with("image:"));
     let frame = root().join("python/dmlo/models/default/frame.onnx");
     let error = OrtEncoder::open(frame, onnxruntime_library().unwrap(), 0).unwrap_err();
     assert!(error.to_string().contains("not the encoder"), "{error}");
-    let error = OrtEncoder::open(root().join("missing.onnx"), onnxruntime_library().unwrap(), 0)
-        .unwrap_err();
-    assert!(error.to_string().contains("missing.onnx: no such file"), "{error}");
+    let error = OrtEncoder::open(
+        root().join("missing.onnx"),
+        onnxruntime_library().unwrap(),
+        0,
+    )
+    .unwrap_err();
+    assert!(
+        error.to_string().contains("missing.onnx: no such file"),
+        "{error}"
+    );
     let error = OrtEncoder::open(bundled_encoder(), root().join("no_library.so"), 0).unwrap_err();
-    assert!(error.to_string().contains("no_library.so: no such file"), "{error}");
+    assert!(
+        error.to_string().contains("no_library.so: no such file"),
+        "{error}"
+    );
 }
 
 /// Every real set and mode of `odometry_poses.json`: with onnxruntime's features the crate's odometry is

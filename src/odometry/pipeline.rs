@@ -84,7 +84,6 @@ use serde::Serialize;
 
 use crate::dense_match::DenseFlow;
 use crate::deskew::{deskew, sweep_times, SweepPattern};
-use crate::rigid::isometry_from_matrix;
 use crate::error::{Error, Result};
 use crate::odometry::clock::FrameClock;
 use crate::odometry::config::{MatchingStage, OdometryConfig, ReflectanceScale};
@@ -94,6 +93,7 @@ use crate::odometry::motion::{
 };
 use crate::pair::{match_pair, PairConfig, PairImages, PairMotion};
 use crate::projection::{project, CylinderConfig};
+use crate::rigid::isometry_from_matrix;
 
 /// The network as the odometry runs it: scans' images encoded once (features cached, a scan being the
 /// target of one pair and the reference of the next), and the dense flow between two encoded scans.
@@ -611,7 +611,10 @@ impl<M: FrameMatcher> Odometry<M> {
             return Err(self.no_reflectance(why));
         };
         if let Some(reference) = &self.reference {
-            match self.project(&reference.cloud).and_then(|p| range_only.encode(&p.image)) {
+            match self
+                .project(&reference.cloud)
+                .and_then(|p| range_only.encode(&p.image))
+            {
                 Ok(features) => self.reference.as_mut().expect("checked").features = features,
                 Err(e) => {
                     self.range_only = Some(range_only);
@@ -933,7 +936,12 @@ impl<M: FrameMatcher> Odometry<M> {
             if gap as u64 > self.config.motion_model.prediction_horizon {
                 starts.extend(search_starts(&large.search_ahead_m, &large.search_yaw_deg));
             }
-            tried.push(Some(self.register_far(&previous.cloud, target, features, &starts)?));
+            tried.push(Some(self.register_far(
+                &previous.cloud,
+                target,
+                features,
+                &starts,
+            )?));
         }
         diagnostics.rematch_rounds = Some(0);
         let usable = tried.into_iter().flatten().filter(|again| {
@@ -971,9 +979,17 @@ impl<M: FrameMatcher> Odometry<M> {
         for start in starts {
             let moved = self.project(&moved_cloud(reference, start))?;
             let encoded = self.matcher.encode(&moved.image)?;
-            let flow = self.matcher.wide_flow(&encoded, tgt_features, &target.image)?;
-            let pair =
-                self.match_flow(&moved.range, &target.range, &flow, &moved.points, None, false)?;
+            let flow = self
+                .matcher
+                .wide_flow(&encoded, tgt_features, &target.image)?;
+            let pair = self.match_flow(
+                &moved.range,
+                &target.range,
+                &flow,
+                &moved.points,
+                None,
+                false,
+            )?;
             if best
                 .as_ref()
                 .is_none_or(|(kept, _)| pair.motion.num_inliers > kept.motion.num_inliers)
@@ -1028,8 +1044,14 @@ impl<M: FrameMatcher> Odometry<M> {
             let flow = self
                 .matcher
                 .flow(&self.matcher.encode(&moved.image)?, tgt_features)?;
-            let pair =
-                self.match_flow(&moved.range, tgt_range, &flow, &moved.points, None, tilt_votes)?;
+            let pair = self.match_flow(
+                &moved.range,
+                tgt_range,
+                &flow,
+                &moved.points,
+                None,
+                tilt_votes,
+            )?;
             if pair.motion.num_inliers < min_inliers {
                 break;
             }
@@ -1196,7 +1218,10 @@ fn check_one_per_point<T>(
     match values {
         Some(values) if values.len() != points => Err(Error::invalid(
             name,
-            format!("expected one {what} per point ({points}), got {}", values.len()),
+            format!(
+                "expected one {what} per point ({points}), got {}",
+                values.len()
+            ),
         )),
         _ => Ok(()),
     }

@@ -6,8 +6,8 @@
 
 use std::sync::{Arc, Mutex};
 
-use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
 use numpy::{IntoPyArray, PyArray3};
+use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
@@ -81,7 +81,6 @@ impl PythonMatcher {
         *self.raised.lock().unwrap_or_else(|p| p.into_inner()) = Some(err);
         Error::Model(message)
     }
-
 }
 
 impl FrameMatcher for PythonMatcher {
@@ -128,7 +127,9 @@ impl FrameMatcher for PythonMatcher {
     ) -> Result<DenseFlow> {
         Python::attach(|py| {
             let image = self.image(py, target_image)?;
-            let output = self.object.call_method1(py, "wide_match", (reference, target, image))?;
+            let output = self
+                .object
+                .call_method1(py, "wide_match", (reference, target, image))?;
             self.dense_flow(py, "wide_match", &output)
         })
         .map_err(|e| self.failed("wide_match", e))
@@ -139,7 +140,9 @@ impl PythonMatcher {
     /// A `(2, H, W)` image as numpy.
     fn image<'py>(&self, py: Python<'py>, image: &[f32]) -> PyResult<Bound<'py, PyAny>> {
         let (height, width) = (self.cylinder.height, self.cylinder.width);
-        Ok(PyArray1::from_slice(py, image).reshape([2, height, width])?.into_any())
+        Ok(PyArray1::from_slice(py, image)
+            .reshape([2, height, width])?
+            .into_any())
     }
 
     /// A `(flow [2, H, W], confidence [H, W])` float32 pair returned by the matcher's `method`, checked.
@@ -217,7 +220,6 @@ impl PyOdometry {
         })
     }
 
-
     /// Adds the next scan (`N×4` x, y, z, reflectance, float32 or float64; non-finite rows left out) and
     /// returns its pose `T_world_lidar` (4×4 float64). `moving`: one flag per point, left out of matching
     /// and the map; `timestamp`: the scan's time, from which dropped scans are counted; `point_times`: with
@@ -236,7 +238,11 @@ impl PyOdometry {
             .map(|t| vector_f64("point_times", t))
             .transpose()?;
         if columns != 4 {
-            return Err(shape_error("points", "(N, 4): x, y, z, reflectance", array.shape()));
+            return Err(shape_error(
+                "points",
+                "(N, 4): x, y, z, reflectance",
+                array.shape(),
+            ));
         }
         let data = array.f32_data();
         let cloud: Vec<[f32; 4]> = data
@@ -325,7 +331,10 @@ impl PyOdometry {
 }
 
 /// One frame's diagnostics as a dict, through their JSON form (the keys and rounding `dmlo` writes).
-fn diagnostics_dict<'py>(py: Python<'py>, diagnostics: &FrameDiagnostics) -> PyResult<Bound<'py, PyAny>> {
+fn diagnostics_dict<'py>(
+    py: Python<'py>,
+    diagnostics: &FrameDiagnostics,
+) -> PyResult<Bound<'py, PyAny>> {
     let text = serde_json::to_string(diagnostics)
         .map_err(|e| PyValueError::new_err(format!("diagnostics: {e}")))?;
     py.import("json")?.getattr("loads")?.call1((text,))

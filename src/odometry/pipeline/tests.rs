@@ -265,12 +265,18 @@ fn allowed_zero_reflectance_runs_the_reflectance_model_on_zeros() {
     for i in 0..3 {
         let dark: Vec<[f32; 4]> = scan(i).iter().map(|&[x, y, z, _]| [x, y, z, 0.0]).collect();
         if i > 0 {
-            odometry.matcher.truth.set(true_pose(i).inverse() * true_pose(i - 1));
+            odometry
+                .matcher
+                .truth
+                .set(true_pose(i).inverse() * true_pose(i - 1));
         }
         let pose = odometry.register(Scan::new(&dark)).unwrap();
         assert!(error_to_truth(&pose, i).0 < 0.02, "frame {i}");
     }
-    assert_eq!(odometry.reflectance_scale(), Some(ReflectanceScale::Ignored));
+    assert_eq!(
+        odometry.reflectance_scale(),
+        Some(ReflectanceScale::Ignored)
+    );
     assert!(odometry.matcher.uses_reflectance() && odometry.matcher.encoded.get() == 3);
 }
 
@@ -301,7 +307,10 @@ fn symmetric_matching_follows_the_truth_both_ways() {
     for i in 0..4 {
         let pose = register(&mut odometry, &scan(i), i.saturating_sub(1), i);
         let (moved, turned) = error_to_truth(&pose, i);
-        assert!(moved < 0.02 && turned < 0.1, "frame {i}: {moved} m, {turned}°");
+        assert!(
+            moved < 0.02 && turned < 0.1,
+            "frame {i}: {moved} m, {turned}°"
+        );
     }
     for d in &odometry.diagnostics()[1..] {
         assert!(d.backward_inliers.is_some_and(|n| n >= 10), "{d:?}");
@@ -331,7 +340,10 @@ fn symmetric_pairs_take_the_midpoint_of_both_directions_or_the_one_with_inliers(
     let expected = Isometry3::new(mean, Vector3::z() * 0.03);
     let (moved, turned) = pose_difference(&expected.to_homogeneous(), &both.transform);
     assert!(moved < 1e-12 && turned < 1e-9, "{moved} m, {turned}°");
-    assert_eq!((both.motion.num_inliers, both.motion.source.len()), (50, 50));
+    assert_eq!(
+        (both.motion.num_inliers, both.motion.source.len()),
+        (50, 50)
+    );
     assert_eq!(both.motion.inlier_votes, Some(50.0));
     // A direction without enough inliers is left out.
     let forward_only = symmetric(pair(forward, 20), pair(backward.inverse(), 5), 10);
@@ -411,14 +423,20 @@ fn scans_without_reflectance_switch_to_the_range_only_model() {
     assert_eq!(odometry.reflectance_scale(), Some(ReflectanceScale::Unit));
     for i in 3..6 {
         let dark: Vec<[f32; 4]> = scan(i).iter().map(|&[x, y, z, _]| [x, y, z, 0.0]).collect();
-        odometry.matcher.truth.set(true_pose(i).inverse() * true_pose(i - 1));
+        odometry
+            .matcher
+            .truth
+            .set(true_pose(i).inverse() * true_pose(i - 1));
         let pose = odometry.register(Scan::new(&dark)).unwrap();
         assert!(error_to_truth(&pose, i).0 < 0.02, "frame {i}");
     }
     assert!(!odometry.matcher.uses_reflectance());
     // The range-only model encoded the reference again and then each new scan.
     assert_eq!(odometry.matcher.encoded.get(), 4);
-    assert_eq!(odometry.reflectance_scale(), Some(ReflectanceScale::Ignored));
+    assert_eq!(
+        odometry.reflectance_scale(),
+        Some(ReflectanceScale::Ignored)
+    );
     // Not a range-only model; a model already range-only needs none.
     let error = Odometry::new(OracleMatcher::new(), config(false))
         .unwrap()
