@@ -735,6 +735,18 @@ class Odometry:
         """Adds the next scan (N×4: x, y, z, reflectance) and returns its pose `T_world_lidar` (4×4);
         `moving`: one flag per point, left out; `timestamp`: the scan's time, dropped scans counted from it;
         `point_times`: with `deskew.enabled`, each point's time in sensor periods (None: from its azimuth)."""
+    def register_pair(
+        self,
+        reference: npt.NDArray[np.floating],
+        target: npt.NDArray[np.floating],
+        large_motion: bool = False,
+        reference_moving: npt.NDArray[np.bool_] | None = None,
+        target_moving: npt.NDArray[np.bool_] | None = None,
+    ) -> tuple[npt.NDArray[np.float64], PairMotion, bool | None, int]:
+        """The motion between two scans (N×4 each) with no motion model or initial guess: `(T_tgt_ref (4×4),
+        the matches, whether NDT against the reference refined it (None: not tried), matching rounds)`;
+        `large_motion`: the wide window from the configured search starts, then rounds of the model's own;
+        `*_moving`: one flag per point, left out. The drive's poses are untouched."""
     def predict_skipped(self, reason: str = "unreadable_scan") -> npt.NDArray[np.float64]:
         """Records a scan that could not be read: its pose from the motion model."""
     @property

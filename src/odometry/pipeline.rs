@@ -11,6 +11,7 @@
 //! ([`super::config`]). Beyond the paper, as in Python: pairs whose predicted motion outgrows the
 //! network's window are matched from the prediction, and pairs across missing scans (or whose own
 //! motion gives way) are matched again from it.
+//! [`Odometry::register_pair`] registers two scans with no drive around them (`dmlo register`).
 //!
 //! Refused by [`Odometry::new`]: a `matching_stage` the matcher does not run
 //! ([`FrameMatcher::runs_matching_stage`]). The moving-object network is not
@@ -1321,6 +1322,10 @@ impl Stopwatch {
         self.last = now;
     }
 }
+
+mod two_scans;
+
+pub use two_scans::RegisteredPair;
 
 #[cfg(test)]
 mod tests;

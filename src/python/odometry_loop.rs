@@ -18,6 +18,7 @@ use crate::odometry::pipeline::{FrameDiagnostics, FrameMatcher, Odometry, Scan};
 use crate::projection::CylinderConfig;
 
 use super::convert::{matrix4_to_numpy, scan_points, shape_error, vector_f64};
+use super::pair::PyPairMotion;
 use super::pool::run;
 use super::projection::PyCylinderConfig;
 
@@ -233,22 +234,10 @@ impl PyOdometry {
         timestamp: Option<f64>,
         point_times: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, numpy::PyArray2<f64>>> {
-        let (array, columns) = scan_points(points)?;
+        let cloud = scan_cloud("points", points)?;
         let times = point_times
             .map(|t| vector_f64("point_times", t))
             .transpose()?;
-        if columns != 4 {
-            return Err(shape_error(
-                "points",
-                "(N, 4): x, y, z, reflectance",
-                array.shape(),
-            ));
-        }
-        let data = array.f32_data();
-        let cloud: Vec<[f32; 4]> = data
-            .chunks_exact(4)
-            .map(|p| [p[0], p[1], p[2], p[3]])
-            .collect();
         let mask: Option<Vec<bool>> = moving
             .as_ref()
             .map(|m| m.as_array().iter().copied().collect());
@@ -264,6 +253,57 @@ impl PyOdometry {
         });
         let pose = self.raised_or(result)?;
         Ok(matrix4_to_numpy(py, &pose))
+    }
+
+    /// The motion between two scans (N×4 each) with no motion model or initial guess
+    /// (`Odometry::register_pair`): `(T_tgt_ref 4×4, matches PairMotion, map_refined bool | None, rounds)`;
+    /// `*_moving`: one flag per point, left out.
+    #[pyo3(signature = (reference, target, large_motion = false, reference_moving = None, target_moving = None))]
+    #[allow(clippy::type_complexity)]
+    fn register_pair<'py>(
+        &mut self,
+        py: Python<'py>,
+        reference: &Bound<'py, PyAny>,
+        target: &Bound<'py, PyAny>,
+        large_motion: bool,
+        reference_moving: Option<numpy::PyReadonlyArray1<'py, bool>>,
+        target_moving: Option<numpy::PyReadonlyArray1<'py, bool>>,
+    ) -> PyResult<(
+        Bound<'py, numpy::PyArray2<f64>>,
+        PyPairMotion,
+        Option<bool>,
+        usize,
+    )> {
+        let (reference, target) = (
+            scan_cloud("reference", reference)?,
+            scan_cloud("target", target)?,
+        );
+        let flags = |m: &Option<numpy::PyReadonlyArray1<'py, bool>>| -> Option<Vec<bool>> {
+            m.as_ref().map(|m| m.as_array().iter().copied().collect())
+        };
+        let (reference_moving, target_moving) = (flags(&reference_moving), flags(&target_moving));
+        let threads = self.threads;
+        let inner = &mut self.inner;
+        let result = run(py, threads, || {
+            inner.register_pair(
+                Scan {
+                    moving: reference_moving.as_deref(),
+                    ..Scan::new(&reference)
+                },
+                Scan {
+                    moving: target_moving.as_deref(),
+                    ..Scan::new(&target)
+                },
+                large_motion,
+            )
+        });
+        let pair = self.raised_or(result)?;
+        Ok((
+            matrix4_to_numpy(py, &pair.transform),
+            PyPairMotion::new(py, pair.matches),
+            pair.map_refined,
+            pair.rounds,
+        ))
     }
 
     /// Records a scan that could not be read: its pose from the motion model, `reason` in its diagnostics.
@@ -338,4 +378,21 @@ fn diagnostics_dict<'py>(
     let text = serde_json::to_string(diagnostics)
         .map_err(|e| PyValueError::new_err(format!("diagnostics: {e}")))?;
     py.import("json")?.getattr("loads")?.call1((text,))
+}
+
+/// A scan `name` given as N×4 (x, y, z, reflectance) float32 or float64, as the crate reads it.
+fn scan_cloud(name: &str, points: &Bound<'_, PyAny>) -> PyResult<Vec<[f32; 4]>> {
+    let (array, columns) = scan_points(points)?;
+    if columns != 4 {
+        return Err(shape_error(
+            name,
+            "(N, 4): x, y, z, reflectance",
+            array.shape(),
+        ));
+    }
+    Ok(array
+        .f32_data()
+        .chunks_exact(4)
+        .map(|p| [p[0], p[1], p[2], p[3]])
+        .collect())
 }

@@ -148,14 +148,22 @@ fn match_pair(
     let motion = run(py, threads(num_threads)?, || {
         pair::match_pair(&images, &cylinder, &settings, tilt_votes)
     })?;
-    let cells = Array2::from_shape_fn((motion.cells.len(), 2), |(i, j)| motion.cells[i][j] as i64);
-    Ok(PyPairMotion {
-        transform: matrix_to_numpy(py, &motion.transform).unbind(),
-        source: points_to_numpy(py, &motion.source).unbind(),
-        target: points_to_numpy(py, &motion.target).unbind(),
-        cells: cells.into_pyarray(py).unbind(),
-        inliers: Array1::from_vec(motion.inliers).into_pyarray(py).unbind(),
-        num_inliers: motion.num_inliers,
-        inlier_votes: motion.inlier_votes,
-    })
+    Ok(PyPairMotion::new(py, motion))
+}
+
+impl PyPairMotion {
+    /// The crate's pair motion as Python sees it.
+    pub(super) fn new(py: Python<'_>, motion: pair::PairMotion) -> Self {
+        let cells =
+            Array2::from_shape_fn((motion.cells.len(), 2), |(i, j)| motion.cells[i][j] as i64);
+        PyPairMotion {
+            transform: matrix_to_numpy(py, &motion.transform).unbind(),
+            source: points_to_numpy(py, &motion.source).unbind(),
+            target: points_to_numpy(py, &motion.target).unbind(),
+            cells: cells.into_pyarray(py).unbind(),
+            inliers: Array1::from_vec(motion.inliers).into_pyarray(py).unbind(),
+            num_inliers: motion.num_inliers,
+            inlier_votes: motion.inlier_votes,
+        }
+    }
 }

@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from dmlo.odometry import Odometry, OdometryConfig, PairResult
+from dmlo.odometry import Odometry, OdometryConfig
 from dmlo.odometry.matcher import ModelError, default_model_path
-from dmlo.odometry.pipeline import _round_trip_error, _symmetric
 from dmlo.poses import midpoint_motion as _midpoint
 
 from support import frame_to_frame
@@ -45,33 +44,6 @@ def test_midpoint_is_the_geodesic_middle_of_two_motions() -> None:
     np.testing.assert_allclose(_midpoint(same, same), same, atol=1e-12)
 
 
-def pair(T: np.ndarray, inliers: int, matches: int = 50) -> PairResult:
-    source = np.arange(3 * matches, dtype=np.float64).reshape(matches, 3)
-    return PairResult(
-        T_tgt_ref=T, num_matches=matches, num_inliers=inliers, source_points=source,
-        target_points=source @ T[:3, :3].T + T[:3, 3], inliers=np.arange(matches) < inliers,
-    )
-
-
-def test_a_direction_with_too_few_inliers_is_left_out() -> None:
-    forward = rigid([0, 0, 1], [1, 0, 0])
-    backward_of_forward = np.linalg.inv(rigid([0, 0, 1.2], [1.1, 0, 0]))
-    both = _symmetric(pair(forward, 40), pair(backward_of_forward, 30), min_inliers=10)
-    np.testing.assert_allclose(both.T_tgt_ref, _midpoint(forward, np.linalg.inv(backward_of_forward)), atol=1e-12)
-    assert (both.num_inliers, both.num_matches, len(both.source_points)) == (70, 100, 100)
-    # The backward matches enter turned round: they too map reference points onto target points.
-    turned = both.source_points[50:] @ both.T_tgt_ref[:3, :3].T + both.T_tgt_ref[:3, 3]
-    assert np.abs(turned - both.target_points[50:]).max() < 0.1 * np.abs(both.target_points[50:]).max()
-
-    only_forward = _symmetric(pair(forward, 40), pair(backward_of_forward, 5), min_inliers=10)
-    np.testing.assert_array_equal(only_forward.T_tgt_ref, forward)
-    only_backward = _symmetric(pair(forward, 5), pair(backward_of_forward, 30), min_inliers=10)
-    np.testing.assert_allclose(only_backward.T_tgt_ref, np.linalg.inv(backward_of_forward), atol=1e-12)
-    assert only_backward.num_inliers == 30
-    neither = _symmetric(pair(forward, 5), pair(backward_of_forward, 5), min_inliers=10)
-    assert neither.num_inliers == 5  # the forward pair, so that the motion model takes over
-
-
 def reference_round_trip(flow: np.ndarray, back: np.ndarray, wraps: bool) -> np.ndarray:
     height, width = flow.shape[1:]
     error = np.full((height, width), np.inf)
@@ -84,19 +56,6 @@ def reference_round_trip(flow: np.ndarray, back: np.ndarray, wraps: bool) -> np.
             if 0 <= r < height and 0 <= c < width:
                 error[row, col] = np.hypot(flow[0, row, col] + back[0, r, c], flow[1, row, col] + back[1, r, c])
     return error
-
-
-@pytest.mark.parametrize("wraps", [False, True])
-def test_round_trip_error_against_a_loop(wraps: bool) -> None:
-    rng = np.random.default_rng(1)
-    flow = rng.normal(0, 3, (2, 12, 20)).astype(np.float32)
-    back = (-np.roll(flow, (1, 2), axis=(1, 2)) + rng.normal(0, 0.3, flow.shape)).astype(np.float32)
-    np.testing.assert_allclose(_round_trip_error(flow, back, wraps), reference_round_trip(flow, back, wraps), rtol=1e-6)
-    # A flow that the backward flow undoes exactly is consistent everywhere its matches stay in the image.
-    shift = np.broadcast_to(np.array([1.0, 2.0], np.float32)[:, None, None], (2, 12, 20)).copy()
-    error = _round_trip_error(shift, -shift, wraps)
-    assert (error[:11, :18] == 0).all() and np.isinf(error[11]).all()
-    assert (error[:11, 18:] == 0).all() if wraps else np.isinf(error[:, 18:]).all()
 
 
 def test_symmetric_pair_leaves_out_the_cells_the_backward_flow_does_not_lead_back(scans: list[np.ndarray]) -> None:

@@ -135,7 +135,8 @@ def test_a_standing_car_comes_out_within_millimetres(shared_data: Path) -> None:
     refined = pair_motions(OdometryConfig())
     # The crate against the numpy reference on the first real pair, from DMLO's estimate.
     odometry = Odometry.from_default(matches_only)
-    images = [odometry._project(odometry._finite_scan(scan, "scan"))[2] for scan in scans[:2]]
+    finite = [np.ascontiguousarray(scan[np.isfinite(scan).all(axis=1)], dtype=np.float32) for scan in scans[:2]]
+    images = [odometry._project(cloud)[2] for cloud in finite]
     start = odometry.register_pair(scans[0], scans[1]).T_tgt_ref
     np.testing.assert_allclose(
         dmlo_rs.point_to_plane(*images, start, odometry.cylinder),

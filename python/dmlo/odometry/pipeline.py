@@ -19,10 +19,8 @@ import numpy as np
 import numpy.typing as npt
 
 import dmlo_rs
-from dmlo.poses import midpoint_motion
 from dmlo.odometry.clock import TimestampCheck
 from dmlo.odometry.config import OdometryConfig
-from dmlo.odometry.large_motion import register_far
 from dmlo.odometry.pair import PairResult
 from dmlo.odometry import reflectance
 from dmlo.odometry.reflectance import ReflectanceNotice
@@ -30,8 +28,6 @@ from dmlo.odometry.matcher import (
     ENCODER_GRAPH,
     MATCH_GRAPH,
     CrateMatcher,
-    Features,
-    FrameOutput,
     Matcher,
     ModelError,
     OnnxMatcher,
@@ -147,8 +143,7 @@ class Odometry:
         self.poses: list[Matrix4] = []
         self.diagnostics: list[FrameDiagnostics] = []
         self._timestamps = TimestampCheck()
-        self._wide: Matcher | None = None  # for `register_pair(large_motion=True)`, loaded on the first
-        self._pair_map: dmlo_rs.LocalMap | None = None  # `register_pair`'s NDT, made on the first
+        self._pair_matcher: CrateMatcher | None = None  # `register_pair`'s, made on the first
         self._warned_sensor = False
         self._warned_clipping = False
         # Reflectance (`dmlo.odometry.reflectance`): the scale chosen on the first scan, and the range-only model
@@ -319,46 +314,50 @@ class Odometry:
         says. Points on moving objects (`moving_objects`) are left out of a consecutive pair, not of a
         large-motion one. The result's points are in the frames of the scans given. A scan with fewer than
         `config.min_points` finite points is refused (ValueError): with no motion model to fall back on,
-        the identity would be a silent wrong answer.
+        the identity would be a silent wrong answer. The pair runs in the crate (`Odometry::register_pair` in
+        Rust), the network in onnxruntime; here the scans are checked, the reflectance scale chosen with a
+        notice, and the points on moving objects found.
         """
         # Far apart (a loop closure), the cars of one scan are gone or parked elsewhere in the other: they
         # cannot agree on a motion, and the parked ones the network would flag are good matches.
         leave_out = not large_motion
-        reference_cloud = self._finite_scan(reference, "reference", leave_out)
-        target_cloud = self._finite_scan(target, "target", leave_out)
-        tgt_image, tgt_range, tgt_points = self._project(target_cloud)
-        if large_motion:
-            return self._register_far(reference_cloud, tgt_image, tgt_range)
-        ref_image, ref_range, ref_points = self._project(reference_cloud)
-        ref_features = self.matcher.encode(ref_image)
-        output = self.matcher.frame(tgt_image, ref_features)
-        pair, _, _ = self._pair(ref_range, tgt_range, output, ref_features, ref_points, tgt_points)
-        if self.config.mapping.enabled and pair.num_inliers >= self.config.motion_model.min_inliers:
-            # Against the reference alone, one decision with the drive's: a standing pair by point-to-plane ICP
-            # (NDT's voxels leave millimetres; the planes do not), a near one by its upright surfaces (the
-            # reference's rings would hold it together), any other by NDT (`dmlo_rs.LocalMap.refine_pair`).
-            if self._pair_map is None:
-                self._pair_map = self._make_map()
-            pair_map = self._pair_map
-            refined = pair_map.refine_pair(reference_cloud, target_cloud, ref_points, tgt_points, pair.T_tgt_ref)
-            pair.map_refined = refined is not None
-            pair.T_tgt_ref = pair.T_tgt_ref if refined is None else refined
-        return pair
+        reference_cloud, reference_moving = self._pair_scan(reference, "reference", leave_out)
+        target_cloud, target_moving = self._pair_scan(target, "target", leave_out)
+        if large_motion and isinstance(self.matcher, OnnxMatcher):
+            wide_graph_path(self.matcher.path)  # a model without the wide-window graph: ModelError saying so
+        transform, matches, map_refined, rounds = self._pair_odometry().register_pair(
+            reference_cloud, target_cloud, large_motion=large_motion, reference_moving=reference_moving,
+            target_moving=target_moving,
+        )
+        return PairResult(
+            T_tgt_ref=transform,
+            num_matches=len(matches.source),
+            num_inliers=int(matches.num_inliers),
+            source_points=matches.source,
+            target_points=matches.target,
+            inliers=np.asarray(matches.inliers, dtype=bool),
+            rounds=rounds,
+            inlier_votes=matches.inlier_votes,
+            map_refined=map_refined,
+        )
 
-    def _finite_scan(self, points: npt.ArrayLike, name: str, leave_out_moving: bool = True) -> npt.NDArray[np.float32]:
-        """A pair's scan: its finite points, without those on moving objects when the network is there to say
-        and `leave_out_moving`."""
-        cloud = self._scan_in(points, name)
-        keep = _finite_rows(cloud)
-        if leave_out_moving and self._moving_objects is not None:
-            keep = _without(keep, self._moving_objects.mask(cloud))
-        cloud = _rows(cloud, keep)
-        if len(cloud) < self.config.min_points:
-            raise ValueError(
-                f"{name}: {len(cloud)} finite points, fewer than the {self.config.min_points} needed to register "
-                "a pair (config.min_points)"
-            )
-        return cloud
+    def _pair_scan(
+        self, points: npt.ArrayLike, name: str, leave_out_moving: bool
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_] | None]:
+        """A pair's scan as the crate takes it (its own reflectance, which the crate scales as `_scaled` chooses
+        here), and its points on moving objects when the network is there to say and `leave_out_moving`."""
+        cloud = _as_scan(points, name)
+        scaled = self._scaled(cloud, np.shape(points)[1] == 4)
+        if not leave_out_moving or self._moving_objects is None:
+            return cloud, None
+        return cloud, self._moving_objects.mask(scaled)
+
+    def _pair_odometry(self) -> dmlo_rs.Odometry:
+        """The crate's odometry that registers pairs (`Odometry::register_pair`), over the matcher run now and
+        the config as it is now (`dmlo register` widens the large-motion search after opening)."""
+        if self._pair_matcher is None or self._pair_matcher.matcher is not self.matcher:
+            self._pair_matcher = CrateMatcher(self.matcher, self.config.threads, self.config.matching_stage)
+        return dmlo_rs.Odometry(self._pair_matcher, json.dumps(self.config.to_dict()), allow_zero_reflectance=True)
 
     @property
     def reflectance_choice(self) -> reflectance.Choice | None:
@@ -450,28 +449,8 @@ class Odometry:
 
     def _switch_to_range_only(self, matcher: OnnxMatcher) -> None:
         """The pairs run the range-only model from now on, as the crate's loop does from this scan on."""
-        self._matcher, self._wide, self._range_only = matcher, None, None
+        self._matcher, self._range_only = matcher, None
         self._model_is_range_only = True
-
-    def _register_far(
-        self,
-        reference: npt.NDArray[np.float32],
-        tgt_image: npt.NDArray[np.float32],
-        tgt_range: npt.NDArray[np.float32],
-        starts: list[Matrix4] | None = None,
-    ) -> PairResult:
-        return register_far(
-            reference, tgt_image, tgt_range, wide=self._wide_matcher(), matcher=self.matcher, project=self._project,
-            match=self._match, config=self.config.large_motion, min_inliers=self.config.motion_model.min_inliers,
-            starts=starts,
-        )
-
-    def _wide_matcher(self) -> Matcher:
-        if self._wide is None:
-            self._wide = OnnxMatcher(
-                wide_graph_path(self.matcher.path), threads=self.config.threads, matching_stage=self.config.matching_stage
-            )
-        return self._wide
 
     # -- the paper's steps ----------------------------------------------------------------------
 
@@ -547,112 +526,6 @@ class Odometry:
             inliers=np.asarray(pair.inliers, dtype=bool),
             inlier_votes=pair.inlier_votes,
         )
-
-    def _pair(
-        self,
-        ref_range: npt.NDArray[np.float32],
-        tgt_range: npt.NDArray[np.float32],
-        output: FrameOutput,
-        ref_features: Features,
-        ref_points: npt.NDArray[np.float32],
-        tgt_points: npt.NDArray[np.float32],
-    ) -> tuple[PairResult, PairResult, PairResult | None]:
-        """The pair's motion from the frame graph's `output`, and the one-way pairs it came from: the
-        forward pair alone, or with `matching.symmetric` the forward and the backward pair combined."""
-        assert output.flow is not None and output.confidence is not None
-        if not self.config.matching.symmetric:
-            forward = self._match(ref_range, tgt_range, output.flow, output.confidence, ref_points=ref_points)
-            return forward, forward, None
-        forward, backward = self._match_both_ways(ref_range, tgt_range, output, ref_features, ref_points, tgt_points)
-        return _symmetric(forward, backward, self.config.motion_model.min_inliers), forward, backward
-
-    def _match_both_ways(
-        self,
-        ref_range: npt.NDArray[np.float32],
-        tgt_range: npt.NDArray[np.float32],
-        output: FrameOutput,
-        ref_features: Features,
-        ref_points: npt.NDArray[np.float32],
-        tgt_points: npt.NDArray[np.float32],
-    ) -> tuple[PairResult, PairResult]:
-        """The forward pair of `output` (reference → target) and the target matched back against the
-        reference (`T_ref_tgt`, from the cached features), each without the cells whose flow the other
-        direction's flow does not lead back (`matching.consistency_px`)."""
-        assert output.flow is not None and output.confidence is not None
-        back_flow, back_confidence = self.matcher.match(output.features, ref_features)
-        limit = self.config.matching.consistency_px
-        wraps = self.cylinder.wraps_azimuth
-        forward_out = backward_out = None
-        if limit is not None:
-            forward_out = _round_trip_error(output.flow, back_flow, wraps) > limit
-            backward_out = _round_trip_error(back_flow, output.flow, wraps) > limit
-        forward = self._match(ref_range, tgt_range, output.flow, output.confidence, forward_out, ref_points)
-        backward = self._match(tgt_range, ref_range, back_flow, back_confidence, backward_out, tgt_points)
-        return forward, backward
-
-    # -- mapping --------------------------------------------------------------------------------
-
-    def _make_map(self) -> dmlo_rs.LocalMap:
-        c = self.config.mapping
-        return dmlo_rs.LocalMap(
-            self.cylinder, voxel_size=c.voxel_size, max_scans=c.max_scans, keyframe_distance=c.keyframe_distance,
-            keyframe_angle_deg=c.keyframe_angle_deg, ring_lock_distance=c.ring_lock_distance,
-            motion_model_start_distance=c.motion_model_start_distance,
-            motion_model_start_angle_deg=c.motion_model_start_angle_deg, downsample=c.downsample,
-            max_iterations=c.max_iterations, degeneracy_threshold=c.degeneracy_threshold,
-            rotation_degeneracy_threshold=c.rotation_degeneracy_threshold,
-        )
-
-
-def _symmetric(forward: PairResult, backward: PairResult, min_inliers: int) -> PairResult:
-    """One motion from a pair matched both ways: the midpoint of the forward motion and the inverted
-    backward one, with both directions' matches (the backward ones turned round). A direction with fewer
-    than `min_inliers` inliers is left out; with neither, the forward pair goes on to the motion model.
-
-    The network's errors in the two directions are only partly the same, so the midpoint cancels part of
-    them (beyond the paper; measured in docs/measurements.md).
-    """
-    reverse = PairResult(
-        T_tgt_ref=np.linalg.inv(backward.T_tgt_ref).astype(np.float64),
-        num_matches=backward.num_matches,
-        num_inliers=backward.num_inliers,
-        source_points=backward.target_points,
-        target_points=backward.source_points,
-        inliers=backward.inliers,
-        inlier_votes=backward.inlier_votes,
-    )
-    usable = [pair for pair in (forward, reverse) if pair.num_inliers >= min_inliers]
-    if len(usable) < 2:
-        return usable[0] if usable else forward
-    return PairResult(
-        T_tgt_ref=midpoint_motion(forward.T_tgt_ref, reverse.T_tgt_ref),
-        num_matches=forward.num_matches + reverse.num_matches,
-        num_inliers=forward.num_inliers + reverse.num_inliers,
-        source_points=np.concatenate([forward.source_points, reverse.source_points]),
-        target_points=np.concatenate([forward.target_points, reverse.target_points]),
-        inliers=np.concatenate([forward.inliers, reverse.inliers]),
-        inlier_votes=None if forward.inlier_votes is None or reverse.inlier_votes is None
-        else forward.inlier_votes + reverse.inlier_votes,
-    )
-
-
-def _round_trip_error(
-    flow: npt.NDArray[np.float32], back_flow: npt.NDArray[np.float32], wraps_azimuth: bool
-) -> npt.NDArray[np.float32]:
-    """Per cell, how far (pixels) following `flow` and then `back_flow` (read at the nearest cell of the
-    match) lands from where it started: optical flow's forward–backward consistency check. Infinite where
-    the match leaves the image."""
-    height, width = flow.shape[1:]
-    rows = np.arange(height, dtype=np.float32)[:, None] + flow[0]
-    cols = np.arange(width, dtype=np.float32)[None, :] + flow[1]
-    at_row = np.rint(rows).astype(np.int64)
-    at_col = np.rint(cols).astype(np.int64)
-    if wraps_azimuth:
-        at_col %= width
-    inside = (at_row >= 0) & (at_row < height) & (at_col >= 0) & (at_col < width)
-    at_row, at_col = np.clip(at_row, 0, height - 1), np.clip(at_col, 0, width - 1)
-    error = np.hypot(flow[0] + back_flow[0, at_row, at_col], flow[1] + back_flow[1, at_row, at_col])
-    return np.where(inside, error, np.inf).astype(np.float32)
 
 
 def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:

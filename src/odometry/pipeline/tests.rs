@@ -449,3 +449,205 @@ fn scans_without_reflectance_switch_to_the_range_only_model() {
     alone.register(Scan::new(&dark)).unwrap();
     assert_eq!(alone.reflectance_scale(), Some(ReflectanceScale::Ignored));
 }
+
+/// `register_pair` of yard scans `from` and `to` with the oracle told their true motion.
+fn register_pair(
+    odometry: &mut Odometry<OracleMatcher>,
+    from: usize,
+    to: usize,
+) -> Result<RegisteredPair> {
+    odometry
+        .matcher
+        .truth
+        .set(true_pose(to).inverse() * true_pose(from));
+    odometry.register_pair(Scan::new(&scan(from)), Scan::new(&scan(to)), false)
+}
+
+#[test]
+fn a_pair_follows_the_truth_one_way_both_ways_and_refined_by_ndt() {
+    let truth = (true_pose(2).inverse() * true_pose(0)).to_homogeneous();
+    for (mapping, symmetric) in [(false, false), (true, false), (false, true), (true, true)] {
+        let mut config = config(mapping);
+        config.matching.symmetric = symmetric;
+        let mut odometry = Odometry::new(OracleMatcher::new(), config).unwrap();
+        let pair = register_pair(&mut odometry, 0, 2).unwrap();
+        let (moved, turned) = pose_difference(&truth, &pair.transform);
+        let context = format!("mapping {mapping}, symmetric {symmetric}");
+        assert!(
+            moved < 0.02 && turned < 0.1,
+            "{context}: {moved} m, {turned}°"
+        );
+        assert_eq!(pair.map_refined, mapping.then_some(true), "{context}");
+        assert_eq!(pair.rounds, 1);
+        let matches = &pair.matches;
+        assert!(
+            matches.num_inliers >= 10,
+            "{context}: {}",
+            matches.num_inliers
+        );
+        assert_eq!(matches.source.len(), matches.target.len());
+        assert_eq!(matches.inliers.len(), matches.source.len());
+        // The matches are in the frames of the scans given: the motion carries the inliers over.
+        for (p, q) in matches
+            .source
+            .iter()
+            .zip(&matches.target)
+            .zip(&matches.inliers)
+            .filter(|(_, &inlier)| inlier)
+            .map(|(pair, _)| pair)
+        {
+            let carried = truth.transform_point(p);
+            assert!((carried - q).norm() < 0.3, "{context}: {p} → {q}");
+        }
+        // The drive is untouched; the reflectance scale is chosen as a drive's first scan chooses it.
+        assert!(odometry.poses().is_empty() && odometry.diagnostics().is_empty());
+        assert_eq!(odometry.reflectance_scale(), Some(ReflectanceScale::Unit));
+    }
+}
+
+#[test]
+fn a_pair_refuses_too_few_points_and_a_large_motion_without_a_wide_window() {
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(true)).unwrap();
+    let full = scan(0);
+    let few = &full[..500];
+    let error = odometry
+        .register_pair(Scan::new(few), Scan::new(&full), false)
+        .unwrap_err();
+    assert!(
+        error
+            .to_string()
+            .starts_with("reference: 500 finite points"),
+        "{error}"
+    );
+    let error = odometry
+        .register_pair(Scan::new(&full), Scan::new(few), false)
+        .unwrap_err();
+    assert!(error.to_string().starts_with("target:"), "{error}");
+    let flags = vec![false; 3];
+    let moving = Scan {
+        moving: Some(&flags),
+        ..Scan::new(&full)
+    };
+    let error = odometry
+        .register_pair(moving, Scan::new(&full), false)
+        .unwrap_err();
+    assert!(error.to_string().starts_with("moving:"), "{error}");
+    let error = odometry
+        .register_pair(Scan::new(&full), Scan::new(&full), true)
+        .unwrap_err();
+    assert!(error.to_string().contains("no wide window"), "{error}");
+    // Every point flagged moving leaves none to match.
+    let all = vec![true; full.len()];
+    let error = odometry
+        .register_pair(
+            Scan {
+                moving: Some(&all),
+                ..Scan::new(&full)
+            },
+            Scan::new(&full),
+            false,
+        )
+        .unwrap_err();
+    assert!(
+        error.to_string().starts_with("reference: 0 finite points"),
+        "{error}"
+    );
+}
+
+#[test]
+fn a_moved_scan_keeps_its_reflectance_and_float32_precision() {
+    let cloud: Vec<[f32; 4]> = (0..5000)
+        .map(|i| {
+            let t = i as f32;
+            [
+                (t * 0.37).sin() * 120.0,
+                (t * 0.11).cos() * 120.0,
+                (t * 0.05).sin() * 20.0,
+                (i % 97) as f32 / 97.0,
+            ]
+        })
+        .collect();
+    let transform = Isometry3::new(
+        Vector3::new(1.6, -0.3, 0.05),
+        Vector3::new(0.012, -0.026, 0.21),
+    )
+    .to_homogeneous();
+    let moved = moved_cloud(&cloud, &transform);
+    for (p, q) in cloud.iter().zip(&moved) {
+        let expected =
+            transform.transform_point(&Point3::new(p[0] as f64, p[1] as f64, p[2] as f64));
+        for axis in 0..3 {
+            // A few float32 steps at 170 m.
+            assert!(
+                (q[axis] as f64 - expected[axis]).abs() < 1e-4,
+                "{p:?} → {q:?}, not {expected}"
+            );
+        }
+        assert_eq!(q[3], p[3]);
+    }
+    assert_eq!(moved_cloud(&cloud, &Matrix4::identity()), cloud);
+}
+
+#[test]
+fn the_round_trip_check_follows_a_loop_over_the_cells() {
+    let (height, width) = (12, 20);
+    let cells = height * width;
+    let flow_of = |values: Vec<f32>| DenseFlow {
+        flow: values,
+        confidence: vec![1.0; cells],
+        height,
+        width,
+    };
+    // A deterministic spread of flows, the backward one undoing it up to a wobble.
+    let forward: Vec<f32> = (0..2 * cells)
+        .map(|i| ((i * 37 % 101) as f32 - 50.0) * 0.07)
+        .collect();
+    let backward: Vec<f32> = (0..2 * cells)
+        .map(|i| -forward[(i + 21) % (2 * cells)] + ((i % 7) as f32 - 3.0) * 0.1)
+        .collect();
+    let (forward, backward) = (flow_of(forward), flow_of(backward));
+    for wraps in [false, true] {
+        for limit in [0.5, 1.0, 3.0] {
+            let outliers = round_trip_outliers(&forward, &backward, wraps, limit);
+            for row in 0..height {
+                for col in 0..width {
+                    let cell = row * width + col;
+                    let (d_row, d_col) = (forward.flow[cell], forward.flow[cells + cell]);
+                    let at_row = (row as f32 + d_row).round_ties_even() as i64;
+                    let mut at_col = (col as f32 + d_col).round_ties_even() as i64;
+                    if wraps {
+                        at_col = at_col.rem_euclid(width as i64);
+                    }
+                    let inside =
+                        (0..height as i64).contains(&at_row) && (0..width as i64).contains(&at_col);
+                    let expected = !inside || {
+                        let at = at_row as usize * width + at_col as usize;
+                        let error = ((d_row + backward.flow[at]) as f64)
+                            .hypot((d_col + backward.flow[cells + at]) as f64);
+                        error > limit
+                    };
+                    assert_eq!(
+                        outliers[cell], expected,
+                        "cell {row},{col}, wraps {wraps}, limit {limit}"
+                    );
+                }
+            }
+        }
+    }
+    // A flow its backward flow undoes exactly is consistent wherever its matches stay in the image.
+    let shift = flow_of([vec![1.0; cells], vec![2.0; cells]].concat());
+    let back = flow_of([vec![-1.0; cells], vec![-2.0; cells]].concat());
+    for wraps in [false, true] {
+        let outliers = round_trip_outliers(&shift, &back, wraps, 0.5);
+        for row in 0..height {
+            for col in 0..width {
+                let leaves = row == height - 1 || (!wraps && col >= width - 2);
+                assert_eq!(
+                    outliers[row * width + col],
+                    leaves,
+                    "{row},{col}, wraps {wraps}"
+                );
+            }
+        }
+    }
+}

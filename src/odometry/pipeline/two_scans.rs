@@ -1,0 +1,168 @@
+//! [`Odometry::register_pair`]: the motion between two scans, with no motion model or initial guess.
+
+use nalgebra::Matrix4;
+
+use super::{
+    as_points, check_one_per_point, kept_rows, normalised, search_starts, symmetric,
+    FrameDiagnostics, FrameMatcher, Matched, Odometry, Reference, Scan, Stopwatch,
+};
+use crate::error::{Error, Result};
+use crate::odometry::config::ReflectanceScale;
+use crate::odometry::mapping::refine_consecutive_pair;
+use crate::pair::PairMotion;
+
+/// The motion between two scans ([`Odometry::register_pair`]).
+#[derive(Debug, Clone)]
+pub struct RegisteredPair {
+    /// `T_tgt_ref` (`p_t = T p_r`): with symmetric matching the midpoint of both directions, refined
+    /// by NDT when `map_refined` says so.
+    pub transform: Matrix4<f64>,
+    /// The matches behind it, their points in the frames of the scans given (with symmetric matching
+    /// both directions', the backward ones turned round) and RANSAC's inliers among them.
+    pub matches: PairMotion,
+    /// Whether NDT against the reference refined the motion (it converged); `None` when it did not
+    /// run (mapping off, too few inliers, or a large motion).
+    pub map_refined: Option<bool>,
+    /// Matching rounds: 1 for a consecutive pair; for a large motion the wide window's, then the
+    /// model's own.
+    pub rounds: usize,
+}
+
+impl<M: FrameMatcher> Odometry<M> {
+    /// The motion `T_tgt_ref` between `reference` and `target`, with no motion model or initial guess
+    /// (`dmlo register`): the pair's back end on the network's flow, both ways with
+    /// `matching.symmetric`, then refined against the reference as a one-scan map when mapping is on
+    /// and RANSAC kept `motion_model.min_inliers` inliers. `large_motion`: scans far apart (several
+    /// frames or metres) are matched with the wide window (the matcher's
+    /// [`FrameMatcher::has_wide_window`], the paper's D = 40 at inference, §IV-D) from the configured
+    /// search starts and then again with the reference moved by the estimate (`large_motion`
+    /// settings), one way only and without tilt votes. Points flagged in [`Scan::moving`] are left out;
+    /// timestamps and sweep times are not read. A scan with fewer than `min_points` finite points is an
+    /// error naming it: with no motion model to fall back on, the identity would be a silent wrong
+    /// answer. The drive's poses and diagnostics are untouched; the reflectance scale is chosen here if
+    /// no scan chose it before, as [`Odometry::register`] chooses it.
+    pub fn register_pair(
+        &mut self,
+        reference: Scan<'_>,
+        target: Scan<'_>,
+        large_motion: bool,
+    ) -> Result<RegisteredPair> {
+        if large_motion && !self.matcher.has_wide_window() {
+            return Err(Error::Model(
+                "large_motion: the matcher has no wide window (the model's frame_wide.onnx)".into(),
+            ));
+        }
+        let reference_cloud = self.pair_cloud(reference, "reference")?;
+        let target_cloud = self.pair_cloud(target, "target")?;
+        if large_motion {
+            let target = self.project(&target_cloud)?;
+            let features = self.matcher.encode(&target.image)?;
+            let large = &self.config.large_motion;
+            let starts = search_starts(&large.search_ahead_m, &large.search_yaw_deg);
+            let far = self.register_far(&reference_cloud, &target, &features, &starts)?;
+            return Ok(registered(far, None));
+        }
+        let reference = self.project(&reference_cloud)?;
+        let reference_features = self.matcher.encode(&reference.image)?;
+        let target = self.project(&target_cloud)?;
+        let target_features = self.matcher.encode(&target.image)?;
+        let flow = self.matcher.flow(&reference_features, &target_features)?;
+        let pair = if self.config.matching.symmetric {
+            let previous = Reference {
+                cloud: Vec::new(),
+                times: None,
+                deskewed: false,
+                range: reference.range,
+                points: reference.points,
+                features: reference_features,
+                pose: Matrix4::identity(),
+                frame: 0,
+            };
+            let (mut unused, mut watch) = (FrameDiagnostics::default(), Stopwatch::new());
+            let (forward, backward) = self.matched_both_ways(
+                &previous,
+                &target,
+                &target_features,
+                &flow,
+                &mut unused,
+                &mut watch,
+            )?;
+            let min_inliers = self.config.motion_model.min_inliers as usize;
+            (symmetric(forward, backward, min_inliers), previous.points)
+        } else {
+            let pair = self.match_flow(
+                &reference.range,
+                &target.range,
+                &flow,
+                &reference.points,
+                None,
+                true,
+            )?;
+            (pair, reference.points)
+        };
+        let (pair, reference_points) = pair;
+        let min_inliers = self.config.motion_model.min_inliers as usize;
+        if !self.config.mapping.enabled || pair.motion.num_inliers < min_inliers {
+            return Ok(registered(pair, None));
+        }
+        // The reference is the map: a standing pair by point-to-plane ICP, a near one by its upright
+        // surfaces, any other by NDT, as the drive decides near its keyframe.
+        let refined = refine_consecutive_pair(
+            &as_points(&reference_cloud),
+            &as_points(&target_cloud),
+            &reference_points,
+            &target.points,
+            &pair.transform,
+            &self.config.mapping_config(),
+            &self.cylinder,
+        )?;
+        let map_refined = Some(refined.is_some());
+        let mut result = registered(pair, map_refined);
+        if let Some(refined) = refined {
+            result.transform = refined;
+        }
+        Ok(result)
+    }
+
+    /// A pair's scan (`name`): its finite points not flagged moving, reflectance brought to the model's
+    /// scale; at least `min_points` of them.
+    fn pair_cloud(&mut self, scan: Scan<'_>, name: &'static str) -> Result<Vec<[f32; 4]>> {
+        check_one_per_point(scan.moving, "moving", "flag", scan.points.len())?;
+        let mut finite_reflectance = Vec::with_capacity(scan.points.len());
+        let keep: Vec<bool> = scan
+            .points
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let finite = p.iter().all(|v| v.is_finite());
+                if finite {
+                    finite_reflectance.push(p[3]);
+                }
+                finite && !scan.moving.is_some_and(|m| m[i])
+            })
+            .collect();
+        let kept = kept_rows(scan.points, &keep);
+        let min_points = self.config.min_points as usize;
+        if kept.len() < min_points {
+            return Err(Error::invalid(
+                name,
+                format!(
+                    "{} finite points, fewer than the {min_points} needed to register a pair \
+                     (config.min_points)",
+                    kept.len()
+                ),
+            ));
+        }
+        let scale = self.reflectance_for(&finite_reflectance, min_points)?;
+        Ok(normalised(kept, scale.unwrap_or(ReflectanceScale::Unit)))
+    }
+}
+
+fn registered(pair: Matched, map_refined: Option<bool>) -> RegisteredPair {
+    RegisteredPair {
+        transform: pair.transform,
+        matches: pair.motion,
+        map_refined,
+        rounds: pair.rounds,
+    }
+}
