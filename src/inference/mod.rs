@@ -63,6 +63,27 @@ pub struct EncodedScan {
 }
 
 impl EncodedScan {
+    /// The encoder graph's two outputs (values and `(channels, rows, columns)`), the refine features
+    /// checked to be at the input's `[rows, columns]`; errors name the graph (`path`).
+    pub(crate) fn from_outputs(
+        path: &str,
+        (coarse, coarse_shape): (Vec<f32>, [usize; 3]),
+        (refine, refine_shape): (Vec<f32>, [usize; 3]),
+        [rows, columns]: [usize; 2],
+    ) -> Result<Self> {
+        if refine_shape[1..] != [rows, columns] {
+            return Err(Error::Model(format!(
+                "{path}: refine features {refine_shape:?} are not at the input's resolution {rows} × {columns}"
+            )));
+        }
+        Ok(EncodedScan {
+            coarse,
+            coarse_shape,
+            refine,
+            refine_shape,
+        })
+    }
+
     /// The features as the matching stage reads them.
     pub fn features(&self) -> ScanFeatures<'_> {
         ScanFeatures {

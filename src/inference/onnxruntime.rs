@@ -151,19 +151,6 @@ impl Encoder for OrtEncoder {
                 ))),
             }
         };
-        let (coarse, coarse_shape) = features(0)?;
-        let (refine, refine_shape) = features(1)?;
-        if refine_shape[1..] != [rows, columns] {
-            return Err(Error::Model(format!(
-                "{}: refine features {refine_shape:?} are not at the input's resolution {rows} × {columns}",
-                self.path
-            )));
-        }
-        Ok(EncodedScan {
-            coarse,
-            coarse_shape,
-            refine,
-            refine_shape,
-        })
+        EncodedScan::from_outputs(&self.path, features(0)?, features(1)?, [rows, columns])
     }
 }

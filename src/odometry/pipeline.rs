@@ -411,23 +411,12 @@ impl<M: FrameMatcher> Odometry<M> {
     /// reflectance the model cannot use); the odometry's state is then as before the call, apart from
     /// the clock of a scan whose error came from the matcher.
     pub fn register(&mut self, scan: Scan<'_>) -> Result<Matrix4<f64>> {
-        let count = scan.points.len();
-        check_one_per_point(scan.moving, "moving", "flag", count)?;
-        check_one_per_point(scan.point_times, "point_times", "time", count)?;
-        let mut finite_reflectance = Vec::with_capacity(count);
-        let keep: Vec<bool> = scan
-            .points
-            .iter()
-            .enumerate()
-            .map(|(i, p)| {
-                let finite = p.iter().all(|v| v.is_finite());
-                if finite {
-                    finite_reflectance.push(p[3]);
-                }
-                finite && !scan.moving.is_some_and(|m| m[i])
-            })
-            .collect();
-        let kept: Vec<[f32; 4]> = kept_rows(scan.points, &keep);
+        let KeptPoints {
+            keep,
+            kept,
+            finite_reflectance,
+        } = kept_points(&scan)?;
+        check_one_per_point(scan.point_times, "point_times", "time", scan.points.len())?;
         let times = scan.point_times.map(|times| kept_rows(times, &keep));
         let min_points = self.config.min_points as usize;
         let scale = self.reflectance_for(&finite_reflectance, min_points)?;
@@ -1207,6 +1196,39 @@ fn moved_cloud(cloud: &[[f32; 4]], transform: &Matrix4<f64>) -> Vec<[f32; 4]> {
             [row(0), row(1), row(2), reflectance]
         })
         .collect()
+}
+
+/// A scan's points as the odometry keeps them.
+struct KeptPoints {
+    /// Per point: finite and not flagged moving.
+    keep: Vec<bool>,
+    /// Those points.
+    kept: Vec<[f32; 4]>,
+    /// The reflectance of every finite point, moving or not: what the reflectance scale is chosen from.
+    finite_reflectance: Vec<f32>,
+}
+
+/// The points of `scan` the odometry keeps (a `moving` mask of the wrong length is an error naming it).
+fn kept_points(scan: &Scan<'_>) -> Result<KeptPoints> {
+    check_one_per_point(scan.moving, "moving", "flag", scan.points.len())?;
+    let mut finite_reflectance = Vec::with_capacity(scan.points.len());
+    let keep: Vec<bool> = scan
+        .points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let finite = p.iter().all(|v| v.is_finite());
+            if finite {
+                finite_reflectance.push(p[3]);
+            }
+            finite && !scan.moving.is_some_and(|m| m[i])
+        })
+        .collect();
+    Ok(KeptPoints {
+        kept: kept_rows(scan.points, &keep),
+        keep,
+        finite_reflectance,
+    })
 }
 
 /// Checks that `values` (the scan's `name`: one `what` a point), when given, has one entry per point.

@@ -3,8 +3,8 @@
 use nalgebra::Matrix4;
 
 use super::{
-    as_points, check_one_per_point, kept_rows, normalised, search_starts, symmetric,
-    FrameDiagnostics, FrameMatcher, Matched, Odometry, Reference, Scan, Stopwatch,
+    as_points, kept_points, normalised, search_starts, symmetric, FrameDiagnostics, FrameMatcher,
+    KeptPoints, Matched, Odometry, Reference, Scan, Stopwatch,
 };
 use crate::error::{Error, Result};
 use crate::odometry::config::ReflectanceScale;
@@ -127,21 +127,11 @@ impl<M: FrameMatcher> Odometry<M> {
     /// A pair's scan (`name`): its finite points not flagged moving, reflectance brought to the model's
     /// scale; at least `min_points` of them.
     fn pair_cloud(&mut self, scan: Scan<'_>, name: &'static str) -> Result<Vec<[f32; 4]>> {
-        check_one_per_point(scan.moving, "moving", "flag", scan.points.len())?;
-        let mut finite_reflectance = Vec::with_capacity(scan.points.len());
-        let keep: Vec<bool> = scan
-            .points
-            .iter()
-            .enumerate()
-            .map(|(i, p)| {
-                let finite = p.iter().all(|v| v.is_finite());
-                if finite {
-                    finite_reflectance.push(p[3]);
-                }
-                finite && !scan.moving.is_some_and(|m| m[i])
-            })
-            .collect();
-        let kept = kept_rows(scan.points, &keep);
+        let KeptPoints {
+            kept,
+            finite_reflectance,
+            ..
+        } = kept_points(&scan)?;
         let min_points = self.config.min_points as usize;
         if kept.len() < min_points {
             return Err(Error::invalid(
