@@ -376,7 +376,8 @@ proptest! {
     #![proptest_config(config(32))]
 
     /// `Odometry::register` with any scans, masks, timestamps, sweep times, flows and settings gives a
-    /// rigid, finite pose or a named error, never a panic; an error leaves the poses as they were.
+    /// rigid, finite pose or a named error, never a panic; an error leaves the poses as they were. So
+    /// does `Odometry::register_pair` of each scan with the one before (the poses untouched either way).
     #[test]
     fn odometry_registers_any_scan_or_names_what_is_wrong(
         scans in prop::collection::vec(
@@ -393,6 +394,7 @@ proptest! {
         timestamps in prop::collection::vec(prop_oneof![12 => 0.0..0.5f64, 1 => Just(f64::NAN), 1 => Just(-5.0)], 4),
         mask_share in prop_oneof![3 => Just(0.0f64), 1 => 0.0..1.0f64],
         min_points in prop_oneof![3 => Just(100u64), 1 => 0u64..5],
+        large_motion in any::<bool>(),
     ) {
         let mut config = OdometryConfig::default();
         config.mapping.enabled = mapping;
@@ -402,6 +404,7 @@ proptest! {
         let matcher = ConstantFlowMatcher { cylinder: CylinderConfig::kitti(), offset, confidence };
         let mut odometry = Odometry::new(matcher, config).unwrap();
         let mut ahead = 0.0;
+        let mut previous: Option<Vec<[f32; 4]>> = None;
         for (i, &(step, seed, corrupt, kept)) in scans.iter().enumerate() {
             ahead += step;
             let mut points = odometry_scan(ahead, seed, corrupt);
@@ -426,6 +429,20 @@ proptest! {
                     prop_assert!(!error.to_string().is_empty());
                     prop_assert_eq!(odometry.poses().len(), before);
                 }
+            }
+            if let Some(reference) = previous.replace(points.clone()) {
+                let registered = odometry.poses().len();
+                match odometry.register_pair(Scan::new(&reference), Scan::new(&points), large_motion) {
+                    Ok(pair) => {
+                        let transform = pair.transform;
+                        prop_assert!(transform.iter().all(|v| v.is_finite()), "{}", transform);
+                        let rotation = transform.fixed_view::<3, 3>(0, 0);
+                        prop_assert!((rotation.transpose() * rotation - nalgebra::Matrix3::identity()).abs().max() < 1e-6);
+                        prop_assert_eq!(pair.matches.source.len(), pair.matches.inliers.len());
+                    }
+                    Err(error) => prop_assert!(!error.to_string().is_empty()),
+                }
+                prop_assert_eq!(odometry.poses().len(), registered);
             }
         }
     }

@@ -585,3 +585,69 @@ fn assert_pose_is(pose: &nalgebra::Matrix4<f64>, row: &Value, context: &str) {
         turned.to_radians()
     );
 }
+
+mod matcher_properties {
+    use proptest::prelude::*;
+
+    use super::*;
+
+    /// The learned matcher over tract, opened once for the property test's cases.
+    fn shared_tract_matcher() -> &'static LearnedMatcher<TractEncoder> {
+        static MATCHER: std::sync::OnceLock<LearnedMatcher<TractEncoder>> =
+            std::sync::OnceLock::new();
+        MATCHER.get_or_init(|| {
+            LearnedMatcher::new(TractEncoder::open(bundled_encoder()).unwrap()).unwrap()
+        })
+    }
+
+    proptest! {
+        #![proptest_config(proptest::test_runner::Config { cases: 8, failure_persistence: None, ..Default::default() })]
+
+        /// The learned matcher with any image — ranges anywhere from empty to far beyond the sensor,
+        /// reflectance beyond its scale, a non-finite value, a wrong length — encodes it and matches it to
+        /// finite flows and confidences in [0, 1], or names what is wrong; never a panic.
+        #[test]
+        fn the_learned_matcher_takes_any_image_or_names_what_is_wrong(
+            seed in any::<u64>(),
+            fill in 0.0..1.0f64,
+            far in prop_oneof![Just(80.0f32), Just(1e6f32)],
+            bright in prop_oneof![Just(1.0f32), Just(1e4f32)],
+            bad in proptest::option::of((0usize..2 * 64 * 1792, prop_oneof![Just(f32::NAN), Just(f32::INFINITY), Just(f32::NEG_INFINITY)])),
+            cut in prop_oneof![4 => Just(0usize), 1 => 1usize..100],
+        ) {
+            let matcher = shared_tract_matcher();
+            let cells = 64 * 1792;
+            let mut state = seed | 1;
+            let mut next = move || {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                (state >> 11) as f64 / (1u64 << 53) as f64
+            };
+            let mut image = vec![0.0f32; 2 * cells];
+            for cell in 0..cells {
+                if next() < fill {
+                    image[cell] = 1.0 + next() as f32 * far;
+                    image[cells + cell] = next() as f32 * bright;
+                }
+            }
+            if let Some((at, value)) = bad {
+                image[at] = value;
+            }
+            image.truncate(image.len() - cut);
+            match matcher.encoder().encode(&image) {
+                Ok(encoded) => {
+                    prop_assert!(bad.is_none() && cut == 0);
+                    prop_assert!(encoded.coarse.iter().chain(&encoded.refine).all(|v| v.is_finite()));
+                    let flow = matcher.flow(&encoded, &encoded).unwrap();
+                    prop_assert!(flow.flow.iter().all(|v| v.is_finite()));
+                    prop_assert!(flow.confidence.iter().all(|c| (0.0..=1.0 + 1e-6).contains(c)));
+                }
+                Err(error) => {
+                    prop_assert!(bad.is_some() || cut > 0, "{error}");
+                    prop_assert!(error.to_string().starts_with("image:"), "{error}");
+                }
+            }
+        }
+    }
+}
