@@ -147,22 +147,22 @@ fn learned_matcher<E: Encoder>(
     matcher.with_wide_window(graph_metadata(&wide)?.coarse_window)
 }
 
-fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error>> {
+fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let arguments = parse(args)?;
     let config = match &arguments.config {
         Some(path) => OdometryConfig::load(path)?,
         None => OdometryConfig::default(),
     };
     let threads = arguments.threads.unwrap_or(config.threads as usize);
-    if threads > 0 {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build_global()?;
-    }
-    match &arguments.onnxruntime {
+    // The loop runs on one of the pool's threads, so that each frame's parallel stages start from inside
+    // the pool (the calling thread takes its share) rather than being sent to it and waited for.
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?;
+    pool.install(|| match &arguments.onnxruntime {
         None => drive(&arguments, config, |path: &Path| TractEncoder::open(path)),
         Some(library) => with_onnxruntime(&arguments, config, library, threads),
-    }
+    })
 }
 
 #[cfg(feature = "onnxruntime")]
@@ -171,7 +171,7 @@ fn with_onnxruntime(
     config: OdometryConfig,
     library: &Path,
     threads: usize,
-) -> Result<(), Box<dyn std::error::Error>> {
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     use dmlo_rs::inference::OrtEncoder;
     drive(arguments, config, |path: &Path| {
         OrtEncoder::open(path, library, threads)
@@ -184,7 +184,7 @@ fn with_onnxruntime(
     _: OdometryConfig,
     _: &Path,
     _: usize,
-) -> Result<(), Box<dyn std::error::Error>> {
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     Err("--onnxruntime: built without the `onnxruntime` feature (cargo run --features inference,onnxruntime …)".into())
 }
 
@@ -193,7 +193,7 @@ fn drive<E: Encoder>(
     arguments: &Arguments,
     config: OdometryConfig,
     encoder: impl Fn(&Path) -> dmlo_rs::Result<E>,
-) -> Result<(), Box<dyn std::error::Error>> {
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let files = scan_files(&arguments.scans)?;
     let mut odometry = Odometry::new(learned_matcher(&arguments.model, &encoder)?, config)?;
     let range_only = arguments.model.join("range_only");

@@ -87,7 +87,7 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
 def test_the_graph_sees_the_package() -> None:
     graph = import_graph()
     assert "dmlo.odometry.pipeline" in graph["dmlo.odometry"]
-    assert "dmlo.odometry.pair" in graph["dmlo.odometry.large_motion"]
+    assert "dmlo.odometry.pair" in graph["dmlo.odometry.pipeline"]
     assert "dmlo.simulator.street" in graph["dmlo.simulator.traffic"]
 
 
