@@ -1,7 +1,8 @@
 """The whole odometry from Rust against `dmlo.Odometry` from Python, on the same scans in one run (issue 24):
-`examples/odometry.rs` with the encoder in tract and in onnxruntime (`--onnxruntime`: the library of this
-Python's `onnxruntime` wheel through `ort`), and `dmlo.Odometry` (onnxruntime from Python), with the same model,
-the same config and the same threads, in turns.
+`examples/odometry.rs` with the encoder in onnxruntime (`--onnxruntime`: the library of this Python's
+`onnxruntime` wheel through `ort`), each scan encoded in turn (`--serial`, as `dmlo.Odometry`) and encoded while
+the scan before it is registered (`EncodeAhead`, the example's default), and in tract (encoded ahead), against
+`dmlo.Odometry` (onnxruntime from Python), with the same model, the same config and the same threads, in turns.
 
     .venv/bin/python benchmarks/rust_odometry.py [SCANS_DIR ...] [--rounds 3] [--threads 2]
 
@@ -50,13 +51,18 @@ def python_run(scans: Path, config_path: Path) -> tuple[float, np.ndarray]:
     return len(files) / seconds, np.stack([np.asarray(pose)[:3, 3] for pose in odometry.poses])
 
 
-def rust_run(scans: Path, config_path: Path, threads: int, library: Path | None) -> tuple[float, np.ndarray]:
-    """Scans a second and the translations of `examples/odometry.rs` (tract, or onnxruntime's `library`)."""
+def rust_run(
+    scans: Path, config_path: Path, threads: int, library: Path | None, serial: bool = False
+) -> tuple[float, np.ndarray]:
+    """Scans a second and the translations of `examples/odometry.rs` (tract, or onnxruntime's `library`;
+    `serial`: each scan encoded in turn)."""
     with tempfile.TemporaryDirectory() as out:
         command = [str(EXAMPLE), str(scans), "--out", out, "--model", str(MODEL), "--config", str(config_path),
                    "--threads", str(threads)]
         if library is not None:
             command += ["--onnxruntime", str(library)]
+        if serial:
+            command.append("--serial")
         printed = subprocess.run(command, check=True, capture_output=True, text=True).stdout
         match = RUST_RATE.search(printed)
         if match is None:
@@ -78,10 +84,18 @@ def main() -> None:
     from dmlo.odometry.matcher import onnxruntime_library
 
     library = onnxruntime_library()
-    runtimes = {"dmlo.Odometry (Python, onnxruntime)": None, "Rust, tract": "tract", "Rust, onnxruntime": "ort"}
-    print("| scans | mode | " + " | ".join(f"{name} Hz" for name in runtimes)
-          + " | tract / Python | onnxruntime (Rust) / Python | largest difference from Python, tract / onnxruntime (m) |")
-    print("|---|---|" + "---|" * (len(runtimes) + 3))
+    python_name = "dmlo.Odometry (Python, onnxruntime)"
+    # name → (onnxruntime's library or None for tract, serial)
+    rust = {
+        "Rust, onnxruntime, serial": (library, True),
+        "Rust, onnxruntime, encoded ahead": (library, False),
+        "Rust, tract, encoded ahead": (None, False),
+    }
+    names = [python_name, *rust]
+    print("| scans | mode | " + " | ".join(f"{name} Hz" for name in names)
+          + " | " + " | ".join(f"{name} / Python" for name in rust)
+          + " | largest difference from Python (m), " + " / ".join(rust) + " |")
+    print("|---|---|" + "---|" * (len(names) + len(rust) + 1))
     with tempfile.TemporaryDirectory() as folder:
         for scans in scan_folders(args.scans):
             for mapping in (True, False):
@@ -91,27 +105,22 @@ def main() -> None:
                 config.threads = args.threads
                 config_path = Path(folder) / "config.json"
                 config.save(config_path)
-                rates: dict[str, list[float]] = {name: [] for name in runtimes}
+                rates: dict[str, list[float]] = {name: [] for name in names}
                 translations: dict[str, np.ndarray] = {}
                 for _ in range(args.rounds):
-                    for name, kind in runtimes.items():
-                        if kind is None:
-                            rate, moved = python_run(scans, config_path)
-                        else:
-                            rate, moved = rust_run(scans, config_path, args.threads,
-                                                   library if kind == "ort" else None)
+                    rate, translations[python_name] = python_run(scans, config_path)
+                    rates[python_name].append(rate)
+                    for name, (runtime, serial) in rust.items():
+                        rate, translations[name] = rust_run(scans, config_path, args.threads, runtime, serial)
                         rates[name].append(rate)
-                        translations[name] = moved
-                python_name, tract_name, ort_name = runtimes
                 median = {name: statistics.median(values) for name, values in rates.items()}
                 reference = translations[python_name]
-                apart = [float(np.abs(translations[name] - reference).max()) for name in (tract_name, ort_name)]
+                apart = [float(np.abs(translations[name] - reference).max()) for name in rust]
                 label = scans.parent.name if scans.name == "velodyne" else scans.name
                 print(f"| {label} | {'mapping' if mapping else 'frame to frame'} | "
-                      + " | ".join(f"{median[name]:.1f}" for name in runtimes)
-                      + f" | {median[tract_name] / median[python_name]:.2f}"
-                      + f" | {median[ort_name] / median[python_name]:.2f}"
-                      + f" | {apart[0]:.1e} / {apart[1]:.1e} |", flush=True)
+                      + " | ".join(f"{median[name]:.1f}" for name in names)
+                      + " | " + " | ".join(f"{median[name] / median[python_name]:.2f}" for name in rust)
+                      + " | " + " / ".join(f"{value:.1e}" for value in apart) + " |", flush=True)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@
 //!
 //! ```text
 //! cargo run --release --features inference --example odometry -- SCANS_DIR --out OUT_DIR \
-//!     [--model MODEL_DIR] [--config CONFIG.json] [--threads N] [--onnxruntime LIB]
+//!     [--model MODEL_DIR] [--config CONFIG.json] [--threads N] [--onnxruntime LIB] [--serial]
 //! ```
 //!
 //! `SCANS_DIR` holds the scans (`*.bin`, N × 4 float32: x, y, z, reflectance), registered in name
@@ -16,7 +16,9 @@
 //! (`T_world_lidar`, the first scan the world: one row of 12 numbers a scan, readable by evo) and
 //! `diagnostics.jsonl` (one JSON object a scan), both appended and flushed scan by scan, so an interrupted
 //! run keeps every scan done. `--threads` sizes rayon's pool (tract and the crate's stages) and onnxruntime's
-//! threads; 0 or absent: the config's `threads`, and when that is 0 the runtimes' defaults.
+//! threads; 0 or absent: the config's `threads`, and when that is 0 the runtimes' defaults. Each scan is
+//! encoded on a thread of its own while the scan before it is registered
+//! ([`dmlo_rs::odometry::pipeline::EncodeAhead`]: the same poses); `--serial` encodes each scan in turn.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -26,9 +28,10 @@ use std::time::Instant;
 
 use dmlo_rs::inference::{graph_metadata, Encoder, LearnedMatcher, TractEncoder};
 use dmlo_rs::odometry::config::OdometryConfig;
-use dmlo_rs::odometry::pipeline::{Odometry, Scan};
+use dmlo_rs::odometry::pipeline::{EncodeAhead, Odometry, Scan};
+use dmlo_rs::scan_file::{kitti_scan_files, read_kitti_scan};
 
-const USAGE: &str = "usage: odometry SCANS_DIR --out OUT_DIR [--model MODEL_DIR] [--config CONFIG.json] [--threads N] [--onnxruntime LIB]";
+const USAGE: &str = "usage: odometry SCANS_DIR --out OUT_DIR [--model MODEL_DIR] [--config CONFIG.json] [--threads N] [--onnxruntime LIB] [--serial]";
 
 struct Arguments {
     scans: PathBuf,
@@ -37,12 +40,14 @@ struct Arguments {
     config: Option<PathBuf>,
     threads: Option<usize>,
     onnxruntime: Option<PathBuf>,
+    serial: bool,
 }
 
 fn parse(args: &[String]) -> Result<Arguments, String> {
     let mut scans = None;
     let (mut out, mut model, mut config, mut threads, mut onnxruntime) =
         (None, None, None, None, None);
+    let mut serial = false;
     let mut rest = args.iter();
     while let Some(arg) = rest.next() {
         let mut value = |flag: &str| {
@@ -55,6 +60,7 @@ fn parse(args: &[String]) -> Result<Arguments, String> {
             "--model" => model = Some(PathBuf::from(value("--model")?)),
             "--config" => config = Some(PathBuf::from(value("--config")?)),
             "--onnxruntime" => onnxruntime = Some(PathBuf::from(value("--onnxruntime")?)),
+            "--serial" => serial = true,
             "--threads" => {
                 let text = value("--threads")?;
                 threads = Some(
@@ -76,41 +82,8 @@ fn parse(args: &[String]) -> Result<Arguments, String> {
         config,
         threads,
         onnxruntime,
+        serial,
     })
-}
-
-/// The `.bin` scans of a folder in name order.
-fn scan_files(folder: &Path) -> Result<Vec<PathBuf>, String> {
-    let entries = std::fs::read_dir(folder).map_err(|e| format!("{}: {e}", folder.display()))?;
-    let mut files: Vec<PathBuf> = entries
-        .filter_map(|entry| entry.ok().map(|e| e.path()))
-        .filter(|path| path.extension().is_some_and(|ext| ext == "bin"))
-        .collect();
-    files.sort();
-    if files.is_empty() {
-        return Err(format!("{}: no .bin scans", folder.display()));
-    }
-    Ok(files)
-}
-
-/// A KITTI scan: N × 4 little-endian float32. A truncated file is an error naming it.
-fn read_scan(path: &Path) -> Result<Vec<[f32; 4]>, String> {
-    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    if bytes.len() % 16 != 0 {
-        return Err(format!(
-            "{}: {} bytes is not a whole number of 16-byte points (truncated?)",
-            path.display(),
-            bytes.len()
-        ));
-    }
-    Ok(bytes
-        .chunks_exact(16)
-        .map(|point| {
-            let value =
-                |i: usize| f32::from_le_bytes(point[4 * i..4 * i + 4].try_into().expect("4 bytes"));
-            [value(0), value(1), value(2), value(3)]
-        })
-        .collect())
 }
 
 fn kitti_row(pose: &nalgebra::Matrix4<f64>) -> String {
@@ -135,16 +108,16 @@ fn python_exponent(text: &str) -> String {
 
 /// The model in `folder` over `encoder` (its `encoder.onnx` opened by the runtime), with the wide window of
 /// `frame_wide.onnx` beside it when there is one.
-fn learned_matcher<E: Encoder>(
+fn learned_matcher<E: Encoder + Send + Sync + 'static>(
     folder: &Path,
     encoder: impl Fn(&Path) -> dmlo_rs::Result<E>,
-) -> dmlo_rs::Result<LearnedMatcher<E>> {
-    let matcher = LearnedMatcher::new(encoder(&folder.join("encoder.onnx"))?)?;
+) -> dmlo_rs::Result<EncodeAhead<LearnedMatcher<E>>> {
+    let mut matcher = LearnedMatcher::new(encoder(&folder.join("encoder.onnx"))?)?;
     let wide = folder.join("frame_wide.onnx");
-    if !wide.is_file() {
-        return Ok(matcher);
+    if wide.is_file() {
+        matcher = matcher.with_wide_window(graph_metadata(&wide)?.coarse_window)?;
     }
-    matcher.with_wide_window(graph_metadata(&wide)?.coarse_window)
+    Ok(EncodeAhead::new(matcher))
 }
 
 fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
@@ -189,12 +162,12 @@ fn with_onnxruntime(
 }
 
 /// The odometry over every scan of the folder, the encoders opened by `encoder`.
-fn drive<E: Encoder>(
+fn drive<E: Encoder + Send + Sync + 'static>(
     arguments: &Arguments,
     config: OdometryConfig,
     encoder: impl Fn(&Path) -> dmlo_rs::Result<E>,
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
-    let files = scan_files(&arguments.scans)?;
+    let files = kitti_scan_files(&arguments.scans)?;
     let mut odometry = Odometry::new(learned_matcher(&arguments.model, &encoder)?, config)?;
     let range_only = arguments.model.join("range_only");
     if range_only.join("encoder.onnx").is_file() {
@@ -204,9 +177,20 @@ fn drive<E: Encoder>(
     let mut poses = BufWriter::new(File::create(arguments.out.join("poses_kitti.txt"))?);
     let mut diagnostics = BufWriter::new(File::create(arguments.out.join("diagnostics.jsonl"))?);
     let start = Instant::now();
-    for path in &files {
-        let pose = match read_scan(path) {
-            Ok(points) => odometry.register(Scan::new(&points))?,
+    // Each scan is read before the one ahead of it is registered, so that its encoding can overlap
+    // that scan's back end (`register_ahead`; `--serial`: one after the other, as `dmlo run`).
+    let mut next = files.first().map(|path| read_kitti_scan(path));
+    for index in 0..files.len() {
+        let scan = next.take().expect("read ahead");
+        next = files.get(index + 1).map(|path| read_kitti_scan(path));
+        let pose = match &scan {
+            Ok(points) => {
+                let ahead = match &next {
+                    Some(Ok(points)) if !arguments.serial => Some(Scan::new(points)),
+                    _ => None,
+                };
+                odometry.register_ahead(Scan::new(points), ahead)?
+            }
             Err(error) => {
                 eprintln!("skipped: {error}");
                 odometry.predict_skipped("unreadable_scan")?

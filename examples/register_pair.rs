@@ -20,29 +20,11 @@ use std::process::ExitCode;
 use dmlo_rs::inference::{graph_metadata, LearnedMatcher, TractEncoder};
 use dmlo_rs::odometry::config::OdometryConfig;
 use dmlo_rs::odometry::pipeline::{Odometry, Scan};
+use dmlo_rs::scan_file::read_kitti_scan;
 use nalgebra::{Isometry3, Point3, Vector3};
 
 const USAGE: &str = "usage: register_pair MODEL_DIR A.bin B.bin [--large-motion] [--no-mapping] \
                      [--move-b YAW_DEG TX TY TZ]";
-
-/// A KITTI scan: N × 4 little-endian float32. A truncated file is an error naming it.
-fn read_scan(path: &str) -> Result<Vec<[f32; 4]>, String> {
-    let bytes = std::fs::read(path).map_err(|e| format!("{path}: {e}"))?;
-    if bytes.len() % 16 != 0 {
-        return Err(format!(
-            "{path}: {} bytes is not a whole number of 16-byte points (truncated?)",
-            bytes.len()
-        ));
-    }
-    Ok(bytes
-        .chunks_exact(16)
-        .map(|point| {
-            let value =
-                |i: usize| f32::from_le_bytes(point[4 * i..4 * i + 4].try_into().expect("4 bytes"));
-            [value(0), value(1), value(2), value(3)]
-        })
-        .collect())
-}
 
 struct Options {
     large_motion: bool,
@@ -86,8 +68,8 @@ fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error>> {
         return Err(USAGE.into());
     };
     let options = parse_options(rest)?;
-    let scan_a = read_scan(a_path)?;
-    let mut scan_b = read_scan(b_path)?;
+    let scan_a = read_kitti_scan(Path::new(a_path))?;
+    let mut scan_b = read_kitti_scan(Path::new(b_path))?;
     if let Some(motion) = &options.known_motion {
         for p in &mut scan_b {
             let q = motion * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);

@@ -31,6 +31,14 @@ pub enum Error {
     /// names the key (`ransac.threshold: ...`).
     #[error("{0}")]
     Config(String),
+    /// A file could not be read or is not laid out as its format says ([`crate::scan_file`]).
+    #[error("{path}: {reason}")]
+    File {
+        /// The file or folder.
+        path: String,
+        /// What went wrong.
+        reason: String,
+    },
 }
 
 /// `Result` with the crate's [`Error`].

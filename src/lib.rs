@@ -20,6 +20,7 @@
 //! | [`ndt`] | §III-D-c | scan-to-map NDT refinement |
 //! | [`odometry`] | §III | the odometry's loop over scans (`Odometry`), its config, the frame clock, the motion model and its judgement, the local map |
 //! | [`raycast`] | — | the LiDAR simulator's ray casting |
+//! | [`scan_file`] | — | KITTI's `.bin` scans read from disk |
 //! | `inference` | §III-C | the network's encoder run by tract (feature `inference`) or onnxruntime (feature `onnxruntime`), and the learned matcher |
 //!
 //! Conventions: LiDAR frame x forward, y left, z up; a scan is `N×4` `f32` (x, y, z, reflectance);
@@ -47,6 +48,7 @@ pub mod ransac;
 pub mod ray_noise;
 pub mod raycast;
 pub mod rigid;
+pub mod scan_file;
 pub mod surface;
 #[cfg(test)]
 mod test_scenes;

@@ -105,10 +105,13 @@ fn feature_map(data: &[f32], [channels, height, width]: [usize; 3]) -> FeatureMa
 /// A network's encoder: a scan's image in, its features out. [`TractEncoder`] runs the exported graph;
 /// another runtime (onnxruntime, a GPU) plugs in behind the same trait.
 pub trait Encoder {
-    /// `[rows, columns]` of the images the encoder takes.
-    fn input_size(&self) -> [usize; 2];
     /// The settings the graph was exported with.
     fn metadata(&self) -> &ModelMetadata;
+    /// `[rows, columns]` of the images the encoder takes.
+    fn input_size(&self) -> [usize; 2] {
+        let metadata = self.metadata();
+        [metadata.height, metadata.width]
+    }
     /// Encodes one image, `(2, rows, columns)` channel-major: range in metres, then reflectance in
     /// [0, 1]; 0 where a cell is empty. Errors name a wrong length or a non-finite value.
     fn encode(&self, image: &[f32]) -> Result<EncodedScan>;

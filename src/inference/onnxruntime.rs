@@ -119,10 +119,6 @@ impl OrtEncoder {
 }
 
 impl Encoder for OrtEncoder {
-    fn input_size(&self) -> [usize; 2] {
-        [self.metadata.height, self.metadata.width]
-    }
-
     fn metadata(&self) -> &ModelMetadata {
         &self.metadata
     }

@@ -5,6 +5,7 @@ use serde_json::Value;
 
 use super::*;
 use crate::projection::{project_flat, CylinderConfig};
+use crate::scan_file::{kitti_scan_files, read_kitti_scan};
 
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -288,12 +289,9 @@ fn the_cylinder_is_read_from_the_metadata_and_checked() {
 /// A real KITTI scan under `../shared/data`: its network image (range, then reflectance), its range
 /// image and its point image (each cell's kept point, NaN where empty).
 fn real_scan_images(name: &str) -> Option<(Vec<f32>, Vec<f32>, Vec<f32>)> {
-    let bytes = std::fs::read(root().join("../shared/data").join(name)).ok()?;
-    let points: Vec<f32> = bytes
-        .chunks_exact(4)
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect();
-    let projection = project_flat(&points, 4, &CylinderConfig::kitti()).unwrap();
+    let scan = read_kitti_scan(&root().join("../shared/data").join(name)).ok()?;
+    let points: &[f32] = scan.as_flattened();
+    let projection = project_flat(points, 4, &CylinderConfig::kitti()).unwrap();
     let cell_points = projection
         .index
         .iter()
@@ -367,26 +365,13 @@ fn real_drive(name: &str) -> Option<Vec<Vec<[f32; 4]>>> {
         .join("../shared/data/kitti_real")
         .join(name)
         .join("velodyne");
-    let mut files: Vec<PathBuf> = std::fs::read_dir(folder)
-        .ok()?
-        .filter_map(|entry| entry.ok().map(|e| e.path()))
-        .filter(|path| path.extension().is_some_and(|ext| ext == "bin"))
-        .collect();
-    files.sort();
-    let scans = files
-        .iter()
-        .map(|path| {
-            let bytes = std::fs::read(path).unwrap();
-            bytes
-                .chunks_exact(16)
-                .map(|p| {
-                    let v = |i: usize| f32::from_le_bytes(p[4 * i..4 * i + 4].try_into().unwrap());
-                    [v(0), v(1), v(2), v(3)]
-                })
-                .collect()
-        })
-        .collect();
-    Some(scans)
+    let files = kitti_scan_files(&folder).ok()?;
+    Some(
+        files
+            .iter()
+            .map(|path| read_kitti_scan(path).unwrap())
+            .collect(),
+    )
 }
 
 /// The runs of `odometry_poses.json` whose chains tract's features keep (within `assert_pose_is`'s bound).

@@ -98,10 +98,6 @@ impl TractEncoder {
 }
 
 impl Encoder for TractEncoder {
-    fn input_size(&self) -> [usize; 2] {
-        [self.metadata.height, self.metadata.width]
-    }
-
     fn metadata(&self) -> &ModelMetadata {
         &self.metadata
     }

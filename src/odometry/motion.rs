@@ -343,16 +343,39 @@ pub fn pose_difference(a: &Matrix4<f64>, b: &Matrix4<f64>) -> (f64, f64) {
 /// rotations their geodesic midpoint), the translation the mean; as `dmlo.poses.midpoint_motion`.
 pub fn midpoint_motion(a: &Matrix4<f64>, b: &Matrix4<f64>) -> Matrix4<f64> {
     let sum: Matrix3<f64> = a.fixed_view::<3, 3>(0, 0) + b.fixed_view::<3, 3>(0, 0);
-    let svd = sum.svd(true, true);
-    let (u, v_t) = (svd.u.expect("asked for"), svd.v_t.expect("asked for"));
-    let fix = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, (u * v_t).determinant().signum()));
     let mut middle = Matrix4::identity();
     middle
         .fixed_view_mut::<3, 3>(0, 0)
-        .copy_from(&(u * fix * v_t));
+        .copy_from(&nearest_rotation(&sum));
     let translation = (a.fixed_view::<3, 1>(0, 3) + b.fixed_view::<3, 1>(0, 3)) / 2.0;
     middle.fixed_view_mut::<3, 1>(0, 3).copy_from(&translation);
     middle
+}
+
+/// The rotation nearest to `matrix` in the Frobenius norm (SVD, its reflection fixed).
+fn nearest_rotation(matrix: &Matrix3<f64>) -> Matrix3<f64> {
+    let svd = matrix.svd(true, true);
+    let (u, v_t) = (svd.u.expect("asked for"), svd.v_t.expect("asked for"));
+    let fix = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, (u * v_t).determinant().signum()));
+    u * fix * v_t
+}
+
+/// `transform` with its rotation block made the nearest rotation and its last row exact. A pose chained
+/// from motions that were themselves composed from the velocity (pairs matched from the prediction)
+/// feeds its round-off back through the next velocity, and [`rigid_inverse`] of a matrix slightly off
+/// the rotations is not its inverse: left alone, the chain's departure from a rotation grows by a
+/// constant factor every frame until the poses overflow. Each pose is made rigid before it is kept.
+pub fn nearest_rigid(transform: &Matrix4<f64>) -> Matrix4<f64> {
+    let mut rigid = Matrix4::identity();
+    rigid
+        .fixed_view_mut::<3, 3>(0, 0)
+        .copy_from(&nearest_rotation(
+            &transform.fixed_view::<3, 3>(0, 0).into(),
+        ));
+    rigid
+        .fixed_view_mut::<3, 1>(0, 3)
+        .copy_from(&transform.fixed_view::<3, 1>(0, 3));
+    rigid
 }
 
 /// The inverse of a rigid transform `[R t; 0 1]`: `[Rᵀ −Rᵀt; 0 1]`, its last row exact (a general inverse

@@ -3,7 +3,8 @@ use nalgebra::{Isometry3, Matrix4, Point3, Translation3, UnitQuaternion, Vector3
 
 use super::clock::FrameClock;
 use super::motion::{
-    matrix_power, pose_difference, Fallback, MotionLimits, MotionModel, PairEvidence,
+    matrix_power, nearest_rigid, pose_difference, rigid_inverse, Fallback, MotionLimits,
+    MotionModel, PairEvidence,
 };
 use crate::error::Error;
 
@@ -263,4 +264,35 @@ fn the_period_is_the_median_of_the_recent_intervals() {
     }
     // Intervals 0.1, then 0.2 (two periods of 0.1: not consecutive), then 0.05.
     assert_relative_eq!(clock.period().unwrap(), 0.075, epsilon = 1e-12);
+}
+
+#[test]
+fn a_pose_is_made_rigid_and_a_rigid_one_is_left_as_it_is() {
+    let rigid = motion(1.3, 7.0) * motion(-0.4, -2.5);
+    let kept = nearest_rigid(&rigid);
+    assert_relative_eq!(kept, rigid, epsilon = 1e-14);
+    // A rotation block off the rotations by 1e-3 (as a chain fed back through its velocity drifts).
+    let mut skewed = rigid;
+    skewed[(0, 1)] += 1e-3;
+    skewed[(2, 2)] *= 1.0 + 1e-3;
+    skewed[(3, 0)] = 1e-9;
+    let fixed = nearest_rigid(&skewed);
+    let rotation = fixed.fixed_view::<3, 3>(0, 0);
+    assert_relative_eq!(
+        rotation.transpose() * rotation,
+        nalgebra::Matrix3::identity(),
+        epsilon = 1e-14
+    );
+    assert_relative_eq!(rotation.determinant(), 1.0, epsilon = 1e-14);
+    assert_eq!(fixed.row(3), Matrix4::<f64>::identity().row(3));
+    assert_eq!(
+        fixed.fixed_view::<3, 1>(0, 3),
+        skewed.fixed_view::<3, 1>(0, 3)
+    );
+    assert!((fixed - rigid).abs().max() < 2e-3);
+    assert_relative_eq!(
+        rigid_inverse(&fixed) * fixed,
+        Matrix4::identity(),
+        epsilon = 1e-14
+    );
 }

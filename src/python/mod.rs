@@ -22,7 +22,7 @@ mod registration;
 mod sim;
 mod surface;
 
-use pyo3::exceptions::PyValueError;
+use pyo3::exceptions::{PyOSError, PyValueError};
 use pyo3::prelude::*;
 
 use crate::Error;
@@ -45,6 +45,7 @@ impl From<Error> for PyErr {
             Error::TooFewPoints { .. } | Error::Degenerate(_) => {
                 RegistrationError::new_err(err.to_string())
             }
+            Error::File { .. } => PyOSError::new_err(err.to_string()),
         }
     }
 }

@@ -1,10 +1,11 @@
 use std::cell::Cell;
 
-use nalgebra::{Isometry3, Vector3};
+use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::*;
 use crate::ground_truth::ground_truth_flow;
 use crate::odometry::config::OdometryConfig;
+use crate::odometry::motion::pose_difference;
 use crate::test_scenes::yard_scan;
 
 /// A matcher that knows the truth: its "features" are the range image (with the order it was encoded
@@ -651,3 +652,5 @@ fn the_round_trip_check_follows_a_loop_over_the_cells() {
         }
     }
 }
+
+mod encode_ahead;

@@ -2,9 +2,11 @@
 
 use nalgebra::Matrix4;
 
+use super::matching::symmetric;
+use super::rematching::search_starts;
 use super::{
-    as_points, kept_points, normalised, search_starts, symmetric, FrameDiagnostics, FrameMatcher,
-    KeptPoints, Matched, Odometry, Reference, Scan, Stopwatch,
+    as_points, kept_points, normalised, FrameDiagnostics, FrameMatcher, KeptPoints, Matched,
+    Odometry, Scan, Stopwatch,
 };
 use crate::error::{Error, Result};
 use crate::odometry::config::ReflectanceScale;
@@ -68,19 +70,11 @@ impl<M: FrameMatcher> Odometry<M> {
         let target_features = self.matcher.encode(&target.image)?;
         let flow = self.matcher.flow(&reference_features, &target_features)?;
         let pair = if self.config.matching.symmetric {
-            let previous = Reference {
-                cloud: Vec::new(),
-                times: None,
-                deskewed: false,
-                range: reference.range,
-                points: reference.points,
-                features: reference_features,
-                pose: Matrix4::identity(),
-                frame: 0,
-            };
             let (mut unused, mut watch) = (FrameDiagnostics::default(), Stopwatch::new());
             let (forward, backward) = self.matched_both_ways(
-                &previous,
+                &reference.range,
+                &reference.points,
+                &reference_features,
                 &target,
                 &target_features,
                 &flow,
@@ -88,19 +82,17 @@ impl<M: FrameMatcher> Odometry<M> {
                 &mut watch,
             )?;
             let min_inliers = self.config.motion_model.min_inliers as usize;
-            (symmetric(forward, backward, min_inliers), previous.points)
+            symmetric(forward, backward, min_inliers)
         } else {
-            let pair = self.match_flow(
+            self.match_flow(
                 &reference.range,
                 &target.range,
                 &flow,
                 &reference.points,
                 None,
                 true,
-            )?;
-            (pair, reference.points)
+            )?
         };
-        let (pair, reference_points) = pair;
         let min_inliers = self.config.motion_model.min_inliers as usize;
         if !self.config.mapping.enabled || pair.motion.num_inliers < min_inliers {
             return Ok(registered(pair, None));
@@ -110,7 +102,7 @@ impl<M: FrameMatcher> Odometry<M> {
         let refined = refine_consecutive_pair(
             &as_points(&reference_cloud),
             &as_points(&target_cloud),
-            &reference_points,
+            &reference.points,
             &target.points,
             &pair.transform,
             &self.config.mapping_config(),
