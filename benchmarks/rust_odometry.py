@@ -1,7 +1,7 @@
 """The whole odometry from Rust against `dmlo.Odometry` from Python, on the same scans in one run (issue 24):
 `examples/odometry.rs` with the encoder in onnxruntime (`--onnxruntime`: the library of this Python's
-`onnxruntime` wheel through `ort`), each scan encoded in turn (`--serial`, as `dmlo.Odometry`) and encoded while
-the scan before it is registered (`EncodeAhead`, the example's default), and in tract (encoded ahead), against
+`onnxruntime` wheel through `ort`), each scan encoded in turn (as `dmlo.Odometry`) and encoded while the scan
+before it is registered (`--encode-ahead`: `EncodeAhead`), and in tract (in turn), against
 `dmlo.Odometry` (onnxruntime from Python), with the same model, the same config and the same threads, in turns.
 
     .venv/bin/python benchmarks/rust_odometry.py [SCANS_DIR ...] [--rounds 3] [--threads 2]
@@ -52,17 +52,17 @@ def python_run(scans: Path, config_path: Path) -> tuple[float, np.ndarray]:
 
 
 def rust_run(
-    scans: Path, config_path: Path, threads: int, library: Path | None, serial: bool = False
+    scans: Path, config_path: Path, threads: int, library: Path | None, encode_ahead: bool = False
 ) -> tuple[float, np.ndarray]:
     """Scans a second and the translations of `examples/odometry.rs` (tract, or onnxruntime's `library`;
-    `serial`: each scan encoded in turn)."""
+    `encode_ahead`: each scan encoded while the one before it is registered)."""
     with tempfile.TemporaryDirectory() as out:
         command = [str(EXAMPLE), str(scans), "--out", out, "--model", str(MODEL), "--config", str(config_path),
                    "--threads", str(threads)]
         if library is not None:
             command += ["--onnxruntime", str(library)]
-        if serial:
-            command.append("--serial")
+        if encode_ahead:
+            command.append("--encode-ahead")
         printed = subprocess.run(command, check=True, capture_output=True, text=True).stdout
         match = RUST_RATE.search(printed)
         if match is None:
@@ -85,11 +85,11 @@ def main() -> None:
 
     library = onnxruntime_library()
     python_name = "dmlo.Odometry (Python, onnxruntime)"
-    # name → (onnxruntime's library or None for tract, serial)
+    # name → (onnxruntime's library or None for tract, encoded ahead)
     rust = {
-        "Rust, onnxruntime, serial": (library, True),
-        "Rust, onnxruntime, encoded ahead": (library, False),
-        "Rust, tract, encoded ahead": (None, False),
+        "Rust, onnxruntime": (library, False),
+        "Rust, onnxruntime, encoded ahead": (library, True),
+        "Rust, tract": (None, False),
     }
     names = [python_name, *rust]
     print("| scans | mode | " + " | ".join(f"{name} Hz" for name in names)
@@ -110,8 +110,8 @@ def main() -> None:
                 for _ in range(args.rounds):
                     rate, translations[python_name] = python_run(scans, config_path)
                     rates[python_name].append(rate)
-                    for name, (runtime, serial) in rust.items():
-                        rate, translations[name] = rust_run(scans, config_path, args.threads, runtime, serial)
+                    for name, (runtime, ahead) in rust.items():
+                        rate, translations[name] = rust_run(scans, config_path, args.threads, runtime, ahead)
                         rates[name].append(rate)
                 median = {name: statistics.median(values) for name, values in rates.items()}
                 reference = translations[python_name]

@@ -5,7 +5,7 @@
 //!
 //! ```text
 //! cargo run --release --features inference --example odometry -- SCANS_DIR --out OUT_DIR \
-//!     [--model MODEL_DIR] [--config CONFIG.json] [--threads N] [--onnxruntime LIB] [--serial]
+//!     [--model MODEL_DIR] [--config CONFIG.json] [--threads N] [--onnxruntime LIB] [--encode-ahead]
 //! ```
 //!
 //! `SCANS_DIR` holds the scans (`*.bin`, N × 4 float32: x, y, z, reflectance), registered in name
@@ -16,9 +16,10 @@
 //! (`T_world_lidar`, the first scan the world: one row of 12 numbers a scan, readable by evo) and
 //! `diagnostics.jsonl` (one JSON object a scan), both appended and flushed scan by scan, so an interrupted
 //! run keeps every scan done. `--threads` sizes rayon's pool (tract and the crate's stages) and onnxruntime's
-//! threads; 0 or absent: the config's `threads`, and when that is 0 the runtimes' defaults. Each scan is
-//! encoded on a thread of its own while the scan before it is registered
-//! ([`dmlo_rs::odometry::pipeline::EncodeAhead`]: the same poses); `--serial` encodes each scan in turn.
+//! threads; 0 or absent: the config's `threads`, and when that is 0 the runtimes' defaults.
+//! `--encode-ahead` encodes each scan on a thread of its own while the scan before it is registered
+//! ([`dmlo_rs::odometry::pipeline::EncodeAhead`]: the same poses): faster where the odometry's stages leave
+//! cores idle (fewer `--threads` than cores), not when they use every core.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -31,7 +32,7 @@ use dmlo_rs::odometry::config::OdometryConfig;
 use dmlo_rs::odometry::pipeline::{EncodeAhead, Odometry, Scan};
 use dmlo_rs::scan_file::{kitti_scan_files, read_kitti_scan};
 
-const USAGE: &str = "usage: odometry SCANS_DIR --out OUT_DIR [--model MODEL_DIR] [--config CONFIG.json] [--threads N] [--onnxruntime LIB] [--serial]";
+const USAGE: &str = "usage: odometry SCANS_DIR --out OUT_DIR [--model MODEL_DIR] [--config CONFIG.json] [--threads N] [--onnxruntime LIB] [--encode-ahead]";
 
 struct Arguments {
     scans: PathBuf,
@@ -40,14 +41,14 @@ struct Arguments {
     config: Option<PathBuf>,
     threads: Option<usize>,
     onnxruntime: Option<PathBuf>,
-    serial: bool,
+    encode_ahead: bool,
 }
 
 fn parse(args: &[String]) -> Result<Arguments, String> {
     let mut scans = None;
     let (mut out, mut model, mut config, mut threads, mut onnxruntime) =
         (None, None, None, None, None);
-    let mut serial = false;
+    let mut encode_ahead = false;
     let mut rest = args.iter();
     while let Some(arg) = rest.next() {
         let mut value = |flag: &str| {
@@ -60,7 +61,7 @@ fn parse(args: &[String]) -> Result<Arguments, String> {
             "--model" => model = Some(PathBuf::from(value("--model")?)),
             "--config" => config = Some(PathBuf::from(value("--config")?)),
             "--onnxruntime" => onnxruntime = Some(PathBuf::from(value("--onnxruntime")?)),
-            "--serial" => serial = true,
+            "--encode-ahead" => encode_ahead = true,
             "--threads" => {
                 let text = value("--threads")?;
                 threads = Some(
@@ -82,7 +83,7 @@ fn parse(args: &[String]) -> Result<Arguments, String> {
         config,
         threads,
         onnxruntime,
-        serial,
+        encode_ahead,
     })
 }
 
@@ -177,8 +178,8 @@ fn drive<E: Encoder + Send + Sync + 'static>(
     let mut poses = BufWriter::new(File::create(arguments.out.join("poses_kitti.txt"))?);
     let mut diagnostics = BufWriter::new(File::create(arguments.out.join("diagnostics.jsonl"))?);
     let start = Instant::now();
-    // Each scan is read before the one ahead of it is registered, so that its encoding can overlap
-    // that scan's back end (`register_ahead`; `--serial`: one after the other, as `dmlo run`).
+    // Each scan is read before the one ahead of it is registered, so that with `--encode-ahead` its
+    // encoding can overlap that scan's back end (`register_ahead`; without, one after the other).
     let mut next = files.first().map(|path| read_kitti_scan(path));
     for index in 0..files.len() {
         let scan = next.take().expect("read ahead");
@@ -186,7 +187,7 @@ fn drive<E: Encoder + Send + Sync + 'static>(
         let pose = match &scan {
             Ok(points) => {
                 let ahead = match &next {
-                    Some(Ok(points)) if !arguments.serial => Some(Scan::new(points)),
+                    Some(Ok(points)) if arguments.encode_ahead => Some(Scan::new(points)),
                     _ => None,
                 };
                 odometry.register_ahead(Scan::new(points), ahead)?

@@ -26,9 +26,12 @@ def _poses(path: Path) -> np.ndarray:
     return np.loadtxt(path, ndmin=2).reshape(-1, 3, 4)
 
 
-def _dmlo_run_and_example(scans: Path, dataset: Path, out: Path, mapping: bool) -> tuple[np.ndarray, np.ndarray]:
+def _dmlo_run_and_example(
+    scans: Path, dataset: Path, out: Path, mapping: bool, encode_ahead: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """The poses of `dmlo run` over `dataset` and of the example over its `.bin` folder `scans`, with the config
-    `dmlo run` wrote; moving points kept by both (the crate runs no moving-object network)."""
+    `dmlo run` wrote; moving points kept by both (the crate runs no moving-object network). `encode_ahead`: the
+    example encodes each scan while the one before it is registered."""
     from dmlo.cli import main
 
     example = rust_example("odometry")
@@ -37,7 +40,8 @@ def _dmlo_run_and_example(scans: Path, dataset: Path, out: Path, mapping: bool) 
                  "--mapping" if mapping else "--no-mapping"]) == 0
     printed = subprocess.run(
         [str(example), str(scans), "--out", str(rust_out), "--model", str(MODEL),
-         "--config", str(python_out / "config.json"), "--onnxruntime", str(onnxruntime_library())],
+         "--config", str(python_out / "config.json"), "--onnxruntime", str(onnxruntime_library())]
+        + (["--encode-ahead"] if encode_ahead else []),
         check=True, capture_output=True, text=True,
     ).stdout
     assert f"{len(list(scans.glob('*.bin')))} scans" in printed, printed
@@ -61,10 +65,11 @@ def test_the_rust_example_gives_dmlo_runs_poses_on_a_simulated_drive(drive: Path
     _assert_same_poses(expected, got)
 
 
+@pytest.mark.parametrize("encode_ahead", [False, True], ids=["in_turn", "encoded_ahead"])
 @pytest.mark.parametrize("mapping", [True, False], ids=["mapping", "frame_to_frame"])
 @pytest.mark.parametrize("name", ["odometry_01", "odometry_02", "odometry_03", "raw_drive_22"])
 def test_the_rust_example_gives_dmlo_runs_poses_on_real_scans(shared_data: Path, tmp_path: Path, name: str,
-                                                              mapping: bool) -> None:
+                                                              mapping: bool, encode_ahead: bool) -> None:
     dataset = shared_data / "kitti_real" / name
-    expected, got = _dmlo_run_and_example(dataset / "velodyne", dataset, tmp_path, mapping)
+    expected, got = _dmlo_run_and_example(dataset / "velodyne", dataset, tmp_path, mapping, encode_ahead)
     _assert_same_poses(expected, got)
