@@ -52,18 +52,29 @@ impl FrameMatcher for OracleMatcher {
         } else {
             self.truth.get().inverse()
         };
-        let truth = ground_truth_flow(&reference.1, &target.1, &motion, &self.cylinder, 0.3)?;
-        Ok(DenseFlow {
-            flow: truth.flow,
-            confidence: truth
-                .valid
-                .iter()
-                .map(|&v| if v { 1.0 } else { 0.0 })
-                .collect(),
-            height: self.cylinder.height,
-            width: self.cylinder.width,
-        })
+        true_flow(&reference.1, &target.1, &motion, &self.cylinder)
     }
+}
+
+/// The ground-truth flow (Eq. 5–8) from the reference's range image to the target's under `motion`, with
+/// full confidence where it is defined.
+fn true_flow(
+    reference: &[f32],
+    target: &[f32],
+    motion: &Isometry3<f64>,
+    cylinder: &CylinderConfig,
+) -> Result<DenseFlow> {
+    let truth = ground_truth_flow(reference, target, motion, cylinder, 0.3)?;
+    Ok(DenseFlow {
+        flow: truth.flow,
+        confidence: truth
+            .valid
+            .iter()
+            .map(|&v| if v { 1.0 } else { 0.0 })
+            .collect(),
+        height: cylinder.height,
+        width: cylinder.width,
+    })
 }
 
 const POSTS: [(f64, f64); 3] = [(6.0, 4.0), (9.0, -5.0), (-4.0, 6.0)];

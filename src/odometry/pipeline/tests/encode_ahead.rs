@@ -52,17 +52,7 @@ impl FrameMatcher for DriveOracle {
 
     fn flow(&self, reference: &(usize, Vec<f32>), target: &(usize, Vec<f32>)) -> Result<DenseFlow> {
         let motion = true_pose(target.0).inverse() * true_pose(reference.0);
-        let truth = ground_truth_flow(&reference.1, &target.1, &motion, &self.cylinder, 0.3)?;
-        Ok(DenseFlow {
-            flow: truth.flow,
-            confidence: truth
-                .valid
-                .iter()
-                .map(|&v| if v { 1.0 } else { 0.0 })
-                .collect(),
-            height: self.cylinder.height,
-            width: self.cylinder.width,
-        })
+        true_flow(&reference.1, &target.1, &motion, &self.cylinder)
     }
 }
 
