@@ -540,9 +540,8 @@ def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
 
 
 def _finite_rows(cloud: npt.NDArray[np.float32]) -> npt.NDArray[np.bool_] | None:
-    """Which points have only finite values, or None when all of them do. Column by column: numpy's
-    `all(axis=1)` over 4 values a row takes ~25× as long as one `isfinite(...).all()` (3.7 against 0.13 ms
-    for a 120k-point scan), and most scans need no mask at all."""
+    """Which points have only finite values, or None when all of them do. One `isfinite(...).all()` first:
+    numpy's `all(axis=1)` over 4 values a row is far slower, and most scans need no mask at all."""
     finite = np.isfinite(cloud)
     if finite.all():
         return None
