@@ -1,13 +1,14 @@
 //! Encoding the next scan while the odometry registers this one.
 //!
-//! Of a frame's time the network takes a good part. Where the back end (matching stage, RANSAC, NDT) does
-//! not keep every core busy — the odometry was given fewer threads than the machine has cores — the next
-//! scan's encoding can use the idle ones; where every stage already runs on every core, there is nothing
-//! to gain. [`EncodeAhead`] wraps a matcher so that [`Odometry::register_ahead`] can give it the next scan: as soon as this scan's own features are in hand, the next scan is projected
-//! and encoded on a thread of its own, beside this scan's back end, and the next call takes its
-//! features from there. The poses are the serial loop's: features computed ahead are used only for a
-//! bitwise-equal image (the odometry projects the scan again itself and compares), and an encoder gives
-//! the same features for the same image whichever thread runs it.
+//! Of a frame's time the network takes a good part. Where the back end (matching stage, RANSAC, NDT)
+//! does not keep every core busy — the odometry was given fewer threads than the machine has cores —
+//! the next scan's encoding can use the idle ones; where every stage already runs on every core, there
+//! is nothing to gain. [`EncodeAhead`] wraps a matcher so that [`Odometry::register_ahead`] can give it
+//! the next scan: as soon as this scan's own features are in hand, the next scan is projected and
+//! encoded on a thread of its own, beside this scan's back end, and the next call takes its features
+//! from there. The poses are the serial loop's: features computed ahead are used only for a bitwise-
+//! equal image (the odometry projects the scan again itself and compares), and an encoder gives the
+//! same features for the same image whichever thread runs it.
 
 use std::sync::mpsc::{channel, Receiver};
 use std::sync::{Arc, Mutex, MutexGuard};
