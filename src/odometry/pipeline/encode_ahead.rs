@@ -6,9 +6,9 @@
 //! is nothing to gain. [`EncodeAhead`] wraps a matcher so that [`Odometry::register_ahead`] can give it
 //! the next scan: as soon as this scan's own features are in hand, the next scan is projected and
 //! encoded on a thread of its own, beside this scan's back end, and the next call takes its features
-//! from there. The poses are the serial loop's: features computed ahead are used only for a bitwise-
-//! equal image (the odometry projects the scan again itself and compares), and an encoder gives the
-//! same features for the same image whichever thread runs it.
+//! from there. The poses are the serial loop's: features computed ahead are used only for a
+//! bitwise-equal image (the odometry projects the scan again itself and compares), and an encoder gives
+//! the same features for the same image whichever thread runs it.
 
 use std::sync::mpsc::{channel, Receiver};
 use std::sync::{Arc, Mutex, MutexGuard};
