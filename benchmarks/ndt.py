@@ -12,7 +12,9 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -20,12 +22,13 @@ from scipy.spatial.transform import Rotation
 import dmlo_rs
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared/data/kitti_raw_static"
+Result = TypeVar("Result")
 
 
-def timed(function, repeats: int) -> tuple[float, object]:  # type: ignore[no-untyped-def]
-    """The median milliseconds of `repeats` calls and the last call's result."""
-    times, result = [], None
-    for _ in range(repeats):
+def timed(function: Callable[[], Result], repeats: int) -> tuple[float, Result]:
+    """The median milliseconds of `repeats` (at least one) calls and the last call's result."""
+    times = []
+    for _ in range(max(repeats, 1)):
         start = time.perf_counter()
         result = function()
         times.append((time.perf_counter() - start) * 1e3)
