@@ -11,7 +11,9 @@
 //! `SCANS_DIR` holds the scans (`*.bin`, N × 4 float32: x, y, z, reflectance), registered in name
 //! order. `MODEL_DIR` (default `python/dmlo/models/default`) holds `encoder.onnx` (with `frame_wide.onnx`
 //! beside it: its wide window for pairs re-matched from the prediction; with `range_only/encoder.onnx`:
-//! the range-only model for scans without usable reflectance); `CONFIG.json` is a
+//! the range-only model for scans without usable reflectance; with `moving.onnx`: the moving-object
+//! network, whose flagged points are left out as `dmlo run` leaves them out, unless the config's
+//! `moving_objects.detect` is false); `CONFIG.json` is a
 //! config as `dmlo run` writes it (default: the defaults). `OUT_DIR` gets `poses_kitti.txt`
 //! (`T_world_lidar`, the first scan the world: one row of 12 numbers a scan, readable by evo) and
 //! `diagnostics.jsonl` (one JSON object a scan), both appended and flushed scan by scan, so an interrupted
@@ -27,8 +29,11 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use dmlo_rs::inference::{graph_metadata, Encoder, LearnedMatcher, TractEncoder};
+use dmlo_rs::inference::{
+    graph_metadata, Encoder, LearnedMatcher, TractEncoder, TractMovingObjects,
+};
 use dmlo_rs::odometry::config::OdometryConfig;
+use dmlo_rs::odometry::moving::MovingObjectNetwork;
 use dmlo_rs::odometry::pipeline::{EncodeAhead, Odometry, Scan};
 use dmlo_rs::scan_file::{kitti_scan_files, read_kitti_scan};
 
@@ -134,7 +139,12 @@ fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error + Send + Sync>> 
         .num_threads(threads)
         .build()?;
     pool.install(|| match &arguments.onnxruntime {
-        None => drive(&arguments, config, |path: &Path| TractEncoder::open(path)),
+        None => drive(
+            &arguments,
+            config,
+            |path: &Path| TractEncoder::open(path),
+            |path: &Path| TractMovingObjects::open(path),
+        ),
         Some(library) => with_onnxruntime(&arguments, config, library, threads),
     })
 }
@@ -146,10 +156,13 @@ fn with_onnxruntime(
     library: &Path,
     threads: usize,
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
-    use dmlo_rs::inference::OrtEncoder;
-    drive(arguments, config, |path: &Path| {
-        OrtEncoder::open(path, library, threads)
-    })
+    use dmlo_rs::inference::{OrtEncoder, OrtMovingObjects};
+    drive(
+        arguments,
+        config,
+        |path: &Path| OrtEncoder::open(path, library, threads),
+        |path: &Path| OrtMovingObjects::open(path, library, threads),
+    )
 }
 
 #[cfg(not(feature = "onnxruntime"))]
@@ -162,17 +175,28 @@ fn with_onnxruntime(
     Err("--onnxruntime: built without the `onnxruntime` feature (cargo run --features inference,onnxruntime …)".into())
 }
 
-/// The odometry over every scan of the folder, the encoders opened by `encoder`.
-fn drive<E: Encoder + Send + Sync + 'static>(
+/// The odometry over every scan of the folder, the encoders opened by `encoder` and the moving-object
+/// network by `moving_objects`.
+fn drive<E, N>(
     arguments: &Arguments,
     config: OdometryConfig,
     encoder: impl Fn(&Path) -> dmlo_rs::Result<E>,
-) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+    moving_objects: impl Fn(&Path) -> dmlo_rs::Result<N>,
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>>
+where
+    E: Encoder + Send + Sync + 'static,
+    N: MovingObjectNetwork + Send + Sync + 'static,
+{
     let files = kitti_scan_files(&arguments.scans)?;
+    let detect = config.moving_objects.detect;
     let mut odometry = Odometry::new(learned_matcher(&arguments.model, &encoder)?, config)?;
     let range_only = arguments.model.join("range_only");
     if range_only.join("encoder.onnx").is_file() {
         odometry = odometry.with_range_only(learned_matcher(&range_only, &encoder)?)?;
+    }
+    let moving = arguments.model.join("moving.onnx");
+    if detect && moving.is_file() {
+        odometry = odometry.with_moving_objects(moving_objects(&moving)?)?;
     }
     std::fs::create_dir_all(&arguments.out)?;
     let mut poses = BufWriter::new(File::create(arguments.out.join("poses_kitti.txt"))?);

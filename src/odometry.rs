@@ -3,7 +3,8 @@
 //! settings as `dmlo run` saves them ([`config`]), and the per-frame state shared with `dmlo.Odometry`: the
 //! frame clock that counts missing scans from the timestamps ([`clock`]), the constant-velocity motion model
 //! with the judgement of every pair's motion against it (§III-D-c, [`motion`]), and the local map that
-//! refines every pose by scan-to-map NDT (§III-D-c, [`mapping`]).
+//! refines every pose by scan-to-map NDT (§III-D-c, [`mapping`]), and the moving-object network's rule for the
+//! points it leaves out ([`moving`]).
 //!
 //! ```
 //! use dmlo_rs::odometry::motion::{MotionLimits, MotionModel, PairEvidence};
@@ -23,6 +24,7 @@ pub mod clock;
 pub mod config;
 pub mod mapping;
 pub mod motion;
+pub mod moving;
 pub mod pipeline;
 
 #[cfg(test)]

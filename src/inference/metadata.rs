@@ -152,6 +152,35 @@ impl ModelMetadata {
     }
 }
 
+/// The cylinder image of a moving-object graph (`moving.onnx`) from its metadata entries (`key → value`);
+/// errors name `path` and what is wrong: not a dmlo moving-object graph, or its image is not its input's.
+pub fn moving_graph_cylinder(
+    entries: &HashMap<String, String>,
+    path: &str,
+) -> Result<CylinderConfig> {
+    match entries.get("dmlo.graph").map(String::as_str) {
+        Some("moving") => {}
+        Some(other) => {
+            return Err(Error::Model(format!(
+                "{path}: a dmlo {other:?} graph, not the moving-object network (moving.onnx)"
+            )))
+        }
+        None => {
+            return Err(Error::Model(format!(
+                "{path}: no dmlo.graph in the graph's metadata: not a dmlo export"
+            )))
+        }
+    }
+    let text = entries.get("dmlo.cylinder_config").ok_or_else(|| {
+        Error::Model(format!(
+            "{path}: no dmlo.cylinder_config in the graph's metadata: export it again with `dmlo export`"
+        ))
+    })?;
+    let value: Value = serde_json::from_str(text)
+        .map_err(|e| Error::Model(format!("{path}: dmlo.cylinder_config is not JSON: {e}")))?;
+    cylinder_config(&value, path)
+}
+
 /// The cylinder of `dmlo.cylinder_config` (the fields `CylinderConfig` has; the derived ones it also
 /// holds, such as the crop, follow from them), checked as the projection checks it.
 fn cylinder_config(value: &Value, path: &str) -> Result<CylinderConfig> {

@@ -6,6 +6,9 @@
 //! own matching stage ([`crate::dense_match`]) on its features — the flow and confidence of every
 //! reference cell, as `dmlo run` computes them, without Python.
 //!
+//! The moving-object network beside the encoder (`moving.onnx`) runs in the same runtimes
+//! ([`TractMovingObjects`], [`OrtMovingObjects`]) for [`crate::odometry::pipeline::Odometry::with_moving_objects`].
+//!
 //! The model is found by an explicit path (nothing is downloaded); its settings travel in the graph's
 //! metadata, written by `dmlo export`: the input size, the windows of the matching stage
 //! (`dmlo.model_config`) and its two learned softmax scales (`dmlo.similarity_scales`).
@@ -38,9 +41,9 @@ mod tract;
 
 pub use metadata::ModelMetadata;
 #[cfg(feature = "onnxruntime")]
-pub use onnxruntime::OrtEncoder;
+pub use onnxruntime::{OrtEncoder, OrtMovingObjects};
 #[cfg(feature = "inference")]
-pub use tract::{graph_metadata, TractEncoder};
+pub use tract::{graph_metadata, TractEncoder, TractMovingObjects};
 
 use crate::dense_match::{self, DenseFlow, DenseMatchConfig, FeatureMap, ScanFeatures};
 use crate::error::{Error, Result};
@@ -240,6 +243,38 @@ pub(crate) fn check_image(image: &[f32], [rows, columns]: [usize; 2]) -> Result<
                 cell % columns
             ),
         ));
+    }
+    Ok(())
+}
+
+/// Checks the moving-object network's two images (range, height): `rows · columns` finite values each.
+pub(crate) fn check_moving_images(
+    range: &[f32],
+    height: &[f32],
+    [rows, columns]: [usize; 2],
+) -> Result<()> {
+    for (name, image) in [("range", range), ("height", height)] {
+        if image.len() != rows * columns {
+            return Err(Error::invalid(
+                name,
+                format!(
+                    "expected {rows} × {columns} = {} values, got {}",
+                    rows * columns,
+                    image.len()
+                ),
+            ));
+        }
+        if let Some(i) = image.iter().position(|v| !v.is_finite()) {
+            return Err(Error::invalid(
+                name,
+                format!(
+                    "value {} at row {}, column {} is not finite",
+                    image[i],
+                    i / columns,
+                    i % columns
+                ),
+            ));
+        }
     }
     Ok(())
 }

@@ -14,7 +14,10 @@ use std::sync::Mutex;
 use ort::session::Session;
 use ort::value::TensorRef;
 
-use super::{check_image, EncodedScan, Encoder, ModelMetadata};
+use super::metadata::moving_graph_cylinder;
+use super::{check_image, check_moving_images, EncodedScan, Encoder, ModelMetadata};
+use crate::odometry::moving::MovingObjectNetwork;
+use crate::projection::CylinderConfig;
 use crate::error::{Error, Result};
 
 /// The network's encoder (`encoder.onnx`, exported by `dmlo export`) run by onnxruntime.
@@ -48,6 +51,53 @@ fn without_panics<T>(library: &str, work: impl FnOnce() -> Result<T>) -> Result<
     })
 }
 
+/// A graph opened in the onnxruntime shared library `library` (module docs), with its metadata entries.
+fn open_session(
+    path: &Path,
+    library: &Path,
+    threads: usize,
+) -> Result<(Session, HashMap<String, String>)> {
+    let shown = path.display().to_string();
+    let library_shown = library.display().to_string();
+    if !library.is_file() {
+        return Err(Error::Model(format!(
+            "{library_shown}: no such file (the onnxruntime shared library, e.g. the Python wheel's \
+             onnxruntime/capi/libonnxruntime.so.*)"
+        )));
+    }
+    if !path.is_file() {
+        return Err(Error::Model(format!("{shown}: no such file")));
+    }
+    let failed = |what: &str, e: ort::Error| Error::Model(format!("{shown}: {what}: {e}"));
+    let session = without_panics(&library_shown, || {
+        ort::init_from(library_shown.clone())
+            .commit()
+            .map_err(|e| Error::Model(format!("{library_shown}: {e}")))?;
+        Session::builder()
+            .and_then(|b| b.with_intra_threads(threads))
+            .and_then(|b| b.with_intra_op_spinning(false))
+            .and_then(|b| b.commit_from_file(path))
+            .map_err(|e| failed("onnxruntime cannot open it", e))
+    })?;
+    let entries = {
+        let metadata = session.metadata().map_err(|e| failed("its metadata", e))?;
+        let keys = metadata
+            .custom_keys()
+            .map_err(|e| failed("its metadata", e))?;
+        let mut entries = HashMap::new();
+        for key in keys {
+            if let Some(value) = metadata
+                .custom(&key)
+                .map_err(|e| failed("its metadata", e))?
+            {
+                entries.insert(key, value);
+            }
+        }
+        entries
+    };
+    Ok((session, entries))
+}
+
 impl OrtEncoder {
     /// Opens the encoder graph at `path` in the onnxruntime shared library `library` (loaded once per
     /// process: the first library opened is the one every later encoder runs in). `threads`: onnxruntime's
@@ -58,44 +108,7 @@ impl OrtEncoder {
     pub fn open(path: impl AsRef<Path>, library: impl AsRef<Path>, threads: usize) -> Result<Self> {
         let path = path.as_ref();
         let shown = path.display().to_string();
-        let library = library.as_ref();
-        let library_shown = library.display().to_string();
-        if !library.is_file() {
-            return Err(Error::Model(format!(
-                "{library_shown}: no such file (the onnxruntime shared library, e.g. the Python wheel's \
-                 onnxruntime/capi/libonnxruntime.so.*)"
-            )));
-        }
-        if !path.is_file() {
-            return Err(Error::Model(format!("{shown}: no such file")));
-        }
-        let failed = |what: &str, e: ort::Error| Error::Model(format!("{shown}: {what}: {e}"));
-        let session = without_panics(&library_shown, || {
-            ort::init_from(library_shown.clone())
-                .commit()
-                .map_err(|e| Error::Model(format!("{library_shown}: {e}")))?;
-            Session::builder()
-                .and_then(|b| b.with_intra_threads(threads))
-                .and_then(|b| b.with_intra_op_spinning(false))
-                .and_then(|b| b.commit_from_file(path))
-                .map_err(|e| failed("onnxruntime cannot open it", e))
-        })?;
-        let entries = {
-            let metadata = session.metadata().map_err(|e| failed("its metadata", e))?;
-            let keys = metadata
-                .custom_keys()
-                .map_err(|e| failed("its metadata", e))?;
-            let mut entries = HashMap::new();
-            for key in keys {
-                if let Some(value) = metadata
-                    .custom(&key)
-                    .map_err(|e| failed("its metadata", e))?
-                {
-                    entries.insert(key, value);
-                }
-            }
-            entries
-        };
+        let (session, entries) = open_session(path, library.as_ref(), threads)?;
         let metadata = ModelMetadata::from_entries(&entries, &shown)?;
         if metadata.graph != "encoder" {
             return Err(Error::Model(format!(
@@ -148,5 +161,74 @@ impl Encoder for OrtEncoder {
             }
         };
         EncodedScan::from_outputs(&self.path, features(0)?, features(1)?, [rows, columns])
+    }
+}
+
+/// The moving-object network (`moving.onnx`, exported by `dmlo export` beside the encoder) run by
+/// onnxruntime.
+pub struct OrtMovingObjects {
+    session: Mutex<Session>,
+    cylinder: CylinderConfig,
+    path: String,
+}
+
+impl fmt::Debug for OrtMovingObjects {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("OrtMovingObjects")
+            .field("path", &self.path)
+            .finish_non_exhaustive()
+    }
+}
+
+impl OrtMovingObjects {
+    /// Opens the moving-object graph at `path` in the onnxruntime shared library `library`, as
+    /// [`OrtEncoder::open`] opens the encoder. Errors name the file and what is wrong: a missing or
+    /// unusable library, a missing file, not a dmlo moving-object graph, or not its two inputs and one
+    /// output.
+    pub fn open(path: impl AsRef<Path>, library: impl AsRef<Path>, threads: usize) -> Result<Self> {
+        let path = path.as_ref();
+        let shown = path.display().to_string();
+        let (session, entries) = open_session(path, library.as_ref(), threads)?;
+        let cylinder = moving_graph_cylinder(&entries, &shown)?;
+        if session.inputs.len() != 2 || session.outputs.len() != 1 {
+            return Err(Error::Model(format!(
+                "{shown}: {} inputs and {} outputs, expected 2 (range, height) and 1 (moving_probability)",
+                session.inputs.len(),
+                session.outputs.len()
+            )));
+        }
+        Ok(OrtMovingObjects {
+            session: Mutex::new(session),
+            cylinder,
+            path: shown,
+        })
+    }
+}
+
+impl MovingObjectNetwork for OrtMovingObjects {
+    fn cylinder(&self) -> &CylinderConfig {
+        &self.cylinder
+    }
+
+    fn probability(&self, range: &[f32], height: &[f32]) -> Result<Vec<f32>> {
+        let (rows, columns) = (self.cylinder.height, self.cylinder.width);
+        check_moving_images(range, height, [rows, columns])?;
+        let failed = |e: ort::Error| Error::Model(format!("{}: {e}", self.path));
+        let range = TensorRef::from_array_view(([1usize, rows, columns], range)).map_err(failed)?;
+        let height = TensorRef::from_array_view(([1usize, rows, columns], height)).map_err(failed)?;
+        let mut session = self.session.lock().unwrap_or_else(|p| p.into_inner());
+        let outputs = session
+            .run(ort::inputs!["range" => range, "height" => height])
+            .map_err(failed)?;
+        let (shape, values) = outputs[0]
+            .try_extract_tensor::<f32>()
+            .map_err(|e| Error::Model(format!("{}: its output: {e}", self.path)))?;
+        if **shape != [1, rows as i64, columns as i64] {
+            return Err(Error::Model(format!(
+                "{}: output of shape {:?}, expected (1, {rows}, {columns})",
+                self.path, &**shape
+            )));
+        }
+        Ok(values.to_vec())
     }
 }

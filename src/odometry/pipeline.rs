@@ -14,9 +14,10 @@
 //! [`Odometry::register_pair`] registers two scans with no drive around them (`dmlo register`).
 //!
 //! Refused by [`Odometry::new`]: a `matching_stage` the matcher does not run
-//! ([`FrameMatcher::runs_matching_stage`]). The moving-object network is not
-//! run by the crate: every point not masked by the caller is kept (as `dmlo.Odometry` does with a model
-//! folder without `moving.onnx`). Re-matching tries the wide window when the matcher has one
+//! ([`FrameMatcher::runs_matching_stage`]). Points on moving objects are left out: those the caller
+//! masks ([`Scan::moving`]), else, with a moving-object network ([`Odometry::with_moving_objects`]) and
+//! `moving_objects.detect`, those the network flags (without either, every point is kept, as
+//! `dmlo.Odometry` keeps them with a model folder without `moving.onnx`). Re-matching tries the wide window when the matcher has one
 //! ([`FrameMatcher::has_wide_window`]). Scans without usable reflectance switch to the range-only model
 //! ([`Odometry::with_range_only`]).
 //!
@@ -87,6 +88,7 @@ use crate::odometry::clock::FrameClock;
 use crate::odometry::config::{MatchingStage, OdometryConfig, ReflectanceScale};
 use crate::odometry::mapping::LocalMap;
 use crate::odometry::motion::{nearest_rigid, rigid_inverse, MotionModel};
+use crate::odometry::moving::{moving_points, MovingObjectNetwork};
 use crate::pair::{PairConfig, PairMotion};
 use crate::projection::{project, CylinderConfig, Projection};
 
@@ -218,6 +220,8 @@ pub struct Odometry<M: FrameMatcher> {
     range_only: Option<M>,
     /// Scans without usable reflectance and no range-only model run the model on zeros (not refused).
     zero_reflectance_allowed: bool,
+    /// Flags the points on moving objects of scans given without a mask.
+    moving_objects: Option<Box<dyn MovingObjectNetwork + Send + Sync>>,
 }
 
 impl<M: FrameMatcher> Odometry<M> {
@@ -254,7 +258,26 @@ impl<M: FrameMatcher> Odometry<M> {
             reflectance: None,
             range_only: None,
             zero_reflectance_allowed: false,
+            moving_objects: None,
         })
+    }
+
+    /// The odometry with a moving-object network (the model's `moving.onnx`): with `moving_objects.detect`
+    /// in the config, the points of a scan given without a [`Scan::moving`] mask that it puts on moving
+    /// objects (a cell's probability above `moving_objects.threshold`) are left out of matching and of the
+    /// map, and the diagnostics count them (`num_moving_predicted`). Its image must be the model's.
+    pub fn with_moving_objects(
+        mut self,
+        network: impl MovingObjectNetwork + Send + Sync + 'static,
+    ) -> Result<Self> {
+        if network.cylinder() != self.matcher.cylinder() {
+            return Err(Error::invalid(
+                "moving_objects",
+                "its cylinder image differs from the model's",
+            ));
+        }
+        self.moving_objects = Some(Box::new(network));
+        Ok(self)
     }
 
     /// The odometry with a range-only model beside the matcher (the bundled model's `range_only/`): from
@@ -319,6 +342,16 @@ impl<M: FrameMatcher> Odometry<M> {
     /// reflectance the model cannot use); the odometry's state is then as before the call, apart from
     /// the clock of a scan whose error came from the matcher.
     pub fn register(&mut self, scan: Scan<'_>) -> Result<Matrix4<f64>> {
+        let detecting = Instant::now();
+        let detected = self.detect_moving(&scan)?;
+        let detecting = detecting.elapsed().as_secs_f64() * 1e3;
+        let scan = match &detected {
+            Some(moving) => Scan {
+                moving: Some(moving),
+                ..scan
+            },
+            None => scan,
+        };
         let KeptPoints {
             keep,
             kept,
@@ -334,6 +367,12 @@ impl<M: FrameMatcher> Odometry<M> {
             num_points: scan.points.len(),
             ..Default::default()
         };
+        if let Some(moving) = &detected {
+            diagnostics.num_moving_predicted = Some(moving.iter().filter(|&&m| m).count());
+            diagnostics
+                .timings_ms
+                .insert("moving_objects".into(), detecting);
+        }
         if kept.len() < min_points {
             return Ok(self.skip(diagnostics, "too_few_points"));
         }
@@ -388,6 +427,18 @@ impl<M: FrameMatcher> Odometry<M> {
             frame: tick.frame,
         });
         Ok(self.record(pose, tick.frame, diagnostics))
+    }
+
+    /// The points of `scan` the moving-object network flags, when it is to run on it: the odometry has one,
+    /// the config asks for it and the caller gave no mask.
+    fn detect_moving(&self, scan: &Scan<'_>) -> Result<Option<Vec<bool>>> {
+        match &self.moving_objects {
+            Some(network) if scan.moving.is_none() && self.config.moving_objects.detect => {
+                let threshold = self.config.moving_objects.threshold;
+                moving_points(network.as_ref(), scan.points, threshold).map(Some)
+            }
+            _ => Ok(None),
+        }
     }
 
     /// The pose of the scan at `frame` matched against `previous` (none: the first scan), refined by the map.

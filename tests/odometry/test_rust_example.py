@@ -1,6 +1,7 @@
 """The Rust example `examples/odometry.rs` (the crate's odometry over onnxruntime loaded by `ort`, no Python)
 gives `dmlo run`'s poses on a simulated drive and on every shared real set, on the same machine in the same run,
-with the config `dmlo run` wrote (issue 24: 1e-6 m / 1e-6 rad).
+with the config `dmlo run` wrote (issue 24: 1e-6 m / 1e-6 rad), the moving-object network run by both (or by
+neither, with `--keep-moving`). Both read the bare `.bin` folders, so neither has the sets' labels.
 
 The example binary is the one `cargo test --release --features inference,onnxruntime` builds (CI builds it
 before pytest); the test skips when it is missing or older than the crate's sources. The crate's own test
@@ -9,6 +10,7 @@ before pytest); the test skips when it is missing or older than the crate's sour
 
 from __future__ import annotations
 
+import json
 import subprocess
 from pathlib import Path
 
@@ -27,17 +29,17 @@ def _poses(path: Path) -> np.ndarray:
 
 
 def _dmlo_run_and_example(
-    scans: Path, dataset: Path, out: Path, mapping: bool, encode_ahead: bool = False
+    scans: Path, out: Path, mapping: bool, keep_moving: bool = False, encode_ahead: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The poses of `dmlo run` over `dataset` and of the example over its `.bin` folder `scans`, with the config
-    `dmlo run` wrote; moving points kept by both (the crate runs no moving-object network). `encode_ahead`: the
-    example encodes each scan while the one before it is registered."""
+    """The poses of `dmlo run` and of the example over the `.bin` folder `scans`, with the config `dmlo run`
+    wrote. `keep_moving`: neither runs the moving-object network; `encode_ahead`: the example encodes each scan
+    while the one before it is registered."""
     from dmlo.cli import main
 
     example = rust_example("odometry")
     python_out, rust_out = out / "dmlo_run", out / "rust"
-    assert main(["run", str(dataset), "--out", str(python_out), "--keep-moving",
-                 "--mapping" if mapping else "--no-mapping"]) == 0
+    assert main(["run", str(scans), "--out", str(python_out), "--mapping" if mapping else "--no-mapping"]
+                + (["--keep-moving"] if keep_moving else [])) == 0
     printed = subprocess.run(
         [str(example), str(scans), "--out", str(rust_out), "--model", str(MODEL),
          "--config", str(python_out / "config.json"), "--onnxruntime", str(onnxruntime_library())]
@@ -45,6 +47,10 @@ def _dmlo_run_and_example(
         check=True, capture_output=True, text=True,
     ).stdout
     assert f"{len(list(scans.glob('*.bin')))} scans" in printed, printed
+    flagged = [[json.loads(line)["num_moving_predicted"] for line in (folder / "diagnostics.jsonl").open()]
+               for folder in (python_out, rust_out)]
+    assert flagged[0] == flagged[1]
+    assert all(count is None for count in flagged[0]) if keep_moving else all(count > 0 for count in flagged[0])
     return _poses(python_out / "poses_kitti.txt"), _poses(rust_out / "poses_kitti.txt")
 
 
@@ -60,16 +66,22 @@ def _assert_same_poses(expected: np.ndarray, got: np.ndarray) -> None:
 @pytest.mark.parametrize("mapping", [True, False], ids=["mapping", "frame_to_frame"])
 def test_the_rust_example_gives_dmlo_runs_poses_on_a_simulated_drive(drive: Path, tmp_path: Path,
                                                                       mapping: bool) -> None:
-    expected, got = _dmlo_run_and_example(drive / "velodyne", drive, tmp_path, mapping)
+    expected, got = _dmlo_run_and_example(drive / "velodyne", tmp_path, mapping)
     assert got.shape == (5, 3, 4)
     _assert_same_poses(expected, got)
 
 
-@pytest.mark.parametrize("encode_ahead", [False, True], ids=["in_turn", "encoded_ahead"])
+# The moving-object network run by both, each scan encoded in turn and (the example) encoded ahead — with the
+# network the scan ahead waits for its flags, so it is encoded in turn — and kept out of both, encoded ahead.
+MODES = {"moving_network": (False, False), "moving_network_ahead": (False, True), "keep_moving_ahead": (True, True)}
+
+
+@pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("mapping", [True, False], ids=["mapping", "frame_to_frame"])
 @pytest.mark.parametrize("name", ["odometry_01", "odometry_02", "odometry_03", "raw_drive_22"])
 def test_the_rust_example_gives_dmlo_runs_poses_on_real_scans(shared_data: Path, tmp_path: Path, name: str,
-                                                              mapping: bool, encode_ahead: bool) -> None:
-    dataset = shared_data / "kitti_real" / name
-    expected, got = _dmlo_run_and_example(dataset / "velodyne", dataset, tmp_path, mapping, encode_ahead)
+                                                              mapping: bool, mode: str) -> None:
+    keep_moving, encode_ahead = MODES[mode]
+    scans = shared_data / "kitti_real" / name / "velodyne"
+    expected, got = _dmlo_run_and_example(scans, tmp_path, mapping, keep_moving, encode_ahead)
     _assert_same_poses(expected, got)

@@ -26,7 +26,10 @@ def moving_input(range_image: Tensor, height_image: Tensor) -> Tensor:
     """The network input `[B, 3, H, W]` from the range (m, 0 = empty) and the height z (m) of each cell."""
     valid = (range_image > 0).to(range_image.dtype)
     log_range = torch.log1p(range_image.clamp(min=0)) / RANGE_SCALE
-    height = torch.nan_to_num(height_image, nan=0.0, posinf=0.0, neginf=0.0).clamp(-20, 20) / HEIGHT_SCALE
+    if not torch.onnx.is_in_onnx_export():
+        # The exported graph's inputs are checked finite before it runs (and tract cannot run ONNX's IsInf).
+        height_image = torch.nan_to_num(height_image, nan=0.0, posinf=0.0, neginf=0.0)
+    height = height_image.clamp(-20, 20) / HEIGHT_SCALE
     return torch.stack([log_range * valid, height * valid, valid], dim=1)
 
 

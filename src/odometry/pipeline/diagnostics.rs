@@ -44,8 +44,8 @@ pub struct FrameDiagnostics {
     pub map_keyframe: Option<bool>,
     /// The NDT start that won: "dmlo", "motion_model" or "standing".
     pub ndt_start: Option<String>,
-    /// Points the moving-object network left out; `None` when it did not run (the crate runs none: a
-    /// caller's flags come in [`Scan::moving`]).
+    /// Points the moving-object network left out; `None` when it did not run (no network, or the caller's
+    /// flags came in [`Scan::moving`]).
     pub num_moving_predicted: Option<usize>,
     /// Fraction of the cylinder image's cells holding a point.
     #[serde(serialize_with = "rounded_option::<4, _>")]

@@ -160,8 +160,9 @@ where
     /// the network's time for `next` overlaps `scan`'s back end. The poses, diagnostics and errors are
     /// `register`'s. `next` is encoded ahead only when its image can be known now: not before the
     /// reflectance scale is chosen (the first scan), not with `deskew.enabled` (the image depends on the
-    /// velocity `scan` measures), and not when it would be skipped or switch to the range-only model;
-    /// then `register(next)` encodes it as usual.
+    /// velocity `scan` measures), not when the moving-object network is to flag its points (give `next`
+    /// its `moving` mask to have it encoded ahead), and not when it would be skipped or switch to the
+    /// range-only model; then `register(next)` encodes it as usual.
     pub fn register_ahead(
         &mut self,
         scan: Scan<'_>,
@@ -180,6 +181,10 @@ where
     fn next_scan(&self, next: &Scan<'_>) -> Option<NextScan> {
         let scale = self.reflectance?;
         if self.config.deskew.enabled {
+            return None;
+        }
+        if self.moving_objects.is_some() && next.moving.is_none() && self.config.moving_objects.detect
+        {
             return None;
         }
         let KeptPoints {
