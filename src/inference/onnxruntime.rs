@@ -16,9 +16,9 @@ use ort::value::TensorRef;
 
 use super::metadata::moving_graph_cylinder;
 use super::{check_image, check_moving_images, EncodedScan, Encoder, ModelMetadata};
+use crate::error::{Error, Result};
 use crate::odometry::moving::MovingObjectNetwork;
 use crate::projection::CylinderConfig;
-use crate::error::{Error, Result};
 
 /// The network's encoder (`encoder.onnx`, exported by `dmlo export`) run by onnxruntime.
 pub struct OrtEncoder {
@@ -215,7 +215,8 @@ impl MovingObjectNetwork for OrtMovingObjects {
         check_moving_images(range, height, [rows, columns])?;
         let failed = |e: ort::Error| Error::Model(format!("{}: {e}", self.path));
         let range = TensorRef::from_array_view(([1usize, rows, columns], range)).map_err(failed)?;
-        let height = TensorRef::from_array_view(([1usize, rows, columns], height)).map_err(failed)?;
+        let height =
+            TensorRef::from_array_view(([1usize, rows, columns], height)).map_err(failed)?;
         let mut session = self.session.lock().unwrap_or_else(|p| p.into_inner());
         let outputs = session
             .run(ort::inputs!["range" => range, "height" => height])

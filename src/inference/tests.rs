@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use serde_json::Value;
 
 use super::*;
+use crate::odometry::moving::MovingObjectNetwork;
 use crate::projection::{project_flat, CylinderConfig};
 use crate::scan_file::{kitti_scan_files, read_kitti_scan};
 
@@ -635,4 +636,127 @@ mod matcher_properties {
             }
         }
     }
+}
+
+/// The bundled moving-object network's flags of the fixture's real scans by `network`, against the points
+/// `dmlo.Odometry`'s detector flags (`tests/fixtures/moving_flags.json`); `exact`: the same flags, else
+/// within a few points at the threshold.
+fn assert_flags_are_pythons(
+    network: &dyn crate::odometry::moving::MovingObjectNetwork,
+    exact: bool,
+) {
+    use crate::odometry::moving::{moving_points, network_images};
+
+    let fixture: Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join("tests/fixtures/moving_flags.json")).unwrap(),
+    )
+    .unwrap();
+    let step = fixture["step"].as_u64().unwrap() as usize;
+    for scan in fixture["scans"].as_array().unwrap() {
+        let name = scan["scan"].as_str().unwrap();
+        let Ok(points) = read_kitti_scan(&root().join("../shared/data").join(name)) else {
+            eprintln!("no shared KITTI scans: skipped");
+            return;
+        };
+        let (range, height) = network_images(&points, network.cylinder()).unwrap();
+        let probability = network.probability(&range, &height).unwrap();
+        let expected: Vec<f64> = scan["probability"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        let sampled: Vec<f32> = probability.iter().step_by(step).copied().collect();
+        assert_eq!(sampled.len(), expected.len(), "{name}");
+        let worst = sampled
+            .iter()
+            .zip(&expected)
+            .map(|(&a, &b)| (a as f64 - b).abs())
+            .fold(0.0, f64::max);
+        assert!(worst < 1e-4, "{name}: probabilities {worst} from Python's");
+        let moving =
+            moving_points(network, &points, fixture["threshold"].as_f64().unwrap()).unwrap();
+        let flagged: Vec<u64> = (0..moving.len() as u64)
+            .filter(|&i| moving[i as usize])
+            .collect();
+        let expected: Vec<u64> = scan["flagged"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_u64().unwrap())
+            .collect();
+        assert!(expected.len() > 1000, "{name}: the scan has cars to flag");
+        if exact {
+            assert_eq!(flagged, expected, "{name}");
+        } else {
+            let differing = flagged.len().abs_diff(expected.len())
+                + expected
+                    .iter()
+                    .filter(|i| flagged.binary_search(i).is_err())
+                    .count();
+            assert!(
+                differing * 200 < expected.len(),
+                "{name}: {differing} of {} flags differ",
+                expected.len()
+            );
+        }
+    }
+}
+
+fn bundled_moving_graph() -> PathBuf {
+    root().join("python/dmlo/models/default/moving.onnx")
+}
+
+#[test]
+fn tract_flags_the_moving_points_pythons_detector_flags() {
+    let network = TractMovingObjects::open(bundled_moving_graph()).unwrap();
+    assert_eq!(network.cylinder(), &CylinderConfig::kitti());
+    assert_flags_are_pythons(&network, false);
+}
+
+#[test]
+fn a_graph_that_is_not_the_moving_object_network_is_a_named_error() {
+    let error = TractMovingObjects::open(bundled_encoder())
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("not the moving-object network"), "{error}");
+    let error = TractMovingObjects::open(root().join("no/moving.onnx"))
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("no such file"), "{error}");
+    let network = TractMovingObjects::open(bundled_moving_graph()).unwrap();
+    let cells = 64 * 1792;
+    let error = network
+        .probability(&vec![0.0; cells - 1], &vec![0.0; cells])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("range") && error.contains("values"),
+        "{error}"
+    );
+    let mut height = vec![0.0; cells];
+    height[1792 + 5] = f32::NAN;
+    let error = network
+        .probability(&vec![0.0; cells], &height)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("height") && error.contains("row 1, column 5"),
+        "{error}"
+    );
+}
+
+#[cfg(feature = "onnxruntime")]
+#[test]
+fn onnxruntime_from_rust_flags_the_moving_points_pythons_detector_flags() {
+    let Some(library) = onnxruntime_library() else {
+        eprintln!("no onnxruntime library (ORT_DYLIB_PATH, or .venv's wheel): skipped");
+        return;
+    };
+    let network = OrtMovingObjects::open(bundled_moving_graph(), &library, 0).unwrap();
+    assert_flags_are_pythons(&network, true);
+    let error = OrtMovingObjects::open(bundled_encoder(), &library, 0)
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("not the moving-object network"), "{error}");
 }

@@ -11,9 +11,9 @@ use tract_onnx::prelude::*;
 
 use super::metadata::moving_graph_cylinder;
 use super::{check_image, check_moving_images, EncodedScan, Encoder, ModelMetadata};
+use crate::error::{Error, Result};
 use crate::odometry::moving::MovingObjectNetwork;
 use crate::projection::CylinderConfig;
-use crate::error::{Error, Result};
 
 /// The network's encoder (`encoder.onnx`, exported by `dmlo export`) run by tract, optimised once for the
 /// graph's input size. Its convolutions run on rayon's global pool (`RAYON_NUM_THREADS`, or
@@ -43,7 +43,10 @@ pub fn graph_metadata(path: impl AsRef<Path>) -> Result<ModelMetadata> {
 }
 
 /// The ONNX graph at `path` (named in errors as `shown`) and its metadata entries.
-fn graph_with_entries(path: &Path, shown: &str) -> Result<(tract_onnx::pb::ModelProto, HashMap<String, String>)> {
+fn graph_with_entries(
+    path: &Path,
+    shown: &str,
+) -> Result<(tract_onnx::pb::ModelProto, HashMap<String, String>)> {
     if !path.is_file() {
         return Err(Error::Model(format!("{shown}: no such file")));
     }

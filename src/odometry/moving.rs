@@ -101,8 +101,8 @@ mod tests {
         };
         let points = [
             [10.0, 0.0, -1.5, 0.3],   // ground ahead
-            [10.0, 5.0, 0.5, 0.3],    // something tall beside it
-            [10.0, 5.0, 0.5001, 0.3], // behind it in the same cell: flagged with it
+            [10.0, 5.0, 0.2, 0.3],    // something tall beside it
+            [10.0, 5.0, 0.2001, 0.3], // behind it in the same cell: flagged with it
             [f32::NAN, 0.0, 0.0, 0.3],
             [0.0, 0.0, 0.0, 0.3], // the origin: in no cell
         ];

@@ -171,6 +171,10 @@ def test_training_writes_a_network_the_odometry_opens_and_resumes(tmp_path: Path
     assert "resumed at step 2" in finished.stdout
     detector = MovingObjectDetector(out / "moving.onnx")
     assert detector.mask(open_sequence(jam)[0].points).dtype == bool
+    import onnx
+
+    operators = {node.op_type for node in onnx.load(str(out / "moving.onnx")).graph.node}
+    assert not operators & {"IsInf", "IsNaN"}, "tract, the crate's pure-Rust runtime, cannot run them"
 
 
 @pytest.mark.slow

@@ -183,7 +183,9 @@ where
         if self.config.deskew.enabled {
             return None;
         }
-        if self.moving_objects.is_some() && next.moving.is_none() && self.config.moving_objects.detect
+        if self.moving_objects.is_some()
+            && next.moving.is_none()
+            && self.config.moving_objects.detect
         {
             return None;
         }

@@ -665,3 +665,121 @@ fn the_round_trip_check_follows_a_loop_over_the_cells() {
 }
 
 mod encode_ahead;
+
+/// A stand-in moving-object network: cells whose kept point stands above `above` (m) are moving; `fails`:
+/// it reports an error instead.
+struct TallThings {
+    cylinder: CylinderConfig,
+    above: f32,
+    fails: bool,
+}
+
+impl TallThings {
+    fn new() -> Self {
+        TallThings {
+            cylinder: CylinderConfig::kitti(),
+            above: 0.0,
+            fails: false,
+        }
+    }
+}
+
+impl crate::odometry::moving::MovingObjectNetwork for TallThings {
+    fn cylinder(&self) -> &CylinderConfig {
+        &self.cylinder
+    }
+
+    fn probability(&self, range: &[f32], height: &[f32]) -> Result<Vec<f32>> {
+        if self.fails {
+            return Err(Error::Model("moving.onnx: the network failed".into()));
+        }
+        Ok(range
+            .iter()
+            .zip(height)
+            .map(|(&r, &z)| if r > 0.0 && z > self.above { 0.8 } else { 0.2 })
+            .collect())
+    }
+}
+
+#[test]
+fn the_moving_object_network_flags_what_a_callers_mask_would() {
+    use crate::odometry::moving::moving_points;
+
+    let mut detected = Odometry::new(OracleMatcher::new(), config(true))
+        .unwrap()
+        .with_moving_objects(TallThings::new())
+        .unwrap();
+    let mut masked = Odometry::new(OracleMatcher::new(), config(true)).unwrap();
+    for i in 0..4 {
+        let points = scan(i);
+        let truth = true_pose(i).inverse() * true_pose(i.saturating_sub(1));
+        detected.matcher.truth.set(truth);
+        masked.matcher.truth.set(truth);
+        let pose = detected.register(Scan::new(&points)).unwrap();
+        let mask = moving_points(&TallThings::new(), &points, 0.5).unwrap();
+        let flagged = mask.iter().filter(|&&m| m).count();
+        assert!(flagged > 1000 && flagged < points.len() / 2, "{flagged}");
+        let expected = masked
+            .register(Scan {
+                moving: Some(&mask),
+                ..Scan::new(&points)
+            })
+            .unwrap();
+        assert_eq!(pose, expected, "scan {i}");
+        let diagnostics = &detected.diagnostics()[i];
+        assert_eq!(diagnostics.num_moving_predicted, Some(flagged));
+        assert!(diagnostics.timings_ms.contains_key("moving_objects"));
+        assert_eq!(masked.diagnostics()[i].num_moving_predicted, None);
+    }
+    assert!(error_to_truth(detected.poses().last().unwrap(), 3).0 < 0.02);
+}
+
+#[test]
+fn the_network_stays_idle_when_told_or_given_a_mask_and_its_errors_change_nothing() {
+    let points = scan(0);
+    let mut off = config(false);
+    off.moving_objects.detect = false;
+    let mut odometry = Odometry::new(OracleMatcher::new(), off)
+        .unwrap()
+        .with_moving_objects(TallThings {
+            fails: true,
+            ..TallThings::new()
+        })
+        .unwrap();
+    odometry.register(Scan::new(&points)).unwrap();
+    assert_eq!(odometry.diagnostics()[0].num_moving_predicted, None);
+
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(false))
+        .unwrap()
+        .with_moving_objects(TallThings {
+            fails: true,
+            ..TallThings::new()
+        })
+        .unwrap();
+    let none_moving = vec![false; points.len()];
+    odometry
+        .register(Scan {
+            moving: Some(&none_moving),
+            ..Scan::new(&points)
+        })
+        .unwrap();
+    assert_eq!(odometry.diagnostics()[0].num_moving_predicted, None);
+    let error = odometry.register(Scan::new(&points)).unwrap_err();
+    assert!(error.to_string().contains("the network failed"), "{error}");
+    assert_eq!(odometry.poses().len(), 1);
+    assert_eq!(odometry.diagnostics().len(), 1);
+
+    let other_image = TallThings {
+        cylinder: CylinderConfig {
+            width: 1024,
+            ..CylinderConfig::kitti()
+        },
+        ..TallThings::new()
+    };
+    let error = Odometry::new(OracleMatcher::new(), config(false))
+        .unwrap()
+        .with_moving_objects(other_image)
+        .err()
+        .expect("another image is refused");
+    assert!(error.to_string().starts_with("moving_objects:"), "{error}");
+}
