@@ -4,10 +4,11 @@
 before it is registered (`--encode-ahead`: `EncodeAhead`), and in tract (in turn), against
 `dmlo.Odometry` (onnxruntime from Python), with the same model, the same config and the same threads, in turns.
 
-    .venv/bin/python benchmarks/rust_odometry.py [SCANS_DIR ...] [--rounds 3] [--threads 2]
+    .venv/bin/python benchmarks/rust_odometry.py [SCANS_DIR ...] [--rounds 3] [--threads 2] [--keep-moving]
 
 Without folders: every set of `../shared/data/kitti_real`. Each set runs with the local map and frame to frame.
-The moving-object network is off in all three (the crate does not run it; a Rust user passes their own mask).
+The moving-object network runs in all of them, in each side's runtime, as `dmlo run` runs it (`--keep-moving`:
+in none); with it, the scan ahead waits for its flags, so "encoded ahead" encodes in turn.
 Each side's time covers the same loop: reading each `.bin` scan and registering it, the model already open.
 Prints each runtime's median rate (Hz) over the rounds, its rate over Python's, and how far its poses are from
 Python's (the largest translation difference over the drive).
@@ -77,6 +78,7 @@ def main() -> None:
     parser.add_argument("scans", type=Path, nargs="*", help="folders of KITTI .bin scans")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--keep-moving", action="store_true", help="run no moving-object network")
     args = parser.parse_args()
     subprocess.run(["cargo", "build", "--release", "--features", "inference,onnxruntime", "--example", "odometry"],
                    cwd=ROOT, check=True)
@@ -101,7 +103,7 @@ def main() -> None:
             for mapping in (True, False):
                 config = OdometryConfig()
                 config.mapping.enabled = mapping
-                config.moving_objects.detect = False
+                config.moving_objects.detect = not args.keep_moving
                 config.threads = args.threads
                 config_path = Path(folder) / "config.json"
                 config.save(config_path)
