@@ -8,7 +8,7 @@ before it is registered (`--encode-ahead`: `EncodeAhead`), and in tract (in turn
 
 Without folders: every set of `../shared/data/kitti_real`. Each set runs with the local map and frame to frame.
 The moving-object network runs in all of them, in each side's runtime, as `dmlo run` runs it (`--keep-moving`:
-in none); with it, the scan ahead waits for its flags, so "encoded ahead" encodes in turn.
+in none); "encoded ahead" flags the next scan's moving points on the same thread as it encodes it.
 Each side's time covers the same loop: reading each `.bin` scan and registering it, the model already open.
 Prints each runtime's median rate (Hz) over the rounds, its rate over Python's, and how far its poses are from
 Python's (the largest translation difference over the drive).

@@ -21,8 +21,8 @@
 //! threads; 0 or absent: the config's `threads`, and when that is 0 the runtimes' defaults.
 //! `--encode-ahead` encodes each scan on a thread of its own while the scan before it is registered
 //! ([`dmlo_rs::odometry::pipeline::EncodeAhead`]: the same poses): faster where the odometry's stages leave
-//! cores idle (fewer `--threads` than cores), not when they use every core; with the moving-object network
-//! on, a scan waits for its flags and is encoded in turn.
+//! cores idle (fewer `--threads` than cores), not when they use every core; the moving-object network flags
+//! the scan on that thread too.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};

@@ -78,6 +78,7 @@
 //! # }
 //! ```
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use nalgebra::Matrix4;
@@ -110,6 +111,12 @@ pub trait FrameMatcher {
     /// [`EncodeAhead`] answers it with the features it computed while the scan before was registered.
     fn encode_scan(&self, image: &[f32]) -> Result<Self::Features> {
         self.encode(image)
+    }
+    /// The moving-object network's flags of the points of a scan given to [`Odometry::register`], when
+    /// they were computed ahead ([`EncodeAhead`]); by default none.
+    fn moving_ahead(&self, points: &[[f32; 4]]) -> Option<Vec<bool>> {
+        let _ = points;
+        None
     }
     /// The flow of every `reference` cell into `target` and its confidence (§III-C).
     fn flow(&self, reference: &Self::Features, target: &Self::Features) -> Result<DenseFlow>;
@@ -220,8 +227,9 @@ pub struct Odometry<M: FrameMatcher> {
     range_only: Option<M>,
     /// Scans without usable reflectance and no range-only model run the model on zeros (not refused).
     zero_reflectance_allowed: bool,
-    /// Flags the points on moving objects of scans given without a mask.
-    moving_objects: Option<Box<dyn MovingObjectNetwork + Send + Sync>>,
+    /// Flags the points on moving objects of scans given without a mask (shared with [`EncodeAhead`]'s
+    /// thread, which flags the next scan's).
+    moving_objects: Option<Arc<dyn MovingObjectNetwork + Send + Sync>>,
 }
 
 impl<M: FrameMatcher> Odometry<M> {
@@ -276,7 +284,7 @@ impl<M: FrameMatcher> Odometry<M> {
                 "its cylinder image differs from the model's",
             ));
         }
-        self.moving_objects = Some(Box::new(network));
+        self.moving_objects = Some(Arc::new(network));
         Ok(self)
     }
 
@@ -434,6 +442,9 @@ impl<M: FrameMatcher> Odometry<M> {
     fn detect_moving(&self, scan: &Scan<'_>) -> Result<Option<Vec<bool>>> {
         match &self.moving_objects {
             Some(network) if scan.moving.is_none() && self.config.moving_objects.detect => {
+                if let Some(flags) = self.matcher.moving_ahead(scan.points) {
+                    return Ok(Some(flags));
+                }
                 let threshold = self.config.moving_objects.threshold;
                 moving_points(network.as_ref(), scan.points, threshold).map(Some)
             }

@@ -71,8 +71,8 @@ def test_the_rust_example_gives_dmlo_runs_poses_on_a_simulated_drive(drive: Path
     _assert_same_poses(expected, got)
 
 
-# The moving-object network run by both, each scan encoded in turn and (the example) encoded ahead — with the
-# network the scan ahead waits for its flags, so it is encoded in turn — and kept out of both, encoded ahead.
+# The moving-object network run by both, each scan encoded in turn and (the example) flagged and encoded ahead,
+# and kept out of both, encoded ahead.
 MODES = {"moving_network": (False, False), "moving_network_ahead": (False, True), "keep_moving_ahead": (True, True)}
 
 

@@ -21,6 +21,7 @@ use super::{network_input, FrameMatcher, Odometry, Scan};
 use crate::dense_match::DenseFlow;
 use crate::error::Result;
 use crate::odometry::config::{MatchingStage, ReflectanceScale};
+use crate::odometry::moving::{moving_points, MovingObjectNetwork};
 use crate::projection::{project, CylinderConfig};
 
 /// A matcher that can encode the next scan ahead, on another thread ([`Odometry::register_ahead`]).
@@ -29,24 +30,89 @@ pub struct EncodeAhead<M: FrameMatcher> {
     matcher: Arc<M>,
     /// The next scan, waiting for this scan's features to be taken before it starts.
     pub(super) queued: Mutex<Option<NextScan>>,
-    /// The next scan's image and features, being computed.
-    running: Mutex<Option<Running<M::Features>>>,
+    /// The next scan's flags, image and features, being computed.
+    running: Mutex<Option<Receiver<Ahead<M::Features>>>>,
+    /// The same once received, until `register` has taken what it needs.
+    received: Mutex<Option<Ahead<M::Features>>>,
 }
 
-/// What the next scan's image is made from, owned so that another thread can make it.
+/// What the next scan's flags and image are made from, owned so that another thread can make them.
 pub(super) struct NextScan {
-    /// Its kept points, reflectance on the model's scale.
-    cloud: Vec<[f32; 4]>,
+    /// Its points as given.
+    points: Vec<[f32; 4]>,
+    /// The caller's moving flags, or the network (and its threshold) to find them.
+    moving: NextMoving,
+    scale: ReflectanceScale,
+    min_points: usize,
     cylinder: CylinderConfig,
 }
 
-/// The next scan being encoded: its image and features when done (`None`: its projection failed, and
-/// `register` will report why).
-type Running<F> = Receiver<Option<Encoded<F>>>;
+pub(super) enum NextMoving {
+    Given(Option<Vec<bool>>),
+    Detect(Arc<dyn MovingObjectNetwork + Send + Sync>, f64),
+}
+
+/// The next scan as prepared ahead: its points (to recognise it), the network's flags when it ran, and
+/// its image and features (`None`: it will not be matched, or a step failed — `register` will say why).
+struct Ahead<F> {
+    points: Vec<[f32; 4]>,
+    flags: Option<Vec<bool>>,
+    encoded: Option<Encoded<F>>,
+}
 
 struct Encoded<F> {
     image: Vec<f32>,
     features: Result<F>,
+}
+
+impl NextScan {
+    /// The flags, image and features `register` would compute for this scan.
+    fn prepare<M: FrameMatcher>(self, matcher: &M) -> Ahead<M::Features> {
+        let (flags, detected) = match &self.moving {
+            NextMoving::Given(flags) => (flags.clone(), false),
+            NextMoving::Detect(network, threshold) => (
+                moving_points(network.as_ref(), &self.points, *threshold).ok(),
+                true,
+            ),
+        };
+        let encoded = if detected && flags.is_none() {
+            None
+        } else {
+            self.encoded(matcher, flags.as_deref())
+        };
+        Ahead {
+            flags: if detected { flags } else { None },
+            points: self.points,
+            encoded,
+        }
+    }
+
+    fn encoded<M: FrameMatcher>(
+        &self,
+        matcher: &M,
+        moving: Option<&[bool]>,
+    ) -> Option<Encoded<M::Features>> {
+        let scan = Scan {
+            moving,
+            ..Scan::new(&self.points)
+        };
+        let KeptPoints { kept, .. } = kept_points(&scan).ok()?;
+        if kept.len() < self.min_points {
+            return None;
+        }
+        let projection = project(&normalised(kept, self.scale), &self.cylinder).ok()?;
+        let image = network_input(&projection);
+        let features = matcher.encode(&image);
+        Some(Encoded { image, features })
+    }
+}
+
+/// Whether two scans hold the same points, bit for bit (NaN coordinates included).
+fn same_points(a: &[[f32; 4]], b: &[[f32; 4]]) -> bool {
+    a.len() == b.len()
+        && a.iter()
+            .zip(b)
+            .all(|(p, q)| p.iter().zip(q).all(|(x, y)| x.to_bits() == y.to_bits()))
 }
 
 impl<M> EncodeAhead<M>
@@ -60,6 +126,7 @@ where
             matcher: Arc::new(matcher),
             queued: Mutex::new(None),
             running: Mutex::new(None),
+            received: Mutex::new(None),
         }
     }
 
@@ -76,15 +143,19 @@ where
         let matcher = Arc::clone(&self.matcher);
         let (sender, receiver) = channel();
         std::thread::spawn(move || {
-            let encoded = project(&next.cloud, &next.cylinder).ok().map(|projection| {
-                let image = network_input(&projection);
-                let features = matcher.encode(&image);
-                Encoded { image, features }
-            });
             // The receiver is gone when the odometry went on without these features.
-            let _ = sender.send(encoded);
+            let _ = sender.send(next.prepare(matcher.as_ref()));
         });
         *locked(&self.running) = Some(receiver);
+    }
+
+    /// What was prepared ahead, waiting for it if need be; `None` when nothing was.
+    fn take_ahead(&self) -> Option<Ahead<M::Features>> {
+        if let Some(ahead) = locked(&self.received).take() {
+            return Some(ahead);
+        }
+        let running = locked(&self.running).take()?;
+        running.recv().ok()
     }
 }
 
@@ -117,15 +188,24 @@ where
     /// The features computed ahead when they are this image's (waiting for them if need be), else
     /// encoded now; then the queued scan starts.
     fn encode_scan(&self, image: &[f32]) -> Result<M::Features> {
-        let ahead = locked(&self.running)
-            .take()
-            .and_then(|running| running.recv().ok().flatten());
-        let features = match ahead {
+        let features = match self.take_ahead().and_then(|ahead| ahead.encoded) {
             Some(encoded) if encoded.image == image => encoded.features,
             _ => self.matcher.encode_scan(image),
         };
         self.start_queued();
         features
+    }
+
+    /// The network's flags computed ahead when they are these points' (waiting for them if need be).
+    fn moving_ahead(&self, points: &[[f32; 4]]) -> Option<Vec<bool>> {
+        let ahead = self.take_ahead()?;
+        let flags = if same_points(&ahead.points, points) {
+            ahead.flags.clone()
+        } else {
+            None
+        };
+        *locked(&self.received) = Some(ahead);
+        flags
     }
 
     fn flow(&self, reference: &M::Features, target: &M::Features) -> Result<DenseFlow> {
@@ -160,9 +240,9 @@ where
     /// the network's time for `next` overlaps `scan`'s back end. The poses, diagnostics and errors are
     /// `register`'s. `next` is encoded ahead only when its image can be known now: not before the
     /// reflectance scale is chosen (the first scan), not with `deskew.enabled` (the image depends on the
-    /// velocity `scan` measures), not when the moving-object network is to flag its points (give `next`
-    /// its `moving` mask to have it encoded ahead), and not when it would be skipped or switch to the
-    /// range-only model; then `register(next)` encodes it as usual.
+    /// velocity `scan` measures), and not when it would be skipped or switch to the range-only model;
+    /// then `register(next)` encodes it as usual. With a moving-object network ([`Odometry::with_moving_objects`])
+    /// and no `moving` mask, `next`'s points are flagged on that thread too, before it is encoded.
     pub fn register_ahead(
         &mut self,
         scan: Scan<'_>,
@@ -171,8 +251,10 @@ where
         let queued = next.and_then(|next| self.next_scan(&next));
         *locked(&self.matcher.queued) = queued;
         let result = self.register(scan);
-        // Not started when `register` encoded nothing (a skipped scan, an error): nothing is left over.
+        // Not started when `register` encoded nothing (a skipped scan, an error), and not taken when it
+        // stopped between the flags and the features: nothing is left over.
         locked(&self.matcher.queued).take();
+        locked(&self.matcher.received).take();
         result
     }
 
@@ -181,12 +263,6 @@ where
     fn next_scan(&self, next: &Scan<'_>) -> Option<NextScan> {
         let scale = self.reflectance?;
         if self.config.deskew.enabled {
-            return None;
-        }
-        if self.moving_objects.is_some()
-            && next.moving.is_none()
-            && self.config.moving_objects.detect
-        {
             return None;
         }
         let KeptPoints {
@@ -203,8 +279,17 @@ where
         if switches {
             return None;
         }
+        let moving = match &self.moving_objects {
+            Some(network) if next.moving.is_none() && self.config.moving_objects.detect => {
+                NextMoving::Detect(Arc::clone(network), self.config.moving_objects.threshold)
+            }
+            _ => NextMoving::Given(next.moving.map(<[bool]>::to_vec)),
+        };
         Some(NextScan {
-            cloud: normalised(kept, scale),
+            points: next.points.to_vec(),
+            moving,
+            scale,
+            min_points,
             cylinder: self.cylinder,
         })
     }

@@ -1,6 +1,6 @@
 //! [`EncodeAhead`]: the next scan encoded on another thread changes nothing but where the work runs.
 
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::thread::ThreadId;
 
 use super::*;
@@ -150,4 +150,91 @@ fn errors_are_registers_and_leave_nothing_queued() {
     let pose = ahead.register_ahead(Scan::new(&scans[3]), None).unwrap();
     assert!(error_to_truth(&pose, 3).0 < 0.02);
     assert_eq!(ahead.diagnostics().len(), 4);
+}
+
+/// [`TallThings`], noting the thread of every call.
+struct NotedNetwork {
+    inner: TallThings,
+    callers: Arc<Mutex<Vec<ThreadId>>>,
+}
+
+impl crate::odometry::moving::MovingObjectNetwork for NotedNetwork {
+    fn cylinder(&self) -> &CylinderConfig {
+        self.inner.cylinder()
+    }
+
+    fn probability(&self, range: &[f32], height: &[f32]) -> Result<Vec<f32>> {
+        self.callers
+            .lock()
+            .unwrap()
+            .push(std::thread::current().id());
+        self.inner.probability(range, height)
+    }
+}
+
+#[test]
+fn the_next_scans_moving_points_are_flagged_ahead_once() {
+    let scans: Vec<Vec<[f32; 4]>> = (0..6).map(scan).collect();
+    // The oracle recognises the images the odometry encodes: those of the points left unflagged.
+    let unflagged: Vec<Vec<[f32; 4]>> = scans
+        .iter()
+        .map(|points| {
+            let moving =
+                crate::odometry::moving::moving_points(&TallThings::new(), points, 0.5).unwrap();
+            kept_rows(points, &moving.iter().map(|m| !m).collect::<Vec<_>>())
+        })
+        .collect();
+    let callers = Arc::new(Mutex::new(Vec::new()));
+    let mut serial = Odometry::new(DriveOracle::new(&unflagged), config(true))
+        .unwrap()
+        .with_moving_objects(TallThings::new())
+        .unwrap();
+    let mut ahead = Odometry::new(EncodeAhead::new(DriveOracle::new(&unflagged)), config(true))
+        .unwrap()
+        .with_moving_objects(NotedNetwork {
+            inner: TallThings::new(),
+            callers: Arc::clone(&callers),
+        })
+        .unwrap();
+    for (i, points) in scans.iter().enumerate() {
+        let expected = serial.register(Scan::new(points)).unwrap();
+        let next = scans.get(i + 1).map(|next| Scan::new(next));
+        assert_eq!(
+            ahead.register_ahead(Scan::new(points), next).unwrap(),
+            expected,
+            "scan {i}"
+        );
+    }
+    assert_eq!(
+        without_timings(ahead.diagnostics()),
+        without_timings(serial.diagnostics())
+    );
+    assert!(ahead.diagnostics()[5].num_moving_predicted.unwrap() > 1000);
+    // Scans 0 and 1 are flagged and encoded here; 2–5 on the thread ahead, each once.
+    let here = std::thread::current().id();
+    let flagged = callers.lock().unwrap().clone();
+    assert_eq!(flagged.len(), 6, "each scan flagged once");
+    assert_eq!(flagged.iter().filter(|&&t| t != here).count(), 4);
+    let encoded = ahead.matcher().matcher().encoders.lock().unwrap().clone();
+    assert_eq!(encoded.len(), 6, "each scan encoded once");
+    assert_eq!(encoded.iter().filter(|&&t| t != here).count(), 4);
+    // An announced scan that does not come: its flags and features are not taken for another.
+    let mut ahead = Odometry::new(EncodeAhead::new(DriveOracle::new(&unflagged)), config(true))
+        .unwrap()
+        .with_moving_objects(TallThings::new())
+        .unwrap();
+    let mut serial = Odometry::new(DriveOracle::new(&unflagged), config(true))
+        .unwrap()
+        .with_moving_objects(TallThings::new())
+        .unwrap();
+    for i in 0..4 {
+        let announced = Scan::new(&scans[(i + 2) % 6]);
+        assert_eq!(
+            ahead
+                .register_ahead(Scan::new(&scans[i]), Some(announced))
+                .unwrap(),
+            serial.register(Scan::new(&scans[i])).unwrap(),
+            "scan {i}"
+        );
+    }
 }
