@@ -9,6 +9,7 @@
 use dmlo_rs::dense_match::DenseFlow;
 use dmlo_rs::nms::nms_wrapping;
 use dmlo_rs::odometry::config::OdometryConfig;
+use dmlo_rs::odometry::moving::MovingObjectNetwork;
 use dmlo_rs::odometry::pipeline::{FrameMatcher, Odometry, Scan};
 use dmlo_rs::projection::{project_flat, unproject_many, CylinderConfig};
 use dmlo_rs::ransac::{ransac_rigid_voted, RansacConfig, Refit};
@@ -314,6 +315,26 @@ impl FrameMatcher for ConstantFlowMatcher {
     }
 }
 
+/// A stand-in moving-object network: every cell's probability one given value (possibly NaN or beyond
+/// [0, 1]), or an error when there is none.
+struct ConstantMovingNetwork {
+    cylinder: CylinderConfig,
+    probability: Option<f32>,
+}
+
+impl MovingObjectNetwork for ConstantMovingNetwork {
+    fn cylinder(&self) -> &CylinderConfig {
+        &self.cylinder
+    }
+
+    fn probability(&self, range: &[f32], _height: &[f32]) -> dmlo_rs::Result<Vec<f32>> {
+        match self.probability {
+            Some(p) => Ok(vec![p; range.len()]),
+            None => Err(dmlo_rs::Error::Model("moving.onnx: failed".into())),
+        }
+    }
+}
+
 /// A scan as a user may hand one over: a walled yard seen from `(x, 0)` (dense enough for the stand-in's
 /// flow to find matches), some of its values replaced by what breaks arithmetic or reflectance scales.
 fn odometry_scan(x: f64, seed: u64, corrupt: usize) -> Vec<[f32; 4]> {
@@ -375,7 +396,8 @@ fn odometry_scan(x: f64, seed: u64, corrupt: usize) -> Vec<[f32; 4]> {
 proptest! {
     #![proptest_config(config(32))]
 
-    /// `Odometry::register` with any scans, masks, timestamps, sweep times, flows and settings gives a
+    /// `Odometry::register` with any scans, masks (or a moving-object network's flags, whatever it
+    /// answers), timestamps, sweep times, flows and settings gives a
     /// rigid, finite pose or a named error, never a panic; an error leaves the poses as they were. So
     /// does `Odometry::register_pair` of each scan with the one before (the poses untouched either way).
     #[test]
@@ -395,6 +417,10 @@ proptest! {
         mask_share in prop_oneof![3 => Just(0.0f64), 1 => 0.0..1.0f64],
         min_points in prop_oneof![3 => Just(100u64), 1 => 0u64..5],
         large_motion in any::<bool>(),
+        network in prop_oneof![
+            3 => Just(None),
+            1 => prop_oneof![Just(Some(0.2f32)), Just(Some(0.9f32)), Just(Some(f32::NAN)), Just(Some(7.0f32)), Just(None)].prop_map(Some),
+        ],
     ) {
         let mut config = OdometryConfig::default();
         config.mapping.enabled = mapping;
@@ -403,6 +429,11 @@ proptest! {
         config.min_points = min_points;
         let matcher = ConstantFlowMatcher { cylinder: CylinderConfig::kitti(), offset, confidence };
         let mut odometry = Odometry::new(matcher, config).unwrap();
+        if let Some(probability) = network {
+            odometry = odometry
+                .with_moving_objects(ConstantMovingNetwork { cylinder: CylinderConfig::kitti(), probability })
+                .unwrap();
+        }
         let mut ahead = 0.0;
         let mut previous: Option<Vec<[f32; 4]>> = None;
         for (i, &(step, seed, corrupt, kept)) in scans.iter().enumerate() {
@@ -414,7 +445,8 @@ proptest! {
             let before = odometry.poses().len();
             let scan = Scan {
                 points: &points,
-                moving: Some(&moving),
+                // With a network, the scans come without a mask for it to flag.
+                moving: network.is_none().then_some(&moving[..]),
                 timestamp: Some(timestamps[i % 4] + i as f64),
                 point_times: (i % 2 == 1).then_some(&times[..]),
             };

@@ -22,6 +22,24 @@ fn real_image(name: &str) -> Option<Vec<f32>> {
     real_scan_images(name).map(|(image, _, _)| image)
 }
 
+/// The largest difference between every `step`-th of `values` and a fixture's samples of them
+/// (`expected`, as many: checked).
+fn worst_sample_difference(values: &[f32], expected: &Value, step: usize, what: &str) -> f64 {
+    let expected: Vec<f64> = expected
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    let sampled: Vec<f32> = values.iter().step_by(step).copied().collect();
+    assert_eq!(sampled.len(), expected.len(), "{what}");
+    sampled
+        .iter()
+        .zip(&expected)
+        .map(|(&a, &b)| (a as f64 - b).abs())
+        .fold(0.0, f64::max)
+}
+
 #[test]
 fn tract_features_equal_onnxruntimes_on_a_real_scan() {
     let fixture: Value = serde_json::from_str(
@@ -39,19 +57,7 @@ fn tract_features_equal_onnxruntimes_on_a_real_scan() {
     assert_eq!(encoded.refine_shape, [8, 64, 1792]);
     let step = fixture["step"].as_u64().unwrap() as usize;
     for (name, values) in [("coarse", &encoded.coarse), ("refine", &encoded.refine)] {
-        let expected: Vec<f64> = fixture[name]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_f64().unwrap())
-            .collect();
-        let sampled: Vec<f32> = values.iter().step_by(step).copied().collect();
-        assert_eq!(sampled.len(), expected.len(), "{name}");
-        let worst = sampled
-            .iter()
-            .zip(&expected)
-            .map(|(&a, &b)| (a as f64 - b).abs())
-            .fold(0.0, f64::max);
+        let worst = worst_sample_difference(values, &fixture[name], step, name);
         assert!(
             worst < 1e-5,
             "{name}: largest difference from onnxruntime {worst}"
@@ -660,19 +666,7 @@ fn assert_flags_are_pythons(
         };
         let (range, height) = network_images(&points, network.cylinder()).unwrap();
         let probability = network.probability(&range, &height).unwrap();
-        let expected: Vec<f64> = scan["probability"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_f64().unwrap())
-            .collect();
-        let sampled: Vec<f32> = probability.iter().step_by(step).copied().collect();
-        assert_eq!(sampled.len(), expected.len(), "{name}");
-        let worst = sampled
-            .iter()
-            .zip(&expected)
-            .map(|(&a, &b)| (a as f64 - b).abs())
-            .fold(0.0, f64::max);
+        let worst = worst_sample_difference(&probability, &scan["probability"], step, name);
         assert!(worst < 1e-4, "{name}: probabilities {worst} from Python's");
         let moving =
             moving_points(network, &points, fixture["threshold"].as_f64().unwrap()).unwrap();
