@@ -23,6 +23,8 @@ __all__ += [
     "Matches",
     "project",
     "point_cells",
+    "moving_network_images",
+    "flagged_points",
     "unproject",
     "ground_truth_flow",
     "rigid_transform",
@@ -164,6 +166,22 @@ def point_cells(
 ) -> npt.NDArray[np.int64]:
     """Each point's flat cell index (row · width + col) by the rule `project` uses; −1 outside the image,
     at the origin or non-finite."""
+
+def moving_network_images(
+    points: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    config: CylinderConfig,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """The moving-object network's input images of an N×4 scan: range and height z of each cell's kept point,
+    `[H, W]` float32, 0 where empty (`odometry::moving::network_images`)."""
+
+def flagged_points(
+    points: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    probability: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    config: CylinderConfig,
+    threshold: float,
+) -> npt.NDArray[np.bool_]:
+    """The points in cells whose moving probability (`[H, W]`) exceeds `threshold` (in float32); points
+    outside the image, at the origin or non-finite are not flagged."""
 
 def unproject(
     rows: npt.NDArray[np.floating],

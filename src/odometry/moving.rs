@@ -52,7 +52,20 @@ pub fn moving_points<N: MovingObjectNetwork + ?Sized>(
     let cylinder = network.cylinder();
     let (range, height) = network_images(points, cylinder)?;
     let probability = network.probability(&range, &height)?;
-    if probability.len() != range.len() {
+    flagged_points(points.as_flattened(), 4, &probability, cylinder, threshold)
+}
+
+/// The points of a flat `N × channels` scan (3 or 4 values a point) in cells whose `probability` (`H × W`,
+/// the network's answer for [`network_images`]) exceeds `threshold`: the rule of [`moving_points`], for a
+/// network run elsewhere (`dmlo.Odometry` runs it in Python's onnxruntime).
+pub fn flagged_points(
+    points: &[f32],
+    channels: usize,
+    probability: &[f32],
+    cylinder: &CylinderConfig,
+    threshold: f64,
+) -> Result<Vec<bool>> {
+    if probability.len() != cylinder.height * cylinder.width {
         return Err(Error::Model(format!(
             "the moving-object network gave {} probabilities for a {} × {} image",
             probability.len(),
@@ -60,9 +73,9 @@ pub fn moving_points<N: MovingObjectNetwork + ?Sized>(
             cylinder.width
         )));
     }
-    // Compared in float32, as numpy compares the network's float32 output with the threshold.
+    // Compared in float32, as the network answers.
     let threshold = threshold as f32;
-    let cells = point_cells(points.as_flattened(), 4, cylinder)?;
+    let cells = point_cells(points, channels, cylinder)?;
     Ok(cells
         .iter()
         .map(|&cell| usize::try_from(cell).is_ok_and(|cell| probability[cell] > threshold))

@@ -11,6 +11,7 @@ mod dense_match;
 mod deskew;
 mod mapping;
 mod matches;
+mod moving;
 mod ndt;
 mod odometry;
 mod odometry_loop;
@@ -67,5 +68,6 @@ fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     odometry_loop::register(m)?;
     mapping::register(m)?;
     projective::register(m)?;
+    moving::register(m)?;
     Ok(())
 }

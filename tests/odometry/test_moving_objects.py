@@ -19,7 +19,7 @@ from dmlo.datasets import moving_mask, open_sequence
 from dmlo.metrics.moving import precision_recall
 from dmlo.odometry import Odometry, OdometryConfig
 from dmlo.odometry.matcher import ModelError, default_model_path
-from dmlo.odometry.moving import GRAPH, MovingObjectDetector, moving_objects_graph
+from dmlo.odometry.moving import GRAPH, MovingObjectDetector, moving_objects_graph, range_and_height
 from dmlo.simulator import simulate_sequence
 from support import frame_to_frame
 
@@ -54,6 +54,32 @@ def test_point_cells_are_the_cells_of_the_numpy_formula() -> None:
     projection = dmlo_rs.project(points, cylinder)
     kept = projection.index[projection.index >= 0]
     assert np.array_equal(cells[kept], np.flatnonzero(projection.index.ravel() >= 0))
+
+
+def test_the_networks_images_and_rule_are_the_projection_and_a_threshold_per_cell() -> None:
+    """The crate's images and rule (`odometry::moving`), which the detector, the training and the crate's
+    odometry share, against numpy on the projection: each cell's kept point's range and z, and every point of
+    a cell above the threshold flagged."""
+    cylinder = dmlo_rs.CylinderConfig.kitti()
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-40, 40, size=(20000, 4)).astype(np.float32)
+    points[:, 2] = rng.uniform(-3, 0.5, size=20000)
+    points[:2] = [[np.nan, 1, 1, 0], [0, 0, 0, 0]]
+    ranges, height = range_and_height(points, cylinder)
+    index = np.asarray(dmlo_rs.project(points, cylinder).index)
+    kept = index >= 0
+    norms = np.linalg.norm(points[np.maximum(index, 0), :3].astype(np.float64), axis=-1)
+    np.testing.assert_allclose(ranges, np.where(kept, norms, 0), rtol=1e-6, atol=0)
+    np.testing.assert_array_equal(height, np.where(kept, points[np.maximum(index, 0), 2], 0))
+    probability = rng.uniform(0, 1, size=(cylinder.height, cylinder.width)).astype(np.float32)
+    flags = dmlo_rs.flagged_points(points, probability, cylinder, 0.5)
+    cells = dmlo_rs.point_cells(points, cylinder)
+    np.testing.assert_array_equal(flags, (cells >= 0) & (probability.ravel()[np.maximum(cells, 0)] > 0.5))
+    assert 0.3 < flags.mean() < 0.7 and not flags[:2].any()
+    with pytest.raises(ValueError, match="probability"):
+        dmlo_rs.flagged_points(points, probability[:10], cylinder, 0.5)
+    with pytest.raises(ValueError, match="points"):
+        dmlo_rs.moving_network_images(points[:, :3], cylinder)
 
 
 def test_precision_and_recall_count_hits_and_leave_undefined_ratios_undefined() -> None:

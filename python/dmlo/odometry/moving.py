@@ -23,14 +23,13 @@ GRAPH = "moving.onnx"  # beside the model's frame.onnx
 
 def range_and_height(
     cloud: npt.NDArray[np.float32], cylinder: dmlo_rs.CylinderConfig
-) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.int64]]:
-    """The network's input images of a scan — range `[H, W]` (0 = empty) and height z of each cell's kept point
-    `[H, W]` (0 = empty) — and the kept point's index `[H, W]` (−1 = empty): one function for training
-    (`dmlo.train.moving`) and inference, so that both see the same input."""
-    projection = dmlo_rs.project(cloud, cylinder)
-    index = np.asarray(projection.index)
-    height = np.where(index >= 0, cloud[np.maximum(index, 0), 2], 0.0).astype(np.float32)
-    return np.asarray(projection.range), height, index
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """The network's input images of an N×4 scan — range `[H, W]` (0 = empty) and height z of each cell's kept
+    point `[H, W]` (0 = empty) — as the crate makes them (`odometry::moving::network_images`): one function
+    for training (`dmlo.train.moving`), this detector and the crate's odometry, so that all see the same
+    input."""
+    ranges, height = dmlo_rs.moving_network_images(np.ascontiguousarray(cloud, dtype=np.float32), cylinder)
+    return np.asarray(ranges), np.asarray(height)
 
 
 def moving_objects_graph(model_graph: Path) -> Path | None:
@@ -62,11 +61,11 @@ class MovingObjectDetector:
         sensor check's figure, which the scan left after removing them would understate)."""
         if len(cloud) == 0:
             return np.zeros(0, bool), 0.0
-        ranges, height, _ = range_and_height(cloud, self.cylinder)
+        ranges, height = range_and_height(cloud, self.cylinder)
         (probability,) = self._session.run(None, {"range": ranges[None], "height": height[None]})
-        moving = probability[0].ravel() > self.threshold
-        cells = np.asarray(dmlo_rs.point_cells(cloud, self.cylinder))
-        return (cells >= 0) & moving[np.maximum(cells, 0)], float(np.count_nonzero(ranges) / ranges.size)
+        # The crate's rule (`odometry::moving::flagged_points`), as its own odometry applies it.
+        moving = dmlo_rs.flagged_points(cloud, probability[0], self.cylinder, self.threshold)
+        return np.asarray(moving), float(np.count_nonzero(ranges) / ranges.size)
 
     def mask(self, cloud: npt.NDArray[np.float32]) -> npt.NDArray[np.bool_]:
         """True for the points on moving objects."""

@@ -44,7 +44,8 @@ class LabelledImages:
 def project_labelled(points: NDArray[np.float32], labels: NDArray[np.uint32], cylinder: dmlo_rs.CylinderConfig
                      ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
     """A labelled scan's range, height and moving target images (the target of a cell: its kept point's)."""
-    ranges, height, index = range_and_height(points, cylinder)
+    ranges, height = range_and_height(points, cylinder)
+    index = np.asarray(dmlo_rs.project(points, cylinder).index)
     return ranges, height, (index >= 0) & moving_mask(labels)[np.maximum(index, 0)]
 
 
