@@ -7,7 +7,7 @@
 //! | [`projection`] | Eq. 1, 4 | cylinder image of a scan and its inverse Φ⁻¹ |
 //! | [`ground_truth`] | Eq. 5–8 | per-cell training flow and validity for a pair with known motion |
 //! | [`dense_match`] | Eq. 2, 3, 11 | the network's matching stage on cached features (CPU) |
-//! | [`matches`] | §III-D | network output (flow + confidence) → 3D point pairs |
+//! | [`matches`](mod@matches) | §III-D | network output (flow + confidence) → 3D point pairs |
 //! | [`coherence`] | — | confidence weighted by how well a match agrees with its neighbours |
 //! | [`deskew`] | — | motion compensation of a spinning sensor's sweep (constant velocity) |
 //! | [`nms`] | §III-D-a | greedy non-maximum suppression on the cylinder grid |

@@ -27,5 +27,9 @@ pub mod motion;
 pub mod moving;
 pub mod pipeline;
 
+pub use config::OdometryConfig;
+pub use moving::MovingObjectNetwork;
+pub use pipeline::{EncodeAhead, FrameDiagnostics, FrameMatcher, Odometry, Scan};
+
 #[cfg(test)]
 mod tests;

@@ -2,7 +2,7 @@
 //! Ray casting for the LiDAR simulator: a [`Scene`] of analytic primitives (triangles, oriented boxes,
 //! vertical cylinders, axis-aligned ellipsoids) behind a bounding volume hierarchy, cast with rayon.
 //!
-//! The acceleration structure is our own binned-SAH BVH ([`bvh`]) rather than a crate such as `parry3d`:
+//! The acceleration structure is our own binned-SAH BVH (`bvh`) rather than a crate such as `parry3d`:
 //! the simulator needs only "closest hit along a ray" over four primitive kinds, and a ~200-line BVH over
 //! `f64` geometry keeps the crate's dependency tree small, is exact at the kilometre coordinates of a long
 //! drive (world frames are not re-centred), and casts a 64 × 2083 scan in tens of milliseconds.

@@ -45,7 +45,7 @@ pub struct FrameDiagnostics {
     /// The NDT start that won: "dmlo", "motion_model" or "standing".
     pub ndt_start: Option<String>,
     /// Points the moving-object network left out; `None` when it did not run (no network, or the caller's
-    /// flags came in [`Scan::moving`]).
+    /// flags came in [`super::Scan::moving`]).
     pub num_moving_predicted: Option<usize>,
     /// Fraction of the cylinder image's cells holding a point.
     #[serde(serialize_with = "rounded_option::<4, _>")]
