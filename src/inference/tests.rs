@@ -664,7 +664,7 @@ fn assert_flags_are_pythons(
             eprintln!("no shared KITTI scans: skipped");
             return;
         };
-        let (range, height) = network_images(&points, network.cylinder()).unwrap();
+        let (range, height) = network_images(points.as_flattened(), 4, network.cylinder()).unwrap();
         let probability = network.probability(&range, &height).unwrap();
         let worst = worst_sample_difference(&probability, &scan["probability"], step, name);
         assert!(worst < 1e-4, "{name}: probabilities {worst} from Python's");

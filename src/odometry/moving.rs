@@ -12,7 +12,7 @@
 //! onnxruntime (features `inference` / `onnxruntime`).
 
 use crate::error::{Error, Result};
-use crate::projection::{point_cells, project, CylinderConfig};
+use crate::projection::{point_cells, project_flat, CylinderConfig};
 
 /// A moving-object network: a scan's range and height images in, each cell's probability of a moving
 /// object out.
@@ -24,17 +24,19 @@ pub trait MovingObjectNetwork {
     fn probability(&self, range: &[f32], height: &[f32]) -> Result<Vec<f32>>;
 }
 
-/// The network's two input images of a scan: the range of each cell's kept point (Eq. 1) and its height
-/// `z`, both `H × W` with 0 where a cell is empty.
+/// The network's two input images of a flat `N × channels` scan (3 or 4 values a point, as
+/// [`project_flat`] takes it): the range of each cell's kept point (Eq. 1) and its height `z`, both
+/// `H × W` with 0 where a cell is empty.
 pub fn network_images(
-    points: &[[f32; 4]],
+    points: &[f32],
+    channels: usize,
     cylinder: &CylinderConfig,
 ) -> Result<(Vec<f32>, Vec<f32>)> {
-    let projection = project(points, cylinder)?;
+    let projection = project_flat(points, channels, cylinder)?;
     let height = projection
         .index
         .iter()
-        .map(|&i| usize::try_from(i).map_or(0.0, |i| points[i][2]))
+        .map(|&i| usize::try_from(i).map_or(0.0, |i| points[i * channels + 2]))
         .collect();
     Ok((projection.range, height))
 }
@@ -50,9 +52,10 @@ pub fn moving_points<N: MovingObjectNetwork + ?Sized>(
         return Ok(Vec::new());
     }
     let cylinder = network.cylinder();
-    let (range, height) = network_images(points, cylinder)?;
+    let points = points.as_flattened();
+    let (range, height) = network_images(points, 4, cylinder)?;
     let probability = network.probability(&range, &height)?;
-    flagged_points(points.as_flattened(), 4, &probability, cylinder, threshold)
+    flagged_points(points, 4, &probability, cylinder, threshold)
 }
 
 /// The points of a flat `N × channels` scan (3 or 4 values a point) in cells whose `probability` (`H × W`,
@@ -128,7 +131,7 @@ mod tests {
     fn the_images_hold_each_cells_kept_point() {
         let cylinder = CylinderConfig::kitti();
         let points = [[10.0, 0.0, -1.5, 0.3], [20.0, 0.0, -3.0, 0.3]]; // the same ray: the nearer one is kept
-        let (range, height) = network_images(&points, &cylinder).unwrap();
+        let (range, height) = network_images(points.as_flattened(), 4, &cylinder).unwrap();
         let filled: Vec<usize> = (0..range.len()).filter(|&i| range[i] > 0.0).collect();
         assert_eq!(filled.len(), 1);
         assert!((range[filled[0]] - (100.0f32 + 2.25).sqrt()).abs() < 1e-5);

@@ -32,12 +32,11 @@ fn moving_network_images<'py>(
         ));
     }
     let data = array.f32_data();
-    let cloud: Vec<[f32; 4]> = data
-        .chunks_exact(4)
-        .map(|p| [p[0], p[1], p[2], p[3]])
-        .collect();
+    let data: &[f32] = &data;
     let cylinder = config.inner;
-    let (range, height) = run(py, None, || moving::network_images(&cloud, &cylinder))?;
+    let (range, height) = run(py, None, || {
+        moving::network_images(data, columns, &cylinder)
+    })?;
     let (h, w) = (cylinder.height, cylinder.width);
     Ok((
         image_array(h, w, range)?.into_pyarray(py),

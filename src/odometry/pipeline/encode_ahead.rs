@@ -68,20 +68,21 @@ struct Encoded<F> {
 impl NextScan {
     /// The flags, image and features `register` would compute for this scan.
     fn prepare<M: FrameMatcher>(self, matcher: &M) -> Ahead<M::Features> {
-        let (flags, detected) = match &self.moving {
-            NextMoving::Given(flags) => (flags.clone(), false),
-            NextMoving::Detect(network, threshold) => (
-                moving_points(network.as_ref(), &self.points, *threshold).ok(),
-                true,
-            ),
-        };
-        let encoded = if detected && flags.is_none() {
-            None
-        } else {
-            self.encoded(matcher, flags.as_deref())
+        let (flags, encoded) = match &self.moving {
+            NextMoving::Given(given) => (None, self.encoded(matcher, given.as_deref())),
+            NextMoving::Detect(network, threshold) => {
+                match moving_points(network.as_ref(), &self.points, *threshold) {
+                    Ok(flags) => {
+                        let encoded = self.encoded(matcher, Some(&flags));
+                        (Some(flags), encoded)
+                    }
+                    // `register` runs the network again and reports its error.
+                    Err(_) => (None, None),
+                }
+            }
         };
         Ahead {
-            flags: if detected { flags } else { None },
+            flags,
             points: self.points,
             encoded,
         }
