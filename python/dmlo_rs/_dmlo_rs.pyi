@@ -347,13 +347,15 @@ def match_features(
     refine_scale: float,
     refine_offset: Literal["window", "peak_centroid"] = "window",
     stride: tuple[int, int] | None = None,
+    cells: npt.NDArray[np.bool_] | None = None,
     num_threads: int | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
     """The network's matching stage on the CPU (what match.onnx computes from two scans' cached features):
     (flow float32 [2, H, W] (Δrow, Δcol), confidence float32 [H, W] Q*). Features (1, C, h, w) or (C, h, w),
     coarse at `stride`, refine at full resolution; the scales are the model's learned softmax temperatures
     (the exported graphs' dmlo.similarity_scales); windows odd ≥ 3; stride None: the network's (4, 8);
-    non-finite features are refused."""
+    non-finite features are refused. `cells` (bool [H, W]): only the marked reference cells are matched, the
+    others get a NaN flow and confidence 0."""
 
 def sweep_times(
     points: npt.NDArray[np.float32] | npt.NDArray[np.float64],
@@ -729,7 +731,9 @@ class Odometry:
     end, the motion model, matching from the prediction, the local map, diagnostics), the network by
     `matcher`: an object with `cylinder` (CylinderConfig), `encode(image)` → features (any object; `image`
     [2, H, W] float32: range, reflectance), `match(reference, target)` → (flow [2, H, W], confidence [H, W])
-    float32, and optionally `uses_reflectance` (bool) — as `dmlo.odometry.matcher.OnnxMatcher`. An exception
+    float32, and optionally `uses_reflectance` (bool), `match_cells(reference, target, cells)` (the flow of the
+    reference cells marked in `cells`, bool [H, W]: those that hold a point; other cells' values are not read)
+    and `wide_match(reference, target, target_image)` — as `dmlo.odometry.matcher.CrateMatcher`. An exception
     the matcher raises comes through unchanged. `config_json`: `dmlo run`'s config.json text (None: the
     defaults; a bad setting raises ValueError naming it); `range_only`: the range-only model's matcher, run
     from the first scan without usable reflectance on; `allow_zero_reflectance`: without a range-only model,

@@ -88,7 +88,46 @@ pub fn match_features(
 ) -> Result<DenseFlow> {
     check_config(config)?;
     check_features(reference, target, config)?;
-    Ok(match_checked(reference, target, config, Grouping::Allowed))
+    Ok(match_checked(
+        reference,
+        target,
+        config,
+        None,
+        Grouping::Allowed,
+    ))
+}
+
+/// [`match_features`] for the reference cells marked in `cells` (row-major, one per full-resolution
+/// cell) only: their flow and confidence are those of [`match_features`] bit for bit; every other cell
+/// gets a NaN flow and confidence 0, and coarse cells whose block holds no marked cell are not matched.
+/// The odometry asks for the cells that hold a point: an empty cell's match is never read, and a
+/// quarter of a KITTI image is empty.
+pub fn match_features_of_cells(
+    reference: &ScanFeatures<'_>,
+    target: &ScanFeatures<'_>,
+    config: &DenseMatchConfig,
+    cells: &[bool],
+) -> Result<DenseFlow> {
+    check_config(config)?;
+    check_features(reference, target, config)?;
+    let (height, width) = (reference.refine.height, reference.refine.width);
+    if cells.len() != height * width {
+        return Err(Error::invalid(
+            "cells",
+            format!(
+                "{} marks for a {height}×{width} image ({} cells)",
+                cells.len(),
+                height * width
+            ),
+        ));
+    }
+    Ok(match_checked(
+        reference,
+        target,
+        config,
+        Some(cells),
+        Grouping::Allowed,
+    ))
 }
 
 /// Whether neighbouring cells may be matched in groups ([`GroupMatcher`]); tests compare both ways.
@@ -103,16 +142,36 @@ fn match_checked(
     reference: &ScanFeatures<'_>,
     target: &ScanFeatures<'_>,
     config: &DenseMatchConfig,
+    cells: Option<&[bool]>,
     grouping: Grouping,
 ) -> DenseFlow {
-    let coarse_origins = coarse_stage(&reference.coarse, &target.coarse, config, grouping);
+    let blocks = cells.map(|cells| marked_blocks(cells, &reference.coarse, config.stride));
+    let coarse_origins = coarse_stage(
+        &reference.coarse,
+        &target.coarse,
+        config,
+        blocks.as_deref(),
+        grouping,
+    );
     refine_stage(
         &reference.refine,
         &target.refine,
         &coarse_origins,
         config,
+        cells,
         grouping,
     )
+}
+
+/// Which coarse cells' blocks (`stride` rows × columns of the image) hold a marked cell.
+fn marked_blocks(cells: &[bool], coarse: &FeatureMap<'_>, stride: [usize; 2]) -> Vec<bool> {
+    let width = coarse.width * stride[1];
+    let mut blocks = vec![false; coarse.height * coarse.width];
+    for (cell, _) in cells.iter().enumerate().filter(|(_, &marked)| marked) {
+        let (row, col) = (cell / width, cell % width);
+        blocks[(row / stride[0]) * coarse.width + col / stride[1]] = true;
+    }
+    blocks
 }
 
 fn check_config(config: &DenseMatchConfig) -> Result<()> {
@@ -343,6 +402,7 @@ fn coarse_stage(
     reference: &FeatureMap<'_>,
     target: &FeatureMap<'_>,
     config: &DenseMatchConfig,
+    blocks: Option<&[bool]>,
     grouping: Grouping,
 ) -> Vec<[i64; 2]> {
     let (height, width) = (reference.height, reference.width);
@@ -360,6 +420,8 @@ fn coarse_stage(
         .par_chunks_mut(width)
         .enumerate()
         .for_each(|(row, row_origins)| {
+            // Unmarked blocks keep origin 0: nothing reads it.
+            let wanted = |col: usize| blocks.is_none_or(|blocks| blocks[row * width + col]);
             // Origin 0: each window is centred on its own cell, so the windows of a group are neighbours.
             let grouped_columns = if grouped { width / LANES * LANES } else { 0 };
             let mut groups = GroupMatcher::new(
@@ -369,6 +431,9 @@ fn coarse_stage(
                 config.coarse_scale,
             );
             for first_col in (0..grouped_columns).step_by(LANES) {
+                if !(first_col..first_col + LANES).any(wanted) {
+                    continue;
+                }
                 let found = groups.match_group(reference, row, first_col, (row, first_col));
                 let [rows, cols] = found.offset.map(|lanes| lanes.to_array());
                 for (lane, origin) in row_origins[first_col..][..LANES].iter_mut().enumerate() {
@@ -377,6 +442,9 @@ fn coarse_stage(
             }
             let mut cells = WindowMatcher::new(&padded, layout, config.coarse_scale);
             for (col, origin) in row_origins.iter_mut().enumerate().skip(grouped_columns) {
+                if !wanted(col) {
+                    continue;
+                }
                 let found =
                     cells.match_cell(reference, (row, col), (row, col), OffsetRule::BestWindow);
                 *origin = origin_of(found.offset);
@@ -390,6 +458,7 @@ fn refine_stage(
     target: &FeatureMap<'_>,
     coarse_origins: &[[i64; 2]],
     config: &DenseMatchConfig,
+    marked: Option<&[bool]>,
     grouping: Grouping,
 ) -> DenseFlow {
     let (height, width) = (reference.height, reference.width);
@@ -417,6 +486,10 @@ fn refine_stage(
             let block_origins =
                 &coarse_origins[(row / config.stride[0]) * coarse_width..][..coarse_width];
             let origin_of = |col: usize| block_origins[col / config.stride[1]];
+            let row_marks = marked.map(|marked| &marked[row * width..][..width]);
+            let wanted = |col: usize| row_marks.is_none_or(|marks| marks[col]);
+            // The walk over the row is the dense one (groups where they fit, else single cells), cells
+            // not wanted left out of it, so that a wanted cell's window is summed as the dense stage sums it.
             // Window centres are clamped into the image, as `clamp_origin` does.
             let mut col = 0;
             while col < width {
@@ -432,20 +505,32 @@ fn refine_stage(
                     && first_centre_col >= 0
                     && first_centre_col + (LANES as i64 - 1) < width as i64
                 {
-                    let centre_col = first_centre_col as usize;
-                    let found = groups.match_group(reference, row, col, (centre_row, centre_col));
-                    let [rows, cols] = found.offset.map(|lanes| lanes.to_array());
-                    let confidence = found.confidence.to_array();
-                    let shift = [
-                        centre_row as f32 - row as f32,
-                        centre_col as f32 - col as f32,
-                    ];
-                    for lane in 0..LANES {
-                        row_flow_rows[col + lane] = shift[0] + rows[lane];
-                        row_flow_cols[col + lane] = shift[1] + cols[lane];
-                        row_confidence[col + lane] = confidence[lane];
+                    let lanes = col..col + LANES;
+                    if lanes.clone().any(wanted) {
+                        let centre_col = first_centre_col as usize;
+                        let found =
+                            groups.match_group(reference, row, col, (centre_row, centre_col));
+                        let [rows, cols] = found.offset.map(|lanes| lanes.to_array());
+                        let confidence = found.confidence.to_array();
+                        let shift = [
+                            centre_row as f32 - row as f32,
+                            centre_col as f32 - col as f32,
+                        ];
+                        for lane in 0..LANES {
+                            row_flow_rows[col + lane] = shift[0] + rows[lane];
+                            row_flow_cols[col + lane] = shift[1] + cols[lane];
+                            row_confidence[col + lane] = confidence[lane];
+                        }
+                    }
+                    for unwanted in lanes.filter(|&c| !wanted(c)) {
+                        leave_unmatched(row_flow_rows, row_flow_cols, row_confidence, unwanted);
                     }
                     col += LANES;
+                    continue;
+                }
+                if !wanted(col) {
+                    leave_unmatched(row_flow_rows, row_flow_cols, row_confidence, col);
+                    col += 1;
                     continue;
                 }
                 let centre_col = first_centre_col.clamp(0, width as i64 - 1) as usize;
@@ -467,6 +552,18 @@ fn refine_stage(
         height,
         width,
     }
+}
+
+/// A cell the refine stage was not asked for: NaN flow, confidence 0.
+fn leave_unmatched(
+    flow_rows: &mut [f32],
+    flow_cols: &mut [f32],
+    confidence: &mut [f32],
+    col: usize,
+) {
+    flow_rows[col] = f32::NAN;
+    flow_cols[col] = f32::NAN;
+    confidence[col] = 0.0;
 }
 
 #[cfg(test)]

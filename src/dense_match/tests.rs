@@ -142,9 +142,9 @@ fn cells_matched_in_groups_match_as_they_do_one_by_one() {
         config.coarse_scale = 8.0;
         config.refine_scale = 8.0;
         let checked = match_features(&reference, &target, &config).unwrap();
-        let grouped = match_checked(&reference, &target, &config, Grouping::Allowed);
+        let grouped = match_checked(&reference, &target, &config, None, Grouping::Allowed);
         assert_eq!(checked, grouped);
-        let alone = match_checked(&reference, &target, &config, Grouping::CellByCell);
+        let alone = match_checked(&reference, &target, &config, None, Grouping::CellByCell);
         // Same offsets to the bit (the window sums run in the same order); Q* summed in another order.
         assert_eq!(grouped.flow, alone.flow, "case {seed}");
         for (a, b) in grouped.confidence.iter().zip(&alone.confidence) {
@@ -152,6 +152,74 @@ fn cells_matched_in_groups_match_as_they_do_one_by_one() {
             assert!(*a > 0.0 && *a <= 1.0, "Q* {a} is not a mass");
         }
     }
+}
+
+#[test]
+fn marked_cells_get_the_dense_match_and_the_others_none() {
+    // Masks as a scan's occupancy: empty top rows (the sky), holes scattered through the rest, a block
+    // with a single marked cell; and all cells marked.
+    let (channels, height, width, stride) = ((32, 8), 16, 128, [4, 8]);
+    let (coarse_h, coarse_w) = (height / stride[0], width / stride[1]);
+    let maps = [
+        features(channels.0, coarse_h, coarse_w, 5),
+        features(channels.1, height, width, 6),
+        features(channels.0, coarse_h, coarse_w, 7),
+        features(channels.1, height, width, 8),
+    ];
+    let map = |data, channels, height, width| FeatureMap {
+        data,
+        channels,
+        height,
+        width,
+    };
+    let reference = ScanFeatures {
+        coarse: map(&maps[0], channels.0, coarse_h, coarse_w),
+        refine: map(&maps[1], channels.1, height, width),
+    };
+    let target = ScanFeatures {
+        coarse: map(&maps[2], channels.0, coarse_h, coarse_w),
+        refine: map(&maps[3], channels.1, height, width),
+    };
+    let mut config = config();
+    (config.coarse_window, config.refine_window) = (15, 5);
+    (config.coarse_scale, config.refine_scale) = (8.0, 8.0);
+    let dense = match_features(&reference, &target, &config).unwrap();
+
+    let mut occupancy: Vec<bool> = (0..height * width)
+        .map(|cell| cell / width >= 5 && (cell * 7919) % 11 != 0)
+        .collect();
+    occupancy[2 * width + 77] = true;
+    let all = vec![true; height * width];
+    for (name, marks) in [("occupancy", &occupancy), ("all", &all)] {
+        let sparse = match_features_of_cells(&reference, &target, &config, marks).unwrap();
+        for (cell, &marked) in marks.iter().enumerate() {
+            let flow = [sparse.flow[cell], sparse.flow[height * width + cell]];
+            if marked {
+                let expected = [dense.flow[cell], dense.flow[height * width + cell]];
+                assert_eq!(flow, expected, "{name}: cell {cell}");
+                assert_relative_eq!(
+                    sparse.confidence[cell],
+                    dense.confidence[cell],
+                    max_relative = 1e-5
+                );
+            } else {
+                assert!(
+                    flow.iter().all(|v| v.is_nan()),
+                    "{name}: cell {cell} {flow:?}"
+                );
+                assert_eq!(sparse.confidence[cell], 0.0);
+            }
+        }
+    }
+    let all_marked = match_features_of_cells(&reference, &target, &config, &all).unwrap();
+    assert_eq!(all_marked, dense);
+
+    let message =
+        |marks: &[bool]| match match_features_of_cells(&reference, &target, &config, marks) {
+            Err(error) => error.to_string(),
+            Ok(_) => panic!("accepted {} marks", marks.len()),
+        };
+    assert!(message(&all[1..]).contains("cells"));
 }
 
 #[test]

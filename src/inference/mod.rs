@@ -202,6 +202,20 @@ impl<E: Encoder> FrameMatcher for LearnedMatcher<E> {
         LearnedMatcher::flow(self, reference, target)
     }
 
+    fn flow_of_cells(
+        &self,
+        reference: &EncodedScan,
+        target: &EncodedScan,
+        cells: &[bool],
+    ) -> Result<DenseFlow> {
+        dense_match::match_features_of_cells(
+            &reference.features(),
+            &target.features(),
+            &self.config,
+            cells,
+        )
+    }
+
     fn has_wide_window(&self) -> bool {
         self.wide.is_some()
     }

@@ -137,6 +137,24 @@ fn the_wide_window_is_the_bundled_frame_wide_graphs_and_matches_wider() {
     .unwrap();
     assert_eq!(wide, expected);
     assert!(graph_metadata("no/such/frame_wide.onnx").is_err());
+
+    // The model's own window on the cells that hold a point: the crate's stage asked for those.
+    let occupied: Vec<bool> = image[..image.len() / 2].iter().map(|&r| r > 0.0).collect();
+    let asked = matcher
+        .flow_of_cells(&reference, &target_features, &occupied)
+        .unwrap();
+    let expected = crate::dense_match::match_features_of_cells(
+        &reference.features(),
+        &target_features.features(),
+        matcher.config(),
+        &occupied,
+    )
+    .unwrap();
+    // NaN where not asked: compared bit for bit.
+    let bits = |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&asked.flow), bits(&expected.flow));
+    assert_eq!(asked.confidence, expected.confidence);
+    assert!(occupied.iter().any(|&o| !o) && asked.flow.iter().any(|v| v.is_nan()));
 }
 
 #[test]

@@ -120,6 +120,19 @@ pub trait FrameMatcher {
     }
     /// The flow of every `reference` cell into `target` and its confidence (§III-C).
     fn flow(&self, reference: &Self::Features, target: &Self::Features) -> Result<DenseFlow>;
+    /// The flow of the `reference` cells marked in `cells` (row-major, one per image cell) into
+    /// `target`; the other cells' flow is never read and may be anything (the crate's matching stage
+    /// leaves them NaN). The odometry asks for the cells that hold a point. By default every cell's
+    /// ([`FrameMatcher::flow`]).
+    fn flow_of_cells(
+        &self,
+        reference: &Self::Features,
+        target: &Self::Features,
+        cells: &[bool],
+    ) -> Result<DenseFlow> {
+        let _ = cells;
+        self.flow(reference, target)
+    }
     /// Whether the matcher runs its matching stage as the config's `matching_stage` asks: by default the
     /// crate's (`auto`, `crate`), not an exported matching graph (`graph`).
     fn runs_matching_stage(&self, stage: MatchingStage) -> bool {

@@ -1,6 +1,6 @@
 //! Binding of the network's matching stage on cached features (`dmlo_rs.match_features`).
 
-use numpy::{IntoPyArray, PyArray2, PyArray3};
+use numpy::{IntoPyArray, PyArray2, PyArray3, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
@@ -43,12 +43,13 @@ fn offset_rule(name: &str) -> PyResult<OffsetRule> {
 /// `dmlo.model`). Features `(1, C, h, w)` or `(C, h, w)`: coarse at `stride`, refine at full resolution.
 /// `coarse_scale` / `refine_scale` are the model's learned softmax temperatures (`exp` of its log
 /// scales); `refine_offset` is "window" (Eq. 11) or "peak_centroid"; `stride` (rows, cols) of the coarse
-/// features, None: the network's 4 × 8.
+/// features, None: the network's 4 × 8. `cells` (bool `[H, W]`): match only the marked reference cells
+/// (the others get a NaN flow and confidence 0); None: every cell.
 /// → (flow float32 `[2, H, W]` (Δrow, Δcol), confidence float32 `[H, W]`).
 #[pyfunction]
 #[pyo3(signature = (ref_coarse, ref_refine, tgt_coarse, tgt_refine, *, coarse_window, refine_window,
                     coarse_scale, refine_scale, refine_offset = "window", stride = None,
-                    num_threads = None))]
+                    cells = None, num_threads = None))]
 #[allow(clippy::too_many_arguments)]
 fn match_features<'py>(
     py: Python<'py>,
@@ -62,6 +63,7 @@ fn match_features<'py>(
     refine_scale: f32,
     refine_offset: &str,
     stride: Option<(Int, Int)>,
+    cells: Option<PyReadonlyArray2<'py, bool>>,
     num_threads: Option<Int>,
 ) -> PyResult<FlowArrays<'py>> {
     let coarse_window = count("coarse_window", coarse_window)?;
@@ -103,8 +105,21 @@ fn match_features<'py>(
         coarse: maps[2],
         refine: maps[3],
     };
-    let result = run(py, threads(num_threads)?, || {
-        dense_match::match_features(&reference, &target, &config)
+    let [_, height, width] = arrays[1].1;
+    let marks = match &cells {
+        Some(cells) if cells.shape() != [height, width] => {
+            return Err(shape_error(
+                "cells",
+                &format!("({height}, {width}) bool"),
+                cells.shape(),
+            ))
+        }
+        Some(cells) => Some(cells.as_array().iter().copied().collect::<Vec<bool>>()),
+        None => None,
+    };
+    let result = run(py, threads(num_threads)?, || match &marks {
+        Some(marks) => dense_match::match_features_of_cells(&reference, &target, &config, marks),
+        None => dense_match::match_features(&reference, &target, &config),
     })?;
     let (height, width) = (result.height, result.width);
     let flow = flow_array(height, width, result.flow)?;

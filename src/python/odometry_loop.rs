@@ -1,6 +1,7 @@
 //! Binding of the crate's per-frame odometry (`crate::odometry::pipeline::Odometry`) over a matcher
 //! written in Python: any object with `cylinder`, `encode(image)` and `match(reference, target)`, and
-//! optionally `wide_match(reference, target, target_image)` (the wide window), as
+//! optionally `match_cells(reference, target, cells)` (the flow of the marked reference cells only) and
+//! `wide_match(reference, target, target_image)` (the wide window), as
 //! `dmlo.odometry.matcher.OnnxMatcher` gives them, so the loop runs in the crate while the network runs
 //! wherever the caller runs it (onnxruntime in `dmlo`).
 
@@ -33,6 +34,7 @@ struct PythonMatcher {
     object: Py<PyAny>,
     cylinder: CylinderConfig,
     uses_reflectance: bool,
+    matches_cells: bool,
     wide_window: bool,
     raised: Raised,
 }
@@ -64,14 +66,15 @@ impl PythonMatcher {
                 )));
             }
         }
-        let wide_window = object
-            .getattr_opt("wide_match")?
-            .is_some_and(|m| m.is_callable());
+        let callable = |method: &str| -> PyResult<bool> {
+            Ok(object.getattr_opt(method)?.is_some_and(|m| m.is_callable()))
+        };
         Ok(PythonMatcher {
             object: object.clone().unbind(),
             cylinder: cylinder.inner,
             uses_reflectance,
-            wide_window,
+            matches_cells: callable("match_cells")?,
+            wide_window: callable("wide_match")?,
             raised: raised.clone(),
         })
     }
@@ -109,6 +112,26 @@ impl FrameMatcher for PythonMatcher {
             self.dense_flow(py, "match", &output)
         })
         .map_err(|e| self.failed("match", e))
+    }
+
+    fn flow_of_cells(
+        &self,
+        reference: &Py<PyAny>,
+        target: &Py<PyAny>,
+        cells: &[bool],
+    ) -> Result<DenseFlow> {
+        if !self.matches_cells {
+            return self.flow(reference, target);
+        }
+        Python::attach(|py| {
+            let (height, width) = (self.cylinder.height, self.cylinder.width);
+            let cells = PyArray1::from_slice(py, cells).reshape([height, width])?;
+            let output = self
+                .object
+                .call_method1(py, "match_cells", (reference, target, cells))?;
+            self.dense_flow(py, "match_cells", &output)
+        })
+        .map_err(|e| self.failed("match_cells", e))
     }
 
     /// The Python matcher was opened for the config's stage (`dmlo.odometry.matcher.OnnxMatcher`).

@@ -17,7 +17,7 @@ onnx = pytest.importorskip("onnx")
 import dmlo_rs  # noqa: E402
 from dmlo.export import export_onnx, similarity_scales  # noqa: E402
 from dmlo.model import Matcher, MatcherConfig  # noqa: E402
-from dmlo.odometry.matcher import ModelError, OnnxMatcher, default_model_path  # noqa: E402
+from dmlo.odometry.matcher import CrateMatcher, ModelError, OnnxMatcher, default_model_path  # noqa: E402
 
 from test_export import HEIGHT, WIDTH, calibrated_matcher, tied_cells  # noqa: E402
 from test_model import synthetic_pair  # noqa: E402
@@ -119,6 +119,26 @@ def test_crate_agrees_with_the_bundled_match_graph_on_kitti_scans(shared_data: P
         assert np.abs(want_flow).max() > 1  # a real motion between the frames, not a zero flow
 
 
+def test_the_occupied_cells_alone_are_matched_as_in_the_dense_stage(shared_data: Path) -> None:
+    # What the odometry asks for (`CrateMatcher.match_cells`): a real scan's cells that hold a point.
+    matcher = OnnxMatcher(default_model_path(), threads=2, matching_stage="crate")
+    images = kitti_images(shared_data, matcher)
+    ref, tgt = (matcher.encode(image) for image in images)
+    occupied = images[0][0] > 0
+    assert 0.5 < occupied.mean() < 0.95
+    dense_flow, dense_confidence = matcher.match(ref, tgt)
+    crate = CrateMatcher(matcher)
+    flow, confidence = crate.match_cells(ref, tgt, occupied)
+    np.testing.assert_array_equal(flow[:, occupied], dense_flow[:, occupied])
+    np.testing.assert_allclose(confidence[occupied], dense_confidence[occupied], rtol=1e-5)
+    assert np.isnan(flow[:, ~occupied]).all() and (confidence[~occupied] == 0).all()
+
+
+def test_a_matcher_in_its_graphs_matches_every_cell() -> None:
+    graph = OnnxMatcher(default_model_path(), threads=2, matching_stage="graph")
+    assert not hasattr(CrateMatcher(graph), "match_cells")
+
+
 def test_frame_in_the_crate_matches_the_frame_graph(shared_data: Path) -> None:
     graph = OnnxMatcher(default_model_path(), threads=2, matching_stage="graph")
     crate = OnnxMatcher(default_model_path(), threads=2)
@@ -203,6 +223,11 @@ def test_good_arguments_run_in_both_layouts_and_dtypes() -> None:
     np.testing.assert_allclose(squeezed[0], flow, atol=1e-6)
     strided = dmlo_rs.match_features(*[np.asfortranarray(a[0]) for a in arrays], **settings)
     np.testing.assert_array_equal(strided[0], squeezed[0])
+    marked = np.zeros((16, 64), bool)
+    marked[3:, ::3] = True
+    some_flow, some_confidence = dmlo_rs.match_features(*arrays, **settings, cells=marked)
+    np.testing.assert_array_equal(some_flow[:, marked], flow[:, marked])
+    assert np.isnan(some_flow[:, ~marked]).all() and (some_confidence[~marked] == 0).all()
 
 
 @pytest.mark.parametrize(
@@ -222,6 +247,8 @@ def test_good_arguments_run_in_both_layouts_and_dtypes() -> None:
         (lambda a, s: s.update(refine_offset="centroid"), "refine_offset"),
         (lambda a, s: s.update(stride=(0, 8)), "stride"),
         (lambda a, s: s.update(stride=(2, 8)), "stride"),
+        (lambda a, s: s.update(cells=np.ones((16, 63), bool)), r"cells: expected shape \(16, 64\) bool"),
+        (lambda a, s: s.update(cells=np.ones((16, 64), np.float32)), "cells"),
     ],
 )
 def test_bad_input_is_named(change, message) -> None:

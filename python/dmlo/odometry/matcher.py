@@ -238,12 +238,14 @@ class OnnxMatcher:
         return FrameOutput(features, flow[0], confidence[0])
 
     def match(
-        self, reference: Features, target: Features
+        self, reference: Features, target: Features, cells: npt.NDArray[np.bool_] | None = None
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """Flow `[2, H, W]` and confidence `[H, W]` from `reference` to `target`, both scans' cached
-        features (`match.onnx` beside `frame.onnx`, the same weights, or the crate): no scan is encoded again."""
+        features (`match.onnx` beside `frame.onnx`, the same weights, or the crate): no scan is encoded again.
+        `cells` (bool `[H, W]`): the reference cells whose flow is wanted; in the crate the others are left
+        out (NaN flow, confidence 0), the graph matches every cell."""
         if self.matching_stage == "crate":
-            return self._match_in_crate(reference, target)
+            return self._match_in_crate(reference, target, cells)
         if self._match_session is None:
             self._match_session = self._open_match_graph()
         flow, confidence = self._match_session.run(
@@ -267,7 +269,7 @@ class OnnxMatcher:
         return Features(coarse=coarse, refine=refine)
 
     def _match_in_crate(
-        self, reference: Features, target: Features
+        self, reference: Features, target: Features, cells: npt.NDArray[np.bool_] | None = None
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         assert self._scales is not None  # `_choose_stage` chose the crate only with them
         config = self.model_config
@@ -275,7 +277,7 @@ class OnnxMatcher:
             reference.coarse, reference.refine, target.coarse, target.refine,
             coarse_window=config["coarse_window"], refine_window=config["refine_window"],
             coarse_scale=self._scales["coarse"], refine_scale=self._scales["refine"],
-            refine_offset=config["refine_offset"], num_threads=self._threads,
+            refine_offset=config["refine_offset"], cells=cells, num_threads=self._threads,
         )
 
     def _same_weights(self, config: Any, kind: str) -> bool:
@@ -393,8 +395,9 @@ def _cylinder_from_metadata(values: dict[str, object], graph: Path) -> dmlo_rs.C
 
 class CrateMatcher:
     """`matcher` as the crate's odometry loop (`dmlo_rs.Odometry`) calls it: `encode`, `match`, `cylinder`,
-    `uses_reflectance`, and `wide_match` when the wide-window graph lies beside the model (opened on the first
-    pair far apart, with `threads` and `matching_stage` as the model's; an `OnnxMatcher`'s only).
+    `uses_reflectance`, `match_cells` when the crate matches (only the cells that hold a point: the loop reads
+    no other), and `wide_match` when the wide-window graph lies beside the model (opened on the first pair far
+    apart, with `threads` and `matching_stage` as the model's; an `OnnxMatcher`'s only).
 
     A matcher that matches in the crate (`OnnxMatcher` on a CPU) encodes each scan with `encoder.onnx`. Any
     other — the `frame` graph, which encodes a scan while matching the previous one against it (all of it on
@@ -412,6 +415,8 @@ class CrateMatcher:
         # The wide-window graph reads its model's features: a matcher of another kind has its own.
         if isinstance(matcher, OnnxMatcher) and matcher.path.with_name(WIDE_FRAME_GRAPH).is_file():
             self.wide_match = self._wide_match
+        if self._encodes_alone and isinstance(matcher, OnnxMatcher):
+            self.match_cells = self._match_cells
 
     def encode(self, image: npt.NDArray[np.float32]) -> Features | _Deferred:
         return self.matcher.encode(image) if self._encodes_alone else _Deferred(image)
@@ -431,6 +436,12 @@ class CrateMatcher:
             assert output.flow is not None and output.confidence is not None
             return output.flow, output.confidence
         return self.matcher.match(previous, self._features(target))
+
+    def _match_cells(
+        self, reference: Features, target: Features, cells: npt.NDArray[np.bool_]
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        assert isinstance(self.matcher, OnnxMatcher)
+        return self.matcher.match(reference, target, cells)
 
     def _features(self, features: Features | _Deferred) -> Features:
         if not isinstance(features, _Deferred):

@@ -213,6 +213,15 @@ where
         self.matcher.flow(reference, target)
     }
 
+    fn flow_of_cells(
+        &self,
+        reference: &M::Features,
+        target: &M::Features,
+        cells: &[bool],
+    ) -> Result<DenseFlow> {
+        self.matcher.flow_of_cells(reference, target, cells)
+    }
+
     fn runs_matching_stage(&self, stage: MatchingStage) -> bool {
         self.matcher.runs_matching_stage(stage)
     }

@@ -10,6 +10,18 @@ use crate::odometry::motion::{midpoint_motion, rigid_inverse, PairEvidence};
 use crate::pair::{match_pair, PairImages, PairMotion};
 
 impl<M: FrameMatcher> Odometry<M> {
+    /// The flow of the reference's cells that hold a point (`ref_range` > 0), the only ones the pair's
+    /// back end reads.
+    pub(super) fn occupied_flow(
+        &self,
+        reference: &M::Features,
+        ref_range: &[f32],
+        target: &M::Features,
+    ) -> Result<DenseFlow> {
+        let occupied: Vec<bool> = ref_range.iter().map(|&range| range > 0.0).collect();
+        self.matcher.flow_of_cells(reference, target, &occupied)
+    }
+
     /// The pair's back end on a flow (`leave_out`: reference cells not matched), tilt votes as the
     /// config says (`tilt_votes`) or one vote each.
     pub(super) fn match_flow(
@@ -52,7 +64,12 @@ impl<M: FrameMatcher> Odometry<M> {
             watch.lap("rematch", diagnostics);
             pair
         } else {
-            let flow = self.matcher.flow(&previous.features, features)?;
+            // Matched both ways, each direction's round trip reads the other's flow at any cell.
+            let flow = if self.config.matching.symmetric {
+                self.matcher.flow(&previous.features, features)?
+            } else {
+                self.occupied_flow(&previous.features, &previous.range, features)?
+            };
             watch.lap("matching", diagnostics);
             let pair = if self.config.matching.symmetric {
                 let (forward, backward) = self.matched_both_ways(

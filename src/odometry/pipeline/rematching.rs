@@ -216,9 +216,8 @@ impl<M: FrameMatcher> Odometry<M> {
                 }
             }
             let moved = self.project(&moved_cloud(reference, &estimate))?;
-            let flow = self
-                .matcher
-                .flow(&self.matcher.encode(&moved.image)?, tgt_features)?;
+            let encoded = self.matcher.encode(&moved.image)?;
+            let flow = self.occupied_flow(&encoded, &moved.range, tgt_features)?;
             let pair = self.match_flow(
                 &moved.range,
                 tgt_range,

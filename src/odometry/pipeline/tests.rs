@@ -11,12 +11,15 @@ use crate::test_scenes::yard_scan;
 /// A matcher that knows the truth: its "features" are the range image (with the order it was encoded
 /// in), its flow the ground-truth flow (Eq. 5–8) under the motion the test sets before each pair (its
 /// inverse for a pair matched back, from the newer scan to the older), full confidence where it is
-/// defined.
+/// defined. Asked for some cells only, it answers as the crate's matching stage does (the others NaN,
+/// confidence 0), and counts the cells whose asking differs from whether they hold a point (`asked_amiss`).
 struct OracleMatcher {
     cylinder: CylinderConfig,
     truth: Cell<Isometry3<f64>>,
     encoded: Cell<usize>,
     reads_reflectance: bool,
+    asked_for_cells: Cell<usize>,
+    asked_amiss: Cell<usize>,
 }
 
 impl OracleMatcher {
@@ -26,6 +29,8 @@ impl OracleMatcher {
             truth: Cell::new(Isometry3::identity()),
             encoded: Cell::new(0),
             reads_reflectance: true,
+            asked_for_cells: Cell::new(0),
+            asked_amiss: Cell::new(0),
         }
     }
 }
@@ -53,6 +58,28 @@ impl FrameMatcher for OracleMatcher {
             self.truth.get().inverse()
         };
         true_flow(&reference.1, &target.1, &motion, &self.cylinder)
+    }
+
+    fn flow_of_cells(
+        &self,
+        reference: &(usize, Vec<f32>),
+        target: &(usize, Vec<f32>),
+        cells: &[bool],
+    ) -> Result<DenseFlow> {
+        self.asked_for_cells.set(self.asked_for_cells.get() + 1);
+        let mut flow = self.flow(reference, target)?;
+        let cell_count = cells.len();
+        for (cell, (&asked, &range)) in cells.iter().zip(&reference.1).enumerate() {
+            if asked != (range > 0.0) {
+                self.asked_amiss.set(self.asked_amiss.get() + 1);
+            }
+            if !asked {
+                flow.flow[cell] = f32::NAN;
+                flow.flow[cell_count + cell] = f32::NAN;
+                flow.confidence[cell] = 0.0;
+            }
+        }
+        Ok(flow)
     }
 }
 
@@ -152,6 +179,9 @@ fn a_drive_follows_the_truth_with_and_without_the_map() {
         assert_eq!(diagnostics[0].map_keyframe, mapping.then_some(true));
         assert_eq!(odometry.reflectance_scale(), Some(ReflectanceScale::Unit));
         assert_eq!(odometry.poses().len(), 6);
+        // Every pair asked for the flow of the reference's cells that hold a point, and of no other.
+        assert_eq!(odometry.matcher.asked_for_cells.get(), 5);
+        assert_eq!(odometry.matcher.asked_amiss.get(), 0);
     }
 }
 
