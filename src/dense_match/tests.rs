@@ -51,6 +51,55 @@ fn shifted(
     target
 }
 
+/// Two scans' random features: `channels` (coarse, refine), the refine features `size` (rows, columns),
+/// the coarse ones at `stride`; seeds `seed + 1` to `seed + 4`.
+struct RandomPair {
+    maps: [Vec<f32>; 4],
+    channels: (usize, usize),
+    size: (usize, usize),
+    stride: [usize; 2],
+}
+
+impl RandomPair {
+    fn new(channels: (usize, usize), size: (usize, usize), stride: [usize; 2], seed: u64) -> Self {
+        let (height, width) = size;
+        let coarse = (height / stride[0], width / stride[1]);
+        let maps = [
+            features(channels.0, coarse.0, coarse.1, seed + 1),
+            features(channels.1, height, width, seed + 2),
+            features(channels.0, coarse.0, coarse.1, seed + 3),
+            features(channels.1, height, width, seed + 4),
+        ];
+        RandomPair {
+            maps,
+            channels,
+            size,
+            stride,
+        }
+    }
+
+    /// (reference, target).
+    fn scans(&self) -> (ScanFeatures<'_>, ScanFeatures<'_>) {
+        let (height, width) = self.size;
+        let coarse = (height / self.stride[0], width / self.stride[1]);
+        let scan = |first: usize| ScanFeatures {
+            coarse: FeatureMap {
+                data: &self.maps[first],
+                channels: self.channels.0,
+                height: coarse.0,
+                width: coarse.1,
+            },
+            refine: FeatureMap {
+                data: &self.maps[first + 1],
+                channels: self.channels.1,
+                height,
+                width,
+            },
+        };
+        (scan(0), scan(2))
+    }
+}
+
 fn config() -> DenseMatchConfig {
     DenseMatchConfig {
         coarse_window: 5,
@@ -114,28 +163,13 @@ fn cells_matched_in_groups_match_as_they_do_one_by_one() {
     for (seed, ((coarse_channels, refine_channels), (height, width), stride, windows)) in
         cases.into_iter().enumerate()
     {
-        let (coarse_h, coarse_w) = (height / stride[0], width / stride[1]);
-        let seed = 10 * seed as u64;
-        let maps = [
-            features(coarse_channels, coarse_h, coarse_w, seed + 1),
-            features(refine_channels, height, width, seed + 2),
-            features(coarse_channels, coarse_h, coarse_w, seed + 3),
-            features(refine_channels, height, width, seed + 4),
-        ];
-        let map = |data, channels, height, width| FeatureMap {
-            data,
-            channels,
-            height,
-            width,
-        };
-        let reference = ScanFeatures {
-            coarse: map(&maps[0], coarse_channels, coarse_h, coarse_w),
-            refine: map(&maps[1], refine_channels, height, width),
-        };
-        let target = ScanFeatures {
-            coarse: map(&maps[2], coarse_channels, coarse_h, coarse_w),
-            refine: map(&maps[3], refine_channels, height, width),
-        };
+        let pair = RandomPair::new(
+            (coarse_channels, refine_channels),
+            (height, width),
+            stride,
+            10 * seed as u64,
+        );
+        let (reference, target) = pair.scans();
         let mut config = config();
         (config.coarse_window, config.refine_window) = windows;
         config.stride = stride;
@@ -158,28 +192,9 @@ fn cells_matched_in_groups_match_as_they_do_one_by_one() {
 fn marked_cells_get_the_dense_match_and_the_others_none() {
     // Masks as a scan's occupancy: empty top rows (the sky), holes scattered through the rest, a block
     // with a single marked cell; and all cells marked.
-    let (channels, height, width, stride) = ((32, 8), 16, 128, [4, 8]);
-    let (coarse_h, coarse_w) = (height / stride[0], width / stride[1]);
-    let maps = [
-        features(channels.0, coarse_h, coarse_w, 5),
-        features(channels.1, height, width, 6),
-        features(channels.0, coarse_h, coarse_w, 7),
-        features(channels.1, height, width, 8),
-    ];
-    let map = |data, channels, height, width| FeatureMap {
-        data,
-        channels,
-        height,
-        width,
-    };
-    let reference = ScanFeatures {
-        coarse: map(&maps[0], channels.0, coarse_h, coarse_w),
-        refine: map(&maps[1], channels.1, height, width),
-    };
-    let target = ScanFeatures {
-        coarse: map(&maps[2], channels.0, coarse_h, coarse_w),
-        refine: map(&maps[3], channels.1, height, width),
-    };
+    let (height, width) = (16, 128);
+    let pair = RandomPair::new((32, 8), (height, width), [4, 8], 4);
+    let (reference, target) = pair.scans();
     let mut config = config();
     (config.coarse_window, config.refine_window) = (15, 5);
     (config.coarse_scale, config.refine_scale) = (8.0, 8.0);
