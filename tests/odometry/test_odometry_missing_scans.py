@@ -145,8 +145,8 @@ def test_the_wide_window_from_the_prediction_takes_over_when_the_models_own_find
         honest_match = odometry.matcher.match
         calls = []
 
-        def noisy_first_round(reference, target):  # type: ignore[no-untyped-def]
-            flow, confidence = honest_match(reference, target)
+        def noisy_first_round(reference, target, cells=None):  # type: ignore[no-untyped-def]
+            flow, confidence = honest_match(reference, target, cells)
             if len(odometry.poses) == 2 + GAP:  # the scan after the gap: its own pair, then the rounds
                 calls.append(1)
                 if len(calls) == 2:
