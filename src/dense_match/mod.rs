@@ -98,8 +98,9 @@ pub fn match_features(
 }
 
 /// [`match_features`] for the reference cells marked in `cells` (row-major, one per full-resolution
-/// cell) only: their flow and confidence are those of [`match_features`] bit for bit; every other cell
-/// gets a NaN flow and confidence 0, and coarse cells whose block holds no marked cell are not matched.
+/// cell) only: their flow is that of [`match_features`] bit for bit, their confidence too up to the
+/// order a window's mass is summed in (cells next to unmarked ones may be matched alone rather than in a
+/// group); every other cell gets a NaN flow and confidence 0, and coarse cells whose block holds no marked cell are not matched.
 /// The odometry asks for the cells that hold a point: an empty cell's match is never read, and a
 /// quarter of a KITTI image is empty.
 pub fn match_features_of_cells(

@@ -10,6 +10,21 @@ use crate::odometry::motion::{midpoint_motion, rigid_inverse, PairEvidence};
 use crate::pair::{match_pair, PairImages, PairMotion};
 
 impl<M: FrameMatcher> Odometry<M> {
+    /// A pair's forward flow: of the reference's cells that hold a point, or of every cell when matched
+    /// both ways (each direction's round trip reads the other's flow at any cell).
+    pub(super) fn forward_flow(
+        &self,
+        reference: &M::Features,
+        ref_range: &[f32],
+        target: &M::Features,
+    ) -> Result<DenseFlow> {
+        if self.config.matching.symmetric {
+            self.matcher.flow(reference, target)
+        } else {
+            self.occupied_flow(reference, ref_range, target)
+        }
+    }
+
     /// The flow of the reference's cells that hold a point (`ref_range` > 0), the only ones the pair's
     /// back end reads.
     pub(super) fn occupied_flow(
@@ -64,12 +79,7 @@ impl<M: FrameMatcher> Odometry<M> {
             watch.lap("rematch", diagnostics);
             pair
         } else {
-            // Matched both ways, each direction's round trip reads the other's flow at any cell.
-            let flow = if self.config.matching.symmetric {
-                self.matcher.flow(&previous.features, features)?
-            } else {
-                self.occupied_flow(&previous.features, &previous.range, features)?
-            };
+            let flow = self.forward_flow(&previous.features, &previous.range, features)?;
             watch.lap("matching", diagnostics);
             let pair = if self.config.matching.symmetric {
                 let (forward, backward) = self.matched_both_ways(

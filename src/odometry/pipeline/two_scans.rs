@@ -68,11 +68,7 @@ impl<M: FrameMatcher> Odometry<M> {
         let reference_features = self.matcher.encode(&reference.image)?;
         let target = self.project(&target_cloud)?;
         let target_features = self.matcher.encode(&target.image)?;
-        let flow = if self.config.matching.symmetric {
-            self.matcher.flow(&reference_features, &target_features)?
-        } else {
-            self.occupied_flow(&reference_features, &reference.range, &target_features)?
-        };
+        let flow = self.forward_flow(&reference_features, &reference.range, &target_features)?;
         let pair = if self.config.matching.symmetric {
             let (mut unused, mut watch) = (FrameDiagnostics::default(), Stopwatch::new());
             let (forward, backward) = self.matched_both_ways(
