@@ -348,6 +348,7 @@ def match_features(
     refine_offset: Literal["window", "peak_centroid"] = "window",
     stride: tuple[int, int] | None = None,
     cells: npt.NDArray[np.bool_] | None = None,
+    guide: npt.NDArray[np.float32] | None = None,
     num_threads: int | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
     """The network's matching stage on the CPU (what match.onnx computes from two scans' cached features):
@@ -355,7 +356,9 @@ def match_features(
     coarse at `stride`, refine at full resolution; the scales are the model's learned softmax temperatures
     (the exported graphs' dmlo.similarity_scales); windows odd ≥ 3; stride None: the network's (4, 8);
     non-finite features are refused. `cells` (bool [H, W]): only the marked reference cells are matched, the
-    others get a NaN flow and confidence 0."""
+    others get a NaN flow and confidence 0. `guide` (float32 [H, W, 2]): each reference cell's expected flow
+    (NaN: none), e.g. where a predicted motion takes its point; each coarse window is centred where its
+    block's cells are expected to land (their median), so the flow may exceed the window."""
 
 def sweep_times(
     points: npt.NDArray[np.float32] | npt.NDArray[np.float64],

@@ -93,6 +93,7 @@ pub fn match_features(
         target,
         config,
         None,
+        None,
         Grouping::Allowed,
     ))
 }
@@ -127,8 +128,97 @@ pub fn match_features_of_cells(
         target,
         config,
         Some(cells),
+        None,
         Grouping::Allowed,
     ))
+}
+
+/// [`match_features_of_cells`] (every cell when `cells` is `None`) with the coarse windows placed where
+/// the reference cells are expected to land: `expected` holds each full-resolution cell's expected flow
+/// (Δrow, Δcol in pixels, row-major; NaN where nothing is expected, e.g. an empty cell), and the coarse
+/// window of each block is centred on its cell moved by the median expected flow of the block's cells
+/// (in coarse cells, rounded; clamped into the image). A predicted motion gives such a guide (where each
+/// cell's point lands under it): the flow may then exceed the coarse window's reach without the reference
+/// being moved and encoded again. With no expectation anywhere this is [`match_features_of_cells`] bit for
+/// bit.
+pub fn match_features_guided(
+    reference: &ScanFeatures<'_>,
+    target: &ScanFeatures<'_>,
+    config: &DenseMatchConfig,
+    cells: Option<&[bool]>,
+    expected: &[[f32; 2]],
+) -> Result<DenseFlow> {
+    check_config(config)?;
+    check_features(reference, target, config)?;
+    let (height, width) = (reference.refine.height, reference.refine.width);
+    for (name, len) in [
+        ("cells", cells.map(<[bool]>::len)),
+        ("expected", Some(expected.len())),
+    ] {
+        if let Some(len) = len.filter(|&len| len != height * width) {
+            return Err(Error::invalid(
+                name,
+                format!(
+                    "{len} values for a {height}×{width} image ({} cells)",
+                    height * width
+                ),
+            ));
+        }
+    }
+    let guide = coarse_guide(expected, &reference.coarse, config.stride);
+    Ok(match_checked(
+        reference,
+        target,
+        config,
+        cells,
+        Some(&guide),
+        Grouping::Allowed,
+    ))
+}
+
+/// Per coarse cell, the median expected flow of its block's cells in coarse cells, rounded half to even
+/// (0 where no cell of the block expects anything).
+fn coarse_guide(
+    expected: &[[f32; 2]],
+    coarse: &FeatureMap<'_>,
+    stride: [usize; 2],
+) -> Vec<[i32; 2]> {
+    let width = coarse.width * stride[1];
+    let median = |values: &mut Vec<f32>| -> f32 {
+        let middle = values.len() / 2;
+        let (_, value, _) = values.select_nth_unstable_by(middle, f32::total_cmp);
+        *value
+    };
+    let mut rows = Vec::with_capacity(stride[0] * stride[1]);
+    let mut cols = Vec::with_capacity(stride[0] * stride[1]);
+    (0..coarse.height * coarse.width)
+        .map(|block| {
+            let (block_row, block_col) = (block / coarse.width, block % coarse.width);
+            rows.clear();
+            cols.clear();
+            for row in block_row * stride[0]..(block_row + 1) * stride[0] {
+                let first = row * width + block_col * stride[1];
+                for &[d_row, d_col] in &expected[first..first + stride[1]] {
+                    if d_row.is_finite() && d_col.is_finite() {
+                        rows.push(d_row);
+                        cols.push(d_col);
+                    }
+                }
+            }
+            if rows.is_empty() {
+                return [0, 0];
+            }
+            let to_coarse = |pixels: f32, stride: usize| {
+                (pixels / stride as f32)
+                    .round_ties_even()
+                    .clamp(i32::MIN as f32, i32::MAX as f32) as i32
+            };
+            [
+                to_coarse(median(&mut rows), stride[0]),
+                to_coarse(median(&mut cols), stride[1]),
+            ]
+        })
+        .collect()
 }
 
 /// Whether neighbouring cells may be matched in groups ([`GroupMatcher`]); tests compare both ways.
@@ -144,6 +234,7 @@ fn match_checked(
     target: &ScanFeatures<'_>,
     config: &DenseMatchConfig,
     cells: Option<&[bool]>,
+    guide: Option<&[[i32; 2]]>,
     grouping: Grouping,
 ) -> DenseFlow {
     let blocks = cells.map(|cells| marked_blocks(cells, &reference.coarse, config.stride));
@@ -152,6 +243,7 @@ fn match_checked(
         &target.coarse,
         config,
         blocks.as_deref(),
+        guide,
         grouping,
     );
     refine_stage(
@@ -398,12 +490,14 @@ fn groups_fit(map: &FeatureMap<'_>, grouping: Grouping) -> bool {
 }
 
 /// Unclamped integer window origin of every coarse cell, in full-resolution pixels (Δrow, Δcol): the
-/// coarse match times the stride, rounded half to even like `torch.round`.
+/// coarse match times the stride, rounded half to even like `torch.round`. Each cell's window is centred on
+/// the cell moved by its `guide` offset (coarse cells; none: on the cell itself), clamped into the image.
 fn coarse_stage(
     reference: &FeatureMap<'_>,
     target: &FeatureMap<'_>,
     config: &DenseMatchConfig,
     blocks: Option<&[bool]>,
+    guide: Option<&[[i32; 2]]>,
     grouping: Grouping,
 ) -> Vec<[i64; 2]> {
     let (height, width) = (reference.height, reference.width);
@@ -423,32 +517,55 @@ fn coarse_stage(
         .for_each(|(row, row_origins)| {
             // Unmarked blocks keep origin 0: nothing reads it.
             let wanted = |col: usize| blocks.is_none_or(|blocks| blocks[row * width + col]);
-            // Origin 0: each window is centred on its own cell, so the windows of a group are neighbours.
-            let grouped_columns = if grouped { width / LANES * LANES } else { 0 };
+            let guide_of = |col: usize| guide.map_or([0, 0], |guide| guide[row * width + col]);
             let mut groups = GroupMatcher::new(
                 &padded,
                 reference,
                 config.coarse_window,
                 config.coarse_scale,
             );
-            for first_col in (0..grouped_columns).step_by(LANES) {
-                if !(first_col..first_col + LANES).any(wanted) {
-                    continue;
-                }
-                let found = groups.match_group(reference, row, first_col, (row, first_col));
-                let [rows, cols] = found.offset.map(|lanes| lanes.to_array());
-                for (lane, origin) in row_origins[first_col..][..LANES].iter_mut().enumerate() {
-                    *origin = origin_of([rows[lane], cols[lane]]);
-                }
-            }
             let mut cells = WindowMatcher::new(&padded, layout, config.coarse_scale);
-            for (col, origin) in row_origins.iter_mut().enumerate().skip(grouped_columns) {
-                if !wanted(col) {
+            // The walk of the refine stage: groups of neighbouring cells whose windows are neighbours too
+            // (the same guide, no centre clamped; unguided, every full group of the row), else single cells.
+            let grouped_columns = if grouped { width / LANES * LANES } else { 0 };
+            let mut col = 0;
+            while col < width {
+                let [guide_row, guide_col] = guide_of(col);
+                let centre_row =
+                    (row as i64 + guide_row as i64).clamp(0, height as i64 - 1) as usize;
+                let first_centre_col = col as i64 + guide_col as i64;
+                let last = col + LANES - 1;
+                if last < grouped_columns
+                    && (col + 1..=last).all(|c| guide_of(c) == [guide_row, guide_col])
+                    && first_centre_col >= 0
+                    && first_centre_col + (LANES as i64 - 1) < width as i64
+                {
+                    if (col..=last).any(wanted) {
+                        let centre = (centre_row, first_centre_col as usize);
+                        let found = groups.match_group(reference, row, col, centre);
+                        let [rows, cols] = found.offset.map(|lanes| lanes.to_array());
+                        let shift = [centre.0 as f32 - row as f32, centre.1 as f32 - col as f32];
+                        for (lane, origin) in row_origins[col..][..LANES].iter_mut().enumerate() {
+                            *origin = origin_of([shift[0] + rows[lane], shift[1] + cols[lane]]);
+                        }
+                    }
+                    col += LANES;
                     continue;
                 }
-                let found =
-                    cells.match_cell(reference, (row, col), (row, col), OffsetRule::BestWindow);
-                *origin = origin_of(found.offset);
+                if wanted(col) {
+                    let centre_col = first_centre_col.clamp(0, width as i64 - 1) as usize;
+                    let found = cells.match_cell(
+                        reference,
+                        (row, col),
+                        (centre_row, centre_col),
+                        OffsetRule::BestWindow,
+                    );
+                    row_origins[col] = origin_of([
+                        (centre_row as f32 - row as f32) + found.offset[0],
+                        (centre_col as f32 - col as f32) + found.offset[1],
+                    ]);
+                }
+                col += 1;
             }
         });
     origins

@@ -176,9 +176,16 @@ fn cells_matched_in_groups_match_as_they_do_one_by_one() {
         config.coarse_scale = 8.0;
         config.refine_scale = 8.0;
         let checked = match_features(&reference, &target, &config).unwrap();
-        let grouped = match_checked(&reference, &target, &config, None, Grouping::Allowed);
+        let grouped = match_checked(&reference, &target, &config, None, None, Grouping::Allowed);
         assert_eq!(checked, grouped);
-        let alone = match_checked(&reference, &target, &config, None, Grouping::CellByCell);
+        let alone = match_checked(
+            &reference,
+            &target,
+            &config,
+            None,
+            None,
+            Grouping::CellByCell,
+        );
         // Same offsets to the bit (the window sums run in the same order); Q* summed in another order.
         assert_eq!(grouped.flow, alone.flow, "case {seed}");
         for (a, b) in grouped.confidence.iter().zip(&alone.confidence) {
@@ -292,4 +299,143 @@ fn bad_shapes_settings_and_values_are_named() {
     let mut too_wide = config();
     too_wide.refine_window = 1_000_001;
     assert!(message(match_features(&good, &good, &too_wide)).starts_with("refine_window"));
+}
+
+#[test]
+fn guided_windows_reach_a_shift_beyond_the_window() {
+    // The scene moved by (4, 48) pixels = (1, 6) coarse cells; the coarse window (5: ±2 cells) cannot
+    // reach it from each cell, the windows placed by the expected flow can, even a few pixels off.
+    let (channels, height, width) = (16, 16, 256);
+    let (coarse_height, coarse_width) = (height / 4, width / 8);
+    let coarse_ref = features(channels, coarse_height, coarse_width, 1);
+    let coarse_tgt = shifted(&coarse_ref, channels, coarse_height, coarse_width, (1, 6));
+    let refine_ref = features(channels, height, width, 2);
+    let refine_tgt = shifted(&refine_ref, channels, height, width, (4, 48));
+    let map = |data, height, width| FeatureMap {
+        data,
+        channels,
+        height,
+        width,
+    };
+    let reference = ScanFeatures {
+        coarse: map(&coarse_ref, coarse_height, coarse_width),
+        refine: map(&refine_ref, height, width),
+    };
+    let target = ScanFeatures {
+        coarse: map(&coarse_tgt, coarse_height, coarse_width),
+        refine: map(&refine_tgt, height, width),
+    };
+    let config = config();
+    // Inside: cells whose coarse cell, moved, and refine window stay in the image.
+    let inside = |cell: usize| (cell / width) < 8 && (cell % width) < width - 64;
+    let reached = |flow: &DenseFlow| {
+        (0..height * width)
+            .filter(|&cell| inside(cell))
+            .all(|cell| {
+                (flow.flow[cell] - 4.0).abs() < 0.51
+                    && (flow.flow[height * width + cell] - 48.0).abs() < 0.51
+            })
+    };
+    assert!(!reached(
+        &match_features(&reference, &target, &config).unwrap()
+    ));
+    // A cell that expects nothing (NaN) leaves its block to the others' median.
+    let expected: Vec<[f32; 2]> = (0..height * width)
+        .map(|cell| match cell % 5 {
+            0 => [f32::NAN, f32::NAN],
+            1 => [3.2, 45.0],
+            _ => [5.0, 50.5],
+        })
+        .collect();
+    let guided = match_features_guided(&reference, &target, &config, None, &expected).unwrap();
+    assert!(reached(&guided));
+    for cell in (0..height * width).filter(|&cell| inside(cell)) {
+        assert!(guided.confidence[cell] > 0.5, "cell {cell}");
+    }
+}
+
+#[test]
+fn guided_windows_with_no_expectation_are_the_plain_match() {
+    let (height, width) = (16, 128);
+    let pair = RandomPair::new((32, 8), (height, width), [4, 8], 7);
+    let (reference, target) = pair.scans();
+    let mut config = config();
+    (config.coarse_window, config.refine_window) = (15, 5);
+    (config.coarse_scale, config.refine_scale) = (8.0, 8.0);
+    let nothing = vec![[f32::NAN; 2]; height * width];
+    let dense = match_features(&reference, &target, &config).unwrap();
+    let guided = match_features_guided(&reference, &target, &config, None, &nothing).unwrap();
+    assert_eq!(guided, dense);
+    let marks: Vec<bool> = (0..height * width).map(|cell| cell % 3 != 0).collect();
+    let sparse = match_features_of_cells(&reference, &target, &config, &marks).unwrap();
+    let guided =
+        match_features_guided(&reference, &target, &config, Some(&marks), &nothing).unwrap();
+    // Bit for bit, NaN flows of the unmarked cells included.
+    let bits = |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&guided.flow), bits(&sparse.flow));
+    assert_eq!(bits(&guided.confidence), bits(&sparse.confidence));
+}
+
+#[test]
+fn guided_cells_matched_in_groups_match_as_they_do_one_by_one() {
+    // Guides that change from block to block (groups split where neighbours' windows part) and reach
+    // past the borders (centres clamped).
+    let (height, width) = (16, 192);
+    let pair = RandomPair::new((32, 8), (height, width), [4, 8], 9);
+    let (reference, target) = pair.scans();
+    let mut config = config();
+    (config.coarse_window, config.refine_window) = (15, 7);
+    (config.coarse_scale, config.refine_scale) = (8.0, 8.0);
+    let expected: Vec<[f32; 2]> = (0..height * width)
+        .map(|cell| {
+            let (row, col) = ((cell / width) as f32, (cell % width) as f32);
+            [(row - 8.0) * 1.5, col - 96.0]
+        })
+        .collect();
+    let guide = coarse_guide(&expected, &reference.coarse, config.stride);
+    assert!(guide.iter().any(|g| g[1] > 8) && guide.iter().any(|g| g[1] < -8));
+    let grouped = match_checked(
+        &reference,
+        &target,
+        &config,
+        None,
+        Some(&guide),
+        Grouping::Allowed,
+    );
+    assert_eq!(
+        grouped,
+        match_features_guided(&reference, &target, &config, None, &expected).unwrap()
+    );
+    let alone = match_checked(
+        &reference,
+        &target,
+        &config,
+        None,
+        Some(&guide),
+        Grouping::CellByCell,
+    );
+    assert_eq!(grouped.flow, alone.flow);
+    for (a, b) in grouped.confidence.iter().zip(&alone.confidence) {
+        assert_relative_eq!(*a, *b, max_relative = 1e-5);
+    }
+}
+
+#[test]
+fn a_guide_of_the_wrong_size_is_named() {
+    let pair = RandomPair::new((32, 8), (16, 64), [4, 8], 3);
+    let (reference, target) = pair.scans();
+    let message = |cells: Option<&[bool]>, expected: &[[f32; 2]]| match match_features_guided(
+        &reference,
+        &target,
+        &config(),
+        cells,
+        expected,
+    ) {
+        Err(error) => error.to_string(),
+        Ok(_) => panic!("accepted"),
+    };
+    let expected = vec![[0.0f32; 2]; 16 * 64];
+    assert!(message(None, &expected[1..]).starts_with("expected"));
+    let marks = vec![true; 16 * 64 - 1];
+    assert!(message(Some(&marks), &expected).starts_with("cells"));
 }

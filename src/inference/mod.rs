@@ -216,6 +216,23 @@ impl<E: Encoder> FrameMatcher for LearnedMatcher<E> {
         )
     }
 
+    fn guided_flow_of_cells(
+        &self,
+        reference: &EncodedScan,
+        target: &EncodedScan,
+        cells: &[bool],
+        expected: &[[f32; 2]],
+    ) -> Result<Option<DenseFlow>> {
+        dense_match::match_features_guided(
+            &reference.features(),
+            &target.features(),
+            &self.config,
+            Some(cells),
+            expected,
+        )
+        .map(Some)
+    }
+
     fn has_wide_window(&self) -> bool {
         self.wide.is_some()
     }

@@ -149,6 +149,9 @@ pub struct MotionModelSection {
     pub match_from_prediction_m: Option<f64>,
     /// Matching rounds from the prediction at most; `None`: 1 with mapping, 2 without.
     pub prediction_rounds: Option<u64>,
+    /// Match from the prediction by placing the coarse windows where it takes each cell first; the
+    /// reference is moved and encoded again only when that pair gives way. `None`: with mapping only.
+    pub guided_windows: Option<bool>,
 }
 
 impl Default for MotionModelSection {
@@ -163,6 +166,7 @@ impl Default for MotionModelSection {
             prediction_horizon: 20,
             match_from_prediction_m: Some(1.5),
             prediction_rounds: None,
+            guided_windows: None,
         }
     }
 }
@@ -489,6 +493,15 @@ impl OdometryConfig {
             degeneracy_threshold: p.degeneracy_threshold,
             rotation_degeneracy_threshold: p.rotation_degeneracy_threshold,
         }
+    }
+
+    /// Whether pairs matched from the prediction place their coarse windows by it first: the setting, or
+    /// with mapping only (its NDT takes out the decimetres that the moved reference's rounds would spare
+    /// frame-to-frame DMLO).
+    pub fn guided_windows(&self) -> bool {
+        self.motion_model
+            .guided_windows
+            .unwrap_or(self.mapping.enabled)
     }
 
     /// Matching rounds from the prediction: the setting, or 1 with mapping and 2 without.

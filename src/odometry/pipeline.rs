@@ -133,6 +133,21 @@ pub trait FrameMatcher {
         let _ = cells;
         self.flow(reference, target)
     }
+    /// The flow of the marked `reference` cells into `target` with the coarse windows placed where the
+    /// cells are `expected` to land (each cell's expected flow, Δrow and Δcol in pixels, NaN where none;
+    /// [`crate::dense_match::match_features_guided`]): the odometry's guess at a pair whose motion
+    /// outgrows the network's window, instead of moving the reference by the prediction and encoding it
+    /// again. `None`: the matcher cannot place its windows (the default); the reference is then moved.
+    fn guided_flow_of_cells(
+        &self,
+        reference: &Self::Features,
+        target: &Self::Features,
+        cells: &[bool],
+        expected: &[[f32; 2]],
+    ) -> Result<Option<DenseFlow>> {
+        let _ = (reference, target, cells, expected);
+        Ok(None)
+    }
     /// Whether the matcher runs its matching stage as the config's `matching_stage` asks: by default the
     /// crate's (`auto`, `crate`), not an exported matching graph (`graph`).
     fn runs_matching_stage(&self, stage: MatchingStage) -> bool {

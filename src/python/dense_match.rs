@@ -1,6 +1,8 @@
 //! Binding of the network's matching stage on cached features (`dmlo_rs.match_features`).
 
-use numpy::{IntoPyArray, PyArray2, PyArray3, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{
+    IntoPyArray, PyArray2, PyArray3, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods,
+};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
@@ -44,12 +46,15 @@ fn offset_rule(name: &str) -> PyResult<OffsetRule> {
 /// `coarse_scale` / `refine_scale` are the model's learned softmax temperatures (`exp` of its log
 /// scales); `refine_offset` is "window" (Eq. 11) or "peak_centroid"; `stride` (rows, cols) of the coarse
 /// features, None: the network's 4 × 8. `cells` (bool `[H, W]`): match only the marked reference cells
-/// (the others get a NaN flow and confidence 0); None: every cell.
+/// (the others get a NaN flow and confidence 0); None: every cell. `guide` (float32 `[H, W, 2]`): each
+/// cell's expected flow (Δrow, Δcol; NaN: none), e.g. where a predicted motion takes the cell's point;
+/// each coarse window is then centred where its block's cells are expected to land (their median), so
+/// that the flow may exceed the window; None: every window centred on its own cell.
 /// → (flow float32 `[2, H, W]` (Δrow, Δcol), confidence float32 `[H, W]`).
 #[pyfunction]
 #[pyo3(signature = (ref_coarse, ref_refine, tgt_coarse, tgt_refine, *, coarse_window, refine_window,
                     coarse_scale, refine_scale, refine_offset = "window", stride = None,
-                    cells = None, num_threads = None))]
+                    cells = None, guide = None, num_threads = None))]
 #[allow(clippy::too_many_arguments)]
 fn match_features<'py>(
     py: Python<'py>,
@@ -64,6 +69,7 @@ fn match_features<'py>(
     refine_offset: &str,
     stride: Option<(Int, Int)>,
     cells: Option<PyReadonlyArray2<'py, bool>>,
+    guide: Option<PyReadonlyArray3<'py, f32>>,
     num_threads: Option<Int>,
 ) -> PyResult<FlowArrays<'py>> {
     let coarse_window = count("coarse_window", coarse_window)?;
@@ -117,9 +123,37 @@ fn match_features<'py>(
         Some(cells) => Some(cells.as_array().iter().copied().collect::<Vec<bool>>()),
         None => None,
     };
-    let result = run(py, threads(num_threads)?, || match &marks {
-        Some(marks) => dense_match::match_features_of_cells(&reference, &target, &config, marks),
-        None => dense_match::match_features(&reference, &target, &config),
+    let expected = match &guide {
+        Some(guide) if guide.shape() != [height, width, 2] => {
+            return Err(shape_error(
+                "guide",
+                &format!("({height}, {width}, 2) float32"),
+                guide.shape(),
+            ))
+        }
+        Some(guide) => {
+            let values: Vec<f32> = guide.as_array().iter().copied().collect();
+            Some(
+                values
+                    .chunks_exact(2)
+                    .map(|pair| [pair[0], pair[1]])
+                    .collect::<Vec<[f32; 2]>>(),
+            )
+        }
+        None => None,
+    };
+    let result = run(py, threads(num_threads)?, || match (&marks, &expected) {
+        (_, Some(expected)) => dense_match::match_features_guided(
+            &reference,
+            &target,
+            &config,
+            marks.as_deref(),
+            expected,
+        ),
+        (Some(marks), None) => {
+            dense_match::match_features_of_cells(&reference, &target, &config, marks)
+        }
+        (None, None) => dense_match::match_features(&reference, &target, &config),
     })?;
     let (height, width) = (result.height, result.width);
     let flow = flow_array(height, width, result.flow)?;

@@ -35,6 +35,7 @@ struct PythonMatcher {
     cylinder: CylinderConfig,
     uses_reflectance: bool,
     matches_cells: bool,
+    guides_windows: bool,
     wide_window: bool,
     raised: Raised,
 }
@@ -74,6 +75,7 @@ impl PythonMatcher {
             cylinder: cylinder.inner,
             uses_reflectance,
             matches_cells: callable("match_cells")?,
+            guides_windows: callable("match_guided")?,
             wide_window: callable("wide_match")?,
             raised: raised.clone(),
         })
@@ -132,6 +134,32 @@ impl FrameMatcher for PythonMatcher {
             self.dense_flow(py, "match_cells", &output)
         })
         .map_err(|e| self.failed("match_cells", e))
+    }
+
+    fn guided_flow_of_cells(
+        &self,
+        reference: &Py<PyAny>,
+        target: &Py<PyAny>,
+        cells: &[bool],
+        expected: &[[f32; 2]],
+    ) -> Result<Option<DenseFlow>> {
+        if !self.guides_windows {
+            return Ok(None);
+        }
+        Python::attach(|py| {
+            let (height, width) = (self.cylinder.height, self.cylinder.width);
+            let cells = PyArray1::from_slice(py, cells).reshape([height, width])?;
+            let expected =
+                PyArray1::from_slice(py, expected.as_flattened()).reshape([height, width, 2])?;
+            let output = self.object.call_method1(
+                py,
+                "match_guided",
+                (reference, target, cells, expected),
+            )?;
+            self.dense_flow(py, "match_guided", &output)
+        })
+        .map(Some)
+        .map_err(|e| self.failed("match_guided", e))
     }
 
     /// The Python matcher was opened for the config's stage (`dmlo.odometry.matcher.OnnxMatcher`).

@@ -137,6 +137,38 @@ def test_the_occupied_cells_alone_are_matched_as_in_the_dense_stage(shared_data:
 def test_a_matcher_in_its_graphs_matches_every_cell() -> None:
     graph = OnnxMatcher(default_model_path(), threads=2, matching_stage="graph")
     assert not hasattr(CrateMatcher(graph), "match_cells")
+    assert not hasattr(CrateMatcher(graph), "match_guided")
+    height, width = graph.cylinder.height, graph.cylinder.width
+    features = graph.encode(np.zeros((2, height, width), np.float32))
+    with pytest.raises(ModelError, match="guide"):
+        graph.match(features, features, guide=np.zeros((height, width, 2), np.float32))
+
+
+def test_windows_placed_by_the_expected_flow_reach_a_turn_beyond_the_window(shared_data: Path) -> None:
+    # A real scan and the same scan turned by 20° (its image rolled by 100 columns): the model's coarse
+    # window (±7 coarse cells, ±56 columns) cannot reach the turn from each cell, windows placed where the
+    # turn takes each cell can.
+    matcher = OnnxMatcher(default_model_path(), threads=2, matching_stage="crate")
+    image = kitti_images(shared_data, matcher)[0]
+    turned = np.roll(image, 100, axis=2)
+    turned[:, :, :100] = 0.0  # the columns the roll brought round: nothing seen there
+    ref, tgt = matcher.encode(image), matcher.encode(turned)
+    occupied = image[0] > 0
+    columns = np.arange(image.shape[2])
+    inside = occupied & ((columns >= 40) & (columns < image.shape[2] - 140))[None, :]
+    def reached(flow: np.ndarray) -> float:
+        # Within 3 pixels: the network's sub-pixel decoding leaves a third of a scan matched against itself
+        # more than half a pixel off.
+        return float(((np.abs(flow[0]) < 3) & (np.abs(flow[1] - 100) < 3))[inside].mean())
+    plain, _ = matcher.match(ref, tgt, occupied)
+    expected = np.full(image.shape[1:] + (2,), np.nan, np.float32)
+    expected[occupied] = [0.0, 97.0]  # a few columns off, as a prediction is
+    guided, confidence = CrateMatcher(matcher).match_guided(ref, tgt, occupied, expected)
+    assert reached(plain) < 0.05 and reached(guided) > 0.95, (reached(plain), reached(guided))
+    assert np.isnan(guided[:, ~occupied]).all() and (confidence[~occupied] == 0).all()
+    # Expecting nothing anywhere is the plain match.
+    nothing = np.full_like(expected, np.nan)
+    np.testing.assert_array_equal(matcher.match(ref, tgt, occupied, nothing)[0], plain)
 
 
 def test_frame_in_the_crate_matches_the_frame_graph(shared_data: Path) -> None:
@@ -249,6 +281,9 @@ def test_good_arguments_run_in_both_layouts_and_dtypes() -> None:
         (lambda a, s: s.update(stride=(2, 8)), "stride"),
         (lambda a, s: s.update(cells=np.ones((16, 63), bool)), r"cells: expected shape \(16, 64\) bool"),
         (lambda a, s: s.update(cells=np.ones((16, 64), np.float32)), "cells"),
+        (lambda a, s: s.update(guide=np.zeros((16, 64), np.float32)), "guide"),
+        (lambda a, s: s.update(guide=np.zeros((16, 64, 3), np.float32)), r"guide: expected shape \(16, 64, 2\) float32"),
+        (lambda a, s: s.update(guide=np.zeros((16, 64, 2), np.float64)), "guide"),
     ],
 )
 def test_bad_input_is_named(change, message) -> None:

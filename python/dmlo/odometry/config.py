@@ -162,6 +162,12 @@ class MotionModelConfig:
     # `large_motion.min_step`. None: 1 with mapping, whose NDT takes out what a second round would, and 2
     # without.
     prediction_rounds: AtLeastOne | None = None
+    # Beyond the paper: match from the prediction first by placing each coarse window where the prediction takes
+    # its block's points (the reference's own features, nothing encoded again); the rounds of the moved
+    # reference run only when that pair has too few inliers or a motion far from the prediction. None: with
+    # mapping only (its NDT takes out the centimetres by which frame-to-frame DMLO is better off with the moved
+    # reference's rounds); False: always the rounds.
+    guided_windows: Flag | None = None
 
 
 @with_config(_SCHEMA)

@@ -238,14 +238,22 @@ class OnnxMatcher:
         return FrameOutput(features, flow[0], confidence[0])
 
     def match(
-        self, reference: Features, target: Features, cells: npt.NDArray[np.bool_] | None = None
+        self,
+        reference: Features,
+        target: Features,
+        cells: npt.NDArray[np.bool_] | None = None,
+        guide: npt.NDArray[np.float32] | None = None,
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """Flow `[2, H, W]` and confidence `[H, W]` from `reference` to `target`, both scans' cached
         features (`match.onnx` beside `frame.onnx`, the same weights, or the crate): no scan is encoded again.
         `cells` (bool `[H, W]`): the reference cells whose flow is wanted; in the crate the others are left
-        out (NaN flow, confidence 0), the graph matches every cell."""
+        out (NaN flow, confidence 0), the graph matches every cell. `guide` (float32 `[H, W, 2]`, the crate's
+        stage only): each cell's expected flow (NaN: none), where the coarse windows are placed
+        (`dmlo_rs.match_features`)."""
         if self.matching_stage == "crate":
-            return self._match_in_crate(reference, target, cells)
+            return self._match_in_crate(reference, target, cells, guide)
+        if guide is not None:
+            raise ModelError(f"{self.path}: placing the coarse windows (guide) needs the crate's matching stage")
         if self._match_session is None:
             self._match_session = self._open_match_graph()
         flow, confidence = self._match_session.run(
@@ -269,7 +277,11 @@ class OnnxMatcher:
         return Features(coarse=coarse, refine=refine)
 
     def _match_in_crate(
-        self, reference: Features, target: Features, cells: npt.NDArray[np.bool_] | None = None
+        self,
+        reference: Features,
+        target: Features,
+        cells: npt.NDArray[np.bool_] | None = None,
+        guide: npt.NDArray[np.float32] | None = None,
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         assert self._scales is not None  # `_choose_stage` chose the crate only with them
         config = self.model_config
@@ -277,7 +289,7 @@ class OnnxMatcher:
             reference.coarse, reference.refine, target.coarse, target.refine,
             coarse_window=config["coarse_window"], refine_window=config["refine_window"],
             coarse_scale=self._scales["coarse"], refine_scale=self._scales["refine"],
-            refine_offset=config["refine_offset"], cells=cells, num_threads=self._threads,
+            refine_offset=config["refine_offset"], cells=cells, guide=guide, num_threads=self._threads,
         )
 
     def _same_weights(self, config: Any, kind: str) -> bool:
@@ -395,8 +407,9 @@ def _cylinder_from_metadata(values: dict[str, object], graph: Path) -> dmlo_rs.C
 
 class CrateMatcher:
     """`matcher` as the crate's odometry loop (`dmlo_rs.Odometry`) calls it: `encode`, `match`, `cylinder`,
-    `uses_reflectance`, `match_cells` when the crate matches (only the cells that hold a point: the loop reads
-    no other), and `wide_match` when the wide-window graph lies beside the model (opened on the first pair far
+    `uses_reflectance`, `match_cells` and `match_guided` when the crate matches (only the cells that hold a
+    point: the loop reads no other; the coarse windows placed where the prediction takes each cell, for pairs
+    beyond the window), and `wide_match` when the wide-window graph lies beside the model (opened on the first pair far
     apart, with `threads` and `matching_stage` as the model's; an `OnnxMatcher`'s only).
 
     A matcher that matches in the crate (`OnnxMatcher` on a CPU) encodes each scan with `encoder.onnx`. Any
@@ -417,6 +430,7 @@ class CrateMatcher:
             self.wide_match = self._wide_match
         if self._encodes_alone and isinstance(matcher, OnnxMatcher):
             self.match_cells = self._match_cells
+            self.match_guided = self._match_guided
 
     def encode(self, image: npt.NDArray[np.float32]) -> Features | _Deferred:
         return self.matcher.encode(image) if self._encodes_alone else _Deferred(image)
@@ -442,6 +456,12 @@ class CrateMatcher:
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         assert isinstance(self.matcher, OnnxMatcher)
         return self.matcher.match(reference, target, cells)
+
+    def _match_guided(
+        self, reference: Features, target: Features, cells: npt.NDArray[np.bool_], guide: npt.NDArray[np.float32]
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        assert isinstance(self.matcher, OnnxMatcher)
+        return self.matcher.match(reference, target, cells, guide)
 
     def _features(self, features: Features | _Deferred) -> Features:
         if not isinstance(features, _Deferred):

@@ -74,6 +74,10 @@ class FrameDiagnostics:
     # with motion_model.rematch_gap or match_from_prediction_m: the rounds of matching from the prediction whose
     # motion was taken, 0 when they were tried and none was kept; None when not tried
     rematch_rounds: int | None = None
+    # with motion_model.guided_windows, a pair matched from the prediction with the coarse windows placed where
+    # the prediction takes each cell: True when that pair held, False when it gave way to the reference moved by
+    # the prediction; None when not tried
+    guided_windows: bool | None = None
     # with matching.symmetric: RANSAC inliers of the new scan matched back against the previous one
     backward_inliers: int | None = None
     ndt_converged: bool | None = None
@@ -109,6 +113,7 @@ class FrameDiagnostics:
             "inlier_votes": None if self.inlier_votes is None else round(self.inlier_votes, 2),
             "fallback": self.fallback,
             "rematch_rounds": self.rematch_rounds,
+            "guided_windows": self.guided_windows,
             "backward_inliers": self.backward_inliers,
             "ndt_converged": self.ndt_converged,
             "ndt_degenerate_directions": self.ndt_degenerate_directions,

@@ -20,6 +20,7 @@ fn the_config_python_saves_loads_unchanged() {
     assert_eq!(config.motion_model.max_deviation, f64::INFINITY);
     assert_eq!(config.motion_model.rematch_gap, None);
     assert_eq!(config.motion_model.prediction_rounds, Some(3));
+    assert_eq!(config.motion_model.guided_windows, Some(false));
     assert!(config.deskew.enabled);
     assert_eq!(config.mapping.keyframe_distance, f64::INFINITY);
     assert_eq!(config.mapping.voxel_size, 0.8);
@@ -88,6 +89,21 @@ fn empty_config_is_the_default_and_defaults_pass_validation() {
         MappingConfig::default()
     );
     assert_eq!(OdometryConfig::default().prediction_rounds(), 1);
+    assert!(OdometryConfig::default().guided_windows());
+}
+
+#[test]
+fn guided_windows_follow_the_mapping_unless_set() {
+    let mut config = OdometryConfig::default();
+    config.mapping.enabled = false;
+    assert!(!config.guided_windows());
+    config.motion_model.guided_windows = Some(true);
+    assert!(config.guided_windows());
+    config.mapping.enabled = true;
+    config.motion_model.guided_windows = Some(false);
+    assert!(!config.guided_windows());
+    let read = OdometryConfig::from_json(r#"{"motion_model": {"guided_windows": false}}"#).unwrap();
+    assert_eq!(read.motion_model.guided_windows, Some(false));
 }
 
 #[test]

@@ -32,6 +32,9 @@ pub struct FrameDiagnostics {
     pub fallback: Option<String>,
     /// Rounds of matching from the prediction whose motion was taken (0: tried, none kept).
     pub rematch_rounds: Option<usize>,
+    /// Matched from the prediction with the coarse windows placed by it: whether that pair held (false:
+    /// it gave way to the reference moved by the prediction); `None` when not tried.
+    pub guided_windows: Option<bool>,
     /// With `matching.symmetric`: RANSAC inliers of the scan matched back against the previous one.
     pub backward_inliers: Option<usize>,
     /// NDT against the map converged.

@@ -222,6 +222,17 @@ where
         self.matcher.flow_of_cells(reference, target, cells)
     }
 
+    fn guided_flow_of_cells(
+        &self,
+        reference: &M::Features,
+        target: &M::Features,
+        cells: &[bool],
+        expected: &[[f32; 2]],
+    ) -> Result<Option<DenseFlow>> {
+        self.matcher
+            .guided_flow_of_cells(reference, target, cells, expected)
+    }
+
     fn runs_matching_stage(&self, stage: MatchingStage) -> bool {
         self.matcher.runs_matching_stage(stage)
     }

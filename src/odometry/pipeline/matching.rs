@@ -74,8 +74,14 @@ impl<M: FrameMatcher> Odometry<M> {
         diagnostics.gap = Some(gap);
         let predicted = self.motion.predicted(gap);
         let pair = if self.beyond_window(gap, &predicted) {
-            let pair =
-                self.matched_from_prediction(previous, target, features, &predicted, diagnostics)?;
+            let pair = self.matched_from_prediction(
+                previous,
+                target,
+                features,
+                &predicted,
+                gap,
+                diagnostics,
+            )?;
             watch.lap("rematch", diagnostics);
             pair
         } else {

@@ -2,11 +2,13 @@
 //! network's window or a pair spans missing scans, and from search starts when there is no guess.
 
 use nalgebra::{Matrix4, Point3};
+use rayon::prelude::*;
 
 use super::{FrameDiagnostics, FrameMatcher, Matched, Odometry, Projected, Reference};
 use crate::error::{Error, Result};
 use crate::odometry::motion::{pose_difference, rigid_inverse};
 use crate::pair::PairMotion;
+use crate::projection::CylinderConfig;
 
 impl<M: FrameMatcher> Odometry<M> {
     /// Whether the predicted motion outgrows the network's window (`motion_model.match_from_prediction_m`)
@@ -27,14 +29,30 @@ impl<M: FrameMatcher> Odometry<M> {
         pose_difference(&Matrix4::identity(), predicted).0 > limit
     }
 
+    /// The pair matched from the prediction: with the coarse windows placed where the prediction takes
+    /// each cell (`motion_model.guided_windows`, by default with mapping) when the matcher can and that pair holds (enough inliers,
+    /// a motion the prediction finds plausible), else in rounds of the reference moved by it.
     pub(super) fn matched_from_prediction(
         &self,
         previous: &Reference<M::Features>,
         target: &Projected,
         features: &M::Features,
         predicted: &Matrix4<f64>,
+        gap: usize,
         diagnostics: &mut FrameDiagnostics,
     ) -> Result<Matched> {
+        if self.config.guided_windows() {
+            if let Some(pair) = self.guided_pair(previous, target, features, predicted)? {
+                let min_inliers = self.config.motion_model.min_inliers as usize;
+                let holds = pair.motion.num_inliers >= min_inliers
+                    && !self.motion.implausible(&pair.transform, predicted, gap);
+                diagnostics.guided_windows = Some(holds);
+                if holds {
+                    diagnostics.count_matches(&pair);
+                    return Ok(pair);
+                }
+            }
+        }
         let rounds = self.config.prediction_rounds();
         let again = self.rematch(
             &previous.cloud,
@@ -65,6 +83,37 @@ impl<M: FrameMatcher> Odometry<M> {
                 rounds: 0,
             },
         })
+    }
+
+    /// The pair with the coarse windows placed where `predicted` takes each reference cell; `None` when the
+    /// matcher cannot place them.
+    fn guided_pair(
+        &self,
+        previous: &Reference<M::Features>,
+        target: &Projected,
+        features: &M::Features,
+        predicted: &Matrix4<f64>,
+    ) -> Result<Option<Matched>> {
+        let occupied: Vec<bool> = previous.range.iter().map(|&range| range > 0.0).collect();
+        let expected = expected_flow(&previous.points, &self.cylinder, predicted);
+        let Some(flow) = self.matcher.guided_flow_of_cells(
+            &previous.features,
+            features,
+            &occupied,
+            &expected,
+        )?
+        else {
+            return Ok(None);
+        };
+        self.match_flow(
+            &previous.range,
+            &target.range,
+            &flow,
+            &previous.points,
+            None,
+            true,
+        )
+        .map(Some)
     }
 
     /// The pair, or the pair matched again from the prediction (`motion_model.rematch_gap`) when it
@@ -269,6 +318,40 @@ pub(super) fn search_starts(ahead_m: &[f64], yaw_deg: &[f64]) -> Vec<Matrix4<f64
         }
     }
     starts
+}
+
+/// Where `motion` (`T_tgt_ref`) takes each cell's point of a point image (`H × W × 3`, NaN where empty),
+/// as the cell's expected flow in pixels (Δrow, Δcol; across the azimuth's wrap the short way round):
+/// NaN for empty cells and points moved onto the sensor.
+pub(super) fn expected_flow(
+    points: &[f32],
+    cylinder: &CylinderConfig,
+    motion: &Matrix4<f64>,
+) -> Vec<[f32; 2]> {
+    let width = cylinder.width;
+    let rotation = motion.fixed_view::<3, 3>(0, 0).into_owned();
+    let translation = motion.fixed_view::<3, 1>(0, 3).into_owned();
+    // The azimuth is periodic whether or not the image spans a whole turn.
+    let turn = cylinder.columns_per_turn();
+    points
+        .par_chunks_exact(3)
+        .enumerate()
+        .map(|(cell, point)| {
+            let p = Point3::new(point[0] as f64, point[1] as f64, point[2] as f64);
+            if !p.coords.iter().all(|v| v.is_finite()) {
+                return [f32::NAN; 2];
+            }
+            let Some((row, col)) =
+                cylinder.locate(&Point3::from(rotation * p.coords + translation))
+            else {
+                return [f32::NAN; 2];
+            };
+            let d_row = row - (cell / width) as f64;
+            let mut d_col = col - (cell % width) as f64;
+            d_col -= turn * (d_col / turn).round();
+            [d_row as f32, d_col as f32]
+        })
+        .collect()
 }
 
 /// A scan with its points moved by `transform`, in float32 as the points are stored (as Python's).

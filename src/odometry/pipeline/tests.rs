@@ -20,6 +20,11 @@ struct OracleMatcher {
     reads_reflectance: bool,
     asked_for_cells: Cell<usize>,
     asked_amiss: Cell<usize>,
+    /// Whether it places its windows where it is told (`guided_flow_of_cells`): `None` no; `Some(true)`
+    /// yes, and finds the truth; `Some(false)` yes, but its windows lock on standing still.
+    guided: Option<bool>,
+    /// The expected flows it was given, one mean Δcol a call.
+    guides: std::cell::RefCell<Vec<f64>>,
 }
 
 impl OracleMatcher {
@@ -31,6 +36,8 @@ impl OracleMatcher {
             reads_reflectance: true,
             asked_for_cells: Cell::new(0),
             asked_amiss: Cell::new(0),
+            guided: None,
+            guides: Default::default(),
         }
     }
 }
@@ -80,6 +87,36 @@ impl FrameMatcher for OracleMatcher {
             }
         }
         Ok(flow)
+    }
+
+    fn guided_flow_of_cells(
+        &self,
+        reference: &(usize, Vec<f32>),
+        target: &(usize, Vec<f32>),
+        cells: &[bool],
+        expected: &[[f32; 2]],
+    ) -> Result<Option<DenseFlow>> {
+        let Some(finds_truth) = self.guided else {
+            return Ok(None);
+        };
+        let columns: Vec<f64> = expected
+            .iter()
+            .filter(|e| e[1].is_finite())
+            .map(|e| e[1] as f64)
+            .collect();
+        self.guides
+            .borrow_mut()
+            .push(columns.iter().sum::<f64>() / columns.len() as f64);
+        if finds_truth {
+            return self.flow_of_cells(reference, target, cells).map(Some);
+        }
+        true_flow(
+            &reference.1,
+            &target.1,
+            &Isometry3::identity(),
+            &self.cylinder,
+        )
+        .map(Some)
     }
 }
 
@@ -812,4 +849,126 @@ fn the_network_stays_idle_when_told_or_given_a_mask_and_its_errors_change_nothin
         .err()
         .expect("another image is refused");
     assert!(error.to_string().starts_with("moving_objects:"), "{error}");
+}
+
+#[test]
+fn pairs_beyond_the_window_are_matched_with_windows_the_prediction_places() {
+    // 0.4 m a frame, beyond a window that reaches 0.3 m: from the third scan on (a velocity measured)
+    // each pair is matched from the prediction.
+    let mut config = config(false);
+    config.motion_model.match_from_prediction_m = Some(0.3);
+    config.motion_model.guided_windows = Some(true);
+    let matcher = OracleMatcher {
+        guided: Some(true),
+        ..OracleMatcher::new()
+    };
+    let mut odometry = Odometry::new(matcher, config.clone()).unwrap();
+    for i in 0..6 {
+        let pose = register(&mut odometry, &scan(i), i.saturating_sub(1), i);
+        let (moved, turned) = error_to_truth(&pose, i);
+        assert!(
+            moved < 0.02 && turned < 0.1,
+            "frame {i}: {moved} m, {turned}°"
+        );
+    }
+    let diagnostics = odometry.diagnostics();
+    for d in &diagnostics[..2] {
+        assert_eq!(d.guided_windows, None, "{d:?}");
+    }
+    for d in &diagnostics[2..] {
+        assert_eq!(d.guided_windows, Some(true), "{d:?}");
+        assert_eq!((d.rematch_rounds, d.fallback.as_deref()), (None, None));
+        assert!(d.timings_ms.contains_key("rematch"));
+    }
+    // Each scan encoded once: nothing moved and encoded again.
+    assert_eq!(odometry.matcher.encoded.get(), 6);
+    // The windows went where the prediction takes the points: the scene streams backwards past the car,
+    // across columns that grow leftwards (the azimuth decreases with the column), by a few columns on
+    // average.
+    let guides = odometry.matcher.guides.borrow();
+    assert_eq!(guides.len(), 4);
+    assert!(guides.iter().all(|&mean| mean.abs() > 0.5), "{guides:?}");
+
+    // Told not to (frame to frame DMLO's default), the odometry moves the reference by the prediction
+    // and encodes it again.
+    config.motion_model.guided_windows = None;
+    let matcher = OracleMatcher {
+        guided: Some(true),
+        ..OracleMatcher::new()
+    };
+    let mut reprojected = Odometry::new(matcher, config).unwrap();
+    for i in 0..6 {
+        register(&mut reprojected, &scan(i), i.saturating_sub(1), i);
+    }
+    for d in &reprojected.diagnostics()[2..] {
+        assert_eq!(d.guided_windows, None);
+        assert!(d.rematch_rounds.is_some(), "{d:?}");
+    }
+    assert!(reprojected.matcher.guides.borrow().is_empty());
+    assert!(reprojected.matcher.encoded.get() > 6);
+}
+
+#[test]
+fn guided_windows_that_lock_on_standing_still_give_way_to_the_moved_reference() {
+    let mut config = config(true);
+    config.motion_model.match_from_prediction_m = Some(0.3);
+    let matcher = OracleMatcher {
+        guided: Some(false),
+        ..OracleMatcher::new()
+    };
+    let mut odometry = Odometry::new(matcher, config).unwrap();
+    for i in 0..4 {
+        register(&mut odometry, &scan(i), i.saturating_sub(1), i);
+    }
+    for d in &odometry.diagnostics()[2..] {
+        // Standing still lies 0.4 m from the prediction: implausible, so the rounds ran.
+        assert_eq!(d.guided_windows, Some(false), "{d:?}");
+        assert!(d.rematch_rounds.is_some(), "{d:?}");
+    }
+    assert!(odometry.matcher.encoded.get() > 4);
+}
+
+#[test]
+fn the_expected_flow_of_a_turn_is_its_angle_in_columns_the_short_way_round() {
+    let cylinder = CylinderConfig::kitti();
+    let (height, width) = (cylinder.height, cylinder.width);
+    // One point per cell of three rows, at the cell's own direction, 10 m away; the rest empty.
+    let mut points = vec![f32::NAN; height * width * 3];
+    for row in [10, 30, 50] {
+        for col in 0..width {
+            let p = cylinder.unproject(row as f64, col as f64, 10.0);
+            points[(row * width + col) * 3..][..3]
+                .copy_from_slice(&[p.x as f32, p.y as f32, p.z as f32]);
+        }
+    }
+    let yaw = 3.0f64;
+    let turn = Isometry3::rotation(Vector3::z() * yaw.to_radians()).to_homogeneous();
+    let expected = super::rematching::expected_flow(&points, &cylinder, &turn);
+    let columns = yaw / cylinder.horizontal_resolution_deg;
+    let per_turn = cylinder.columns_per_turn();
+    for (cell, [d_row, d_col]) in expected.iter().enumerate() {
+        let row = cell / width;
+        if ![10, 30, 50].contains(&row) {
+            assert!(d_row.is_nan() && d_col.is_nan(), "cell {cell}");
+            continue;
+        }
+        assert!(d_row.abs() < 1e-4, "cell {cell}: {d_row}");
+        // Turning left raises the azimuth, which the columns count down; near the seam the short way.
+        assert!(
+            (*d_col as f64 + columns).abs() < 1e-3,
+            "cell {cell}: {d_col}"
+        );
+        assert!((d_col.abs() as f64) < per_turn / 2.0);
+    }
+    // A point moved onto the sensor has no direction.
+    let onto_sensor = Isometry3::translation(-10.0, 0.0, 0.0).to_homogeneous();
+    let mut ahead = vec![f32::NAN; height * width * 3];
+    let cell = 30 * width + 900;
+    ahead[cell * 3..][..3].copy_from_slice(&[10.0, 0.0, 0.0]);
+    let flow = super::rematching::expected_flow(&ahead, &cylinder, &onto_sensor);
+    assert!(
+        flow[cell][0].is_nan() && flow[cell][1].is_nan(),
+        "{:?}",
+        flow[cell]
+    );
 }
