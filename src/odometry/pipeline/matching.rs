@@ -33,8 +33,26 @@ impl<M: FrameMatcher> Odometry<M> {
         ref_range: &[f32],
         target: &M::Features,
     ) -> Result<DenseFlow> {
-        let occupied: Vec<bool> = ref_range.iter().map(|&range| range > 0.0).collect();
-        self.matcher.flow_of_cells(reference, target, &occupied)
+        self.matcher
+            .flow_of_cells(reference, target, &occupied(ref_range))
+    }
+
+    /// The pair's back end on the forward flow of the reference `previous` into `target`, tilt votes as
+    /// the config says.
+    pub(super) fn forward_pair(
+        &self,
+        previous: &Reference<M::Features>,
+        target: &Projected,
+        flow: &DenseFlow,
+    ) -> Result<Matched> {
+        self.match_flow(
+            &previous.range,
+            &target.range,
+            flow,
+            &previous.points,
+            None,
+            true,
+        )
     }
 
     /// The pair's back end on a flow (`leave_out`: reference cells not matched), tilt votes as the
@@ -103,14 +121,7 @@ impl<M: FrameMatcher> Odometry<M> {
                 let min_inliers = self.config.motion_model.min_inliers as usize;
                 symmetric(forward, backward, min_inliers)
             } else {
-                let pair = self.match_flow(
-                    &previous.range,
-                    &target.range,
-                    &flow,
-                    &previous.points,
-                    None,
-                    true,
-                )?;
+                let pair = self.forward_pair(previous, target, &flow)?;
                 watch.lap("pair", diagnostics);
                 diagnostics.count_matches(&pair);
                 pair
@@ -189,6 +200,11 @@ impl<M: FrameMatcher> Odometry<M> {
         watch.lap("backward", diagnostics);
         Ok((forward, backward))
     }
+}
+
+/// Which cells of a range image hold a point: the only ones whose flow the pair's back end reads.
+pub(super) fn occupied(range: &[f32]) -> Vec<bool> {
+    range.iter().map(|&range| range > 0.0).collect()
 }
 
 /// One motion from a pair matched both ways: the midpoint of the forward motion and the inverted

@@ -4,6 +4,7 @@
 use nalgebra::{Matrix4, Point3};
 use rayon::prelude::*;
 
+use super::matching::occupied;
 use super::{FrameDiagnostics, FrameMatcher, Matched, Odometry, Projected, Reference};
 use crate::error::{Error, Result};
 use crate::odometry::motion::{pose_difference, rigid_inverse};
@@ -94,26 +95,17 @@ impl<M: FrameMatcher> Odometry<M> {
         features: &M::Features,
         predicted: &Matrix4<f64>,
     ) -> Result<Option<Matched>> {
-        let occupied: Vec<bool> = previous.range.iter().map(|&range| range > 0.0).collect();
         let expected = expected_flow(&previous.points, &self.cylinder, predicted);
         let Some(flow) = self.matcher.guided_flow_of_cells(
             &previous.features,
             features,
-            &occupied,
+            &occupied(&previous.range),
             &expected,
         )?
         else {
             return Ok(None);
         };
-        self.match_flow(
-            &previous.range,
-            &target.range,
-            &flow,
-            &previous.points,
-            None,
-            true,
-        )
-        .map(Some)
+        self.forward_pair(previous, target, &flow).map(Some)
     }
 
     /// The pair, or the pair matched again from the prediction (`motion_model.rematch_gap`) when it
