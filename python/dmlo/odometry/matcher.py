@@ -409,8 +409,8 @@ class CrateMatcher:
     """`matcher` as the crate's odometry loop (`dmlo_rs.Odometry`) calls it: `encode`, `match`, `cylinder`,
     `uses_reflectance`, `match_cells` and `match_guided` when the crate matches (only the cells that hold a
     point: the loop reads no other; the coarse windows placed where the prediction takes each cell, for pairs
-    beyond the window), and `wide_match` when the wide-window graph lies beside the model (opened on the first pair far
-    apart, with `threads` and `matching_stage` as the model's; an `OnnxMatcher`'s only).
+    beyond the window), and `wide_match` when the wide-window graph lies beside the model (opened on the first
+    pair far apart, with `threads` and `matching_stage` as the model's; an `OnnxMatcher`'s only).
 
     A matcher that matches in the crate (`OnnxMatcher` on a CPU) encodes each scan with `encoder.onnx`. Any
     other — the `frame` graph, which encodes a scan while matching the previous one against it (all of it on

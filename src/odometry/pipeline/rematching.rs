@@ -31,8 +31,9 @@ impl<M: FrameMatcher> Odometry<M> {
     }
 
     /// The pair matched from the prediction: with the coarse windows placed where the prediction takes
-    /// each cell (`motion_model.guided_windows`, by default with mapping) when the matcher can and that pair holds (enough inliers,
-    /// a motion the prediction finds plausible), else in rounds of the reference moved by it.
+    /// each cell (`motion_model.guided_windows`, by default with mapping) when the matcher can and that
+    /// pair holds (enough inliers, a motion the prediction finds plausible), else in rounds of the
+    /// reference moved by it.
     pub(super) fn matched_from_prediction(
         &self,
         previous: &Reference<M::Features>,
