@@ -45,9 +45,7 @@ impl<M: FrameMatcher> Odometry<M> {
     ) -> Result<Matched> {
         if self.config.guided_windows() {
             if let Some(pair) = self.guided_pair(previous, target, features, predicted)? {
-                let min_inliers = self.config.motion_model.min_inliers as usize;
-                let holds = pair.motion.num_inliers >= min_inliers
-                    && !self.motion.implausible(&pair.transform, predicted, gap);
+                let holds = self.holds(&pair, predicted, gap);
                 diagnostics.guided_windows = Some(holds);
                 if holds {
                     diagnostics.count_matches(&pair);
@@ -85,6 +83,13 @@ impl<M: FrameMatcher> Odometry<M> {
                 rounds: 0,
             },
         })
+    }
+
+    /// Whether a pair matched from the prediction can stand for the frame: `min_inliers` inliers and a
+    /// motion the prediction finds plausible.
+    fn holds(&self, pair: &Matched, predicted: &Matrix4<f64>, gap: usize) -> bool {
+        pair.motion.num_inliers >= self.config.motion_model.min_inliers as usize
+            && !self.motion.implausible(&pair.transform, predicted, gap)
     }
 
     /// The pair with the coarse windows placed where `predicted` takes each reference cell; `None` when the
@@ -161,10 +166,10 @@ impl<M: FrameMatcher> Odometry<M> {
             )?));
         }
         diagnostics.rematch_rounds = Some(0);
-        let usable = tried.into_iter().flatten().filter(|again| {
-            again.motion.num_inliers >= min_inliers
-                && !self.motion.implausible(&again.transform, predicted, gap)
-        });
+        let usable = tried
+            .into_iter()
+            .flatten()
+            .filter(|again| self.holds(again, predicted, gap));
         // The most inliers; on a tie the first tried (the model's own window).
         let best = usable.fold(None::<Matched>, |best, again| match best {
             Some(best) if best.motion.num_inliers >= again.motion.num_inliers => Some(best),
