@@ -10,6 +10,10 @@ consecutive pair is the consensus of two independent scan-to-scan GICPs (small_g
 and rotation error a pair, the mean signed pitch error (about the sensor's y axis, which points left: positive tips the nose
 down), the
 frames DMLO left to its motion model, speed, and ratios to KISS-ICP measured in the same run.
+
+``OUT/real.json`` is written again as each set ends, so an interrupted run keeps the sets it finished; a set
+that cannot be read (a truncated scan, fewer than two) is named on stderr and the others are measured, and the
+run then exits with status 1.
 """
 
 from __future__ import annotations
@@ -31,9 +35,10 @@ from tqdm import tqdm
 from dmlo.peers.consensus import ConsensusReference, available_gicps, gicp_consensus
 from dmlo.peers.peers import PEERS, FrameOdometry
 from dmlo.peers.runner import REFERENCE_PEER
-from dmlo.datasets import open_sequence
+from dmlo.datasets import DatasetError, open_sequence
 from dmlo.metrics import rotation_error_axes_deg
 from dmlo.odometry import Odometry, OdometryConfig
+from dmlo.outputs import atomic_output
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DEFAULT_PEERS = ("KISS-ICP", "small_gicp GICP")
@@ -87,6 +92,8 @@ def run_set(
 ) -> tuple[ConsensusReference, list[PairErrors]]:
     sequence = open_sequence(folder)
     total = len(sequence) if max_frames is None else min(max_frames, len(sequence))
+    if total < 2:
+        raise DatasetError(f"{len(sequence)} scan(s); a pair needs at least 2")
     frames = [sequence[i] for i in range(total)]
     scans = [frame.points for frame in frames]
     ground_truth = sequence.poses[:total] if sequence.poses is not None else None
@@ -128,6 +135,11 @@ def format_table(rows: list[PairErrors]) -> str:
     return "\n".join(lines)
 
 
+def write_report(path: Path, stamp: str, results: dict[str, object]) -> None:
+    with atomic_output(path) as temporary:
+        temporary.write_text(json.dumps({"date": stamp, "sets": results}, indent=1) + "\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folders", nargs="*", type=Path, help="scan folders (default: every set in DATA/kitti_real)")
@@ -161,8 +173,14 @@ def main() -> None:
     print(f"{stamp}, {platform.processor() or platform.machine()}, {len(folders)} set(s)")
     results = {}
     args.out.mkdir(parents=True, exist_ok=True)
+    failed = []
     for folder in folders:
-        reference, rows = run_set(folder, args.model, args.peers, args.max_frames)
+        try:
+            reference, rows = run_set(folder, args.model, args.peers, args.max_frames)
+        except DatasetError as err:  # one unreadable set: say which and why, and measure the others
+            print(f"error: {folder}: {err}", file=sys.stderr)
+            failed.append(folder)
+            continue
         print(
             f"\n### {folder.name} ({len(reference.motions) + 1} scans; reference: {' + '.join(reference.sources)}, "
             f"disagreeing by {100 * reference.disagreement_m.mean():.2f} cm / {reference.disagreement_deg.mean():.3f}° "
@@ -174,7 +192,9 @@ def main() -> None:
                           "motions": reference.motions.tolist()},
             "rows": [asdict(row) for row in rows],
         }
-    (args.out / "real.json").write_text(json.dumps({"date": stamp, "sets": results}, indent=1) + "\n")
+        write_report(args.out / "real.json", stamp, results)  # after every set: an interrupted run keeps those done
+    if failed:
+        sys.exit(f"error: {len(failed)} of {len(folders)} set(s) not measured: {', '.join(map(str, failed))}")
 
 
 if __name__ == "__main__":

@@ -141,6 +141,50 @@ def test_real_scan_benchmark_runs_on_a_plain_folder_of_scans(drive: Path, tmp_pa
     assert refused.returncode == 2 and "--max-frames" in refused.stderr
 
 
+def test_real_scan_benchmark_names_an_unreadable_set_and_keeps_the_others(drive: Path, tmp_path: Path) -> None:
+    pytest.importorskip("small_gicp")
+    good, truncated, single = tmp_path / "good", tmp_path / "truncated", tmp_path / "single"
+    scans = sorted((drive / "velodyne").glob("*.bin"))[:2]
+    for folder in (good, truncated):
+        folder.mkdir()
+        for path in scans:
+            shutil.copy(path, folder / path.name)
+    with open(truncated / scans[1].name, "r+b") as file:
+        file.truncate(1001)
+    single.mkdir()
+    shutil.copy(scans[0], single / scans[0].name)
+    out = tmp_path / "out"
+    command = [sys.executable, str(SCRIPTS / "real.py"), str(truncated), str(single), str(good), "--peers", "--out", str(out)]
+    result = subprocess.run(command, capture_output=True, text=True)
+    assert result.returncode == 1
+    assert f"error: {truncated}: " in result.stderr and "truncated" in result.stderr.split(str(truncated), 1)[1]
+    assert f"error: {single}: 1 scan(s); a pair needs at least 2" in result.stderr
+    assert "2 of 3 set(s) not measured" in result.stderr
+    report = json.loads((out / "real.json").read_text())
+    assert list(report["sets"]) == [str(good)]  # the readable set measured and written
+    assert "| DMLO + mapping |" in result.stdout
+
+
+def test_real_scan_benchmark_keeps_the_sets_done_when_interrupted(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from dmlo.peers.consensus import ConsensusReference
+
+    real = script("real")
+    first, second = tmp_path / "first", tmp_path / "second"
+    reference = ConsensusReference(np.eye(4)[None], np.zeros(1), np.zeros(1), ("stub",))
+
+    def one_set(folder: Path, *_: object) -> tuple[ConsensusReference, list[object]]:
+        if folder == second:
+            raise KeyboardInterrupt  # Ctrl-C while the second set runs
+        return reference, []
+
+    monkeypatch.setattr(real, "run_set", one_set)
+    monkeypatch.setattr(sys, "argv", ["real.py", str(first), str(second), "--peers", "--out", str(tmp_path / "out")])
+    with pytest.raises(KeyboardInterrupt):
+        real.main()
+    report = json.loads((tmp_path / "out" / "real.json").read_text())
+    assert list(report["sets"]) == [str(first)]
+
+
 def test_real_scan_pair_errors_are_measured_against_the_reference() -> None:
     from scipy.spatial.transform import Rotation
 
