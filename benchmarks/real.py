@@ -23,7 +23,7 @@ import json
 import platform
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -135,7 +135,7 @@ def format_table(rows: list[PairErrors]) -> str:
     return "\n".join(lines)
 
 
-def write_report(path: Path, stamp: str, results: dict[str, object]) -> None:
+def write_report(path: Path, stamp: str, results: Mapping[str, object]) -> None:
     with atomic_output(path) as temporary:
         temporary.write_text(json.dumps({"date": stamp, "sets": results}, indent=1) + "\n")
 
