@@ -111,7 +111,7 @@ def run_set(
         poses = np.stack([odometry.register(points) for points in tqdm(scans, desc=f"{folder.name}: {name}", leave=False)])
         row = pair_errors(name, poses, reference, total / (time.perf_counter() - start))
         if isinstance(odometry, Odometry):
-            row.uncertain_frames = sum(d.fallback is not None for d in odometry.diagnostics)
+            row.uncertain_frames = sum(d.fallback is not None or d.ambiguous_start is True for d in odometry.diagnostics)
         rows.append(row)
     return reference, rows
 
@@ -119,7 +119,7 @@ def run_set(
 def format_table(rows: list[PairErrors]) -> str:
     kiss = next((row for row in rows if row.method == REFERENCE_PEER), None)
     lines = [
-        "| method | t mean cm | t max cm | r mean ° | r max ° | pitch bias ° | fallback frames | Hz | t ×KISS | speed ×KISS |",
+        "| method | t mean cm | t max cm | r mean ° | r max ° | pitch bias ° | uncertain frames | Hz | t ×KISS | speed ×KISS |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:

@@ -152,6 +152,10 @@ pub struct MotionModelSection {
     /// Match from the prediction by placing the coarse windows where it takes each cell first; the
     /// reference is moved and encoded again only when that pair gives way. `None`: with mapping only.
     pub guided_windows: Option<bool>,
+    /// Before a velocity is measured (the first pair), the pair is also matched from the reference moved
+    /// this far (m) ahead and behind along its x axis; another motion that holds flags the frame
+    /// (`FrameDiagnostics::ambiguous_start`). `None`: never.
+    pub start_check_m: Option<f64>,
 }
 
 impl Default for MotionModelSection {
@@ -167,6 +171,7 @@ impl Default for MotionModelSection {
             match_from_prediction_m: Some(1.5),
             prediction_rounds: None,
             guided_windows: None,
+            start_check_m: Some(3.0),
         }
     }
 }

@@ -73,9 +73,11 @@ def test_pairs_beyond_the_window_are_matched_from_the_prediction_and_the_chain_h
     fast = [odometry.diagnostics[i] for i, speed in predicted.items() if speed > 1.6]
     slow = [odometry.diagnostics[i] for i, speed in predicted.items() if speed < 1.45]
     if guided:
-        # Windows placed by the prediction hold on every fast pair: each scan is encoded once.
+        # Windows placed by the prediction hold on every fast pair: each scan is encoded once, but for the first
+        # pair's reference moved to the two starts of `motion_model.start_check_m`.
         assert len(fast) >= 8 and all(d.guided_windows and d.rematch_rounds is None for d in fast)
-        assert len(encoded) == len(odometry.poses)
+        assert odometry.diagnostics[1].ambiguous_start is not None
+        assert len(encoded) == len(odometry.poses) + 2
     else:
         assert len(fast) >= 8 and all(d.rematch_rounds is not None and d.rematch_rounds >= 1 for d in fast)
         assert all(d.guided_windows is None for d in odometry.diagnostics)

@@ -145,6 +145,10 @@ def format_summary(summary) -> str:  # type: ignore[no-untyped-def]
         f"motion model used for: {fallbacks or 'none'}",
         f"results in {summary.out_dir}/",
     ]
+    if summary.ambiguous_starts:
+        lines.insert(1, "warning: the first motion is ambiguous (another start explained the scans as well: a drive "
+                        "that began at speed past a repeating scene?); the trajectory may be off from its start on "
+                        "(diagnostics.jsonl: ambiguous_start)")
     if summary.moving_share is not None:
         lines.insert(1, f"moving objects: the network left out {100 * summary.moving_share:.1f} % of a scan's points "
                         "on average (--keep-moving keeps them)")

@@ -168,6 +168,13 @@ class MotionModelConfig:
     # mapping only (its NDT takes out the centimetres by which frame-to-frame DMLO is better off with the moved
     # reference's rounds); False: always the rounds.
     guided_windows: Flag | None = None
+    # Beyond the paper: before a velocity is measured (the first pair, matched from the identity), the pair is
+    # also matched from the reference moved this far (m) ahead and behind along its x axis, one round each; a
+    # motion of its own there (`min_inliers`, `min_inlier_votes`) further than `max_deviation` from the
+    # frame's flags the frame (`FrameDiagnostics.ambiguous_start`): a drive that starts at speed past evenly
+    # spaced posts can match an alias as well as the truth, and the chain would inherit it. The frame keeps
+    # its motion. None: never.
+    start_check_m: Positive | None = 3.0
 
 
 @with_config(_SCHEMA)

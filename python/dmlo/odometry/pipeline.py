@@ -78,6 +78,9 @@ class FrameDiagnostics:
     # the prediction takes each cell: True when that pair held, False when it gave way to the reference moved by
     # the prediction; None when not tried
     guided_windows: bool | None = None
+    # with motion_model.start_check_m, the first pair (no velocity yet): True when a start ahead or behind found
+    # another motion that holds (the frame's may be an alias of a repeating scene); None when not checked
+    ambiguous_start: bool | None = None
     # with matching.symmetric: RANSAC inliers of the new scan matched back against the previous one
     backward_inliers: int | None = None
     ndt_converged: bool | None = None
@@ -114,6 +117,7 @@ class FrameDiagnostics:
             "fallback": self.fallback,
             "rematch_rounds": self.rematch_rounds,
             "guided_windows": self.guided_windows,
+            "ambiguous_start": self.ambiguous_start,
             "backward_inliers": self.backward_inliers,
             "ndt_converged": self.ndt_converged,
             "ndt_degenerate_directions": self.ndt_degenerate_directions,
@@ -179,7 +183,7 @@ class Odometry:
         self._moving_objects = self._open_moving_objects()
         settings = self.config.to_dict()
         if self._available_rematch_gap() is None:  # the graphs it needs are missing (warned)
-            settings["motion_model"].update(rematch_gap=None, match_from_prediction_m=None)
+            settings["motion_model"].update(rematch_gap=None, match_from_prediction_m=None, start_check_m=None)
         self._loop_matcher = CrateMatcher(matcher, self.config.threads, self.config.matching_stage)
         range_only = None if self._range_only is None else CrateMatcher(
             self._range_only, self._beside_threads(), self.config.matching_stage
@@ -207,11 +211,13 @@ class Odometry:
         """`motion_model.rematch_gap`, or None with a warning when the model lacks the graphs it needs."""
         motion = self.config.motion_model
         missing = [name for name in (ENCODER_GRAPH, MATCH_GRAPH) if not self._matcher.path.with_name(name).is_file()]
-        if missing and (motion.rematch_gap is not None or motion.match_from_prediction_m is not None):
+        moved = (motion.rematch_gap, motion.match_from_prediction_m, motion.start_check_m)
+        if missing and any(setting is not None for setting in moved):
             warnings.warn(
                 f"{self._matcher.path.parent} has no {' or '.join(missing)}: pairs across missing scans are not matched "
                 "again from the prediction (motion_model.rematch_gap), nor pairs beyond the network's window "
-                "(motion_model.match_from_prediction_m); `dmlo export CHECKPOINT --out DIR` writes every graph",
+                "(motion_model.match_from_prediction_m), nor the first pair from other starts "
+                "(motion_model.start_check_m); `dmlo export CHECKPOINT --out DIR` writes every graph",
                 stacklevel=4,
             )
             return None

@@ -36,6 +36,9 @@ class RunSummary:
     out_dir: Path
     # mean share of a scan's points the moving-object network left out, over the scans it ran on; None: it never ran
     moving_share: float | None = None
+    # frames whose motion another start also explained (`FrameDiagnostics.ambiguous_start`): the first pair of a
+    # drive that began at speed along a repeating scene
+    ambiguous_starts: int = 0
 
     @property
     def hz(self) -> float:
@@ -106,7 +109,8 @@ def run_sequence(
     shares = [d.num_moving_predicted / d.num_points for d in odometry.diagnostics
               if d.num_moving_predicted is not None and d.num_points]
     moving_share = float(np.mean(shares)) if shares else None
-    return RunSummary(total, skipped, dict(fallbacks), seconds, metrics, out_dir, moving_share)
+    ambiguous = sum(d.ambiguous_start is True for d in odometry.diagnostics)
+    return RunSummary(total, skipped, dict(fallbacks), seconds, metrics, out_dir, moving_share, ambiguous)
 
 
 def _evaluate(ground_truth: np.ndarray, estimate: np.ndarray, out_dir: Path, name: str) -> dict[str, Any] | None:

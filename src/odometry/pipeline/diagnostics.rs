@@ -35,6 +35,11 @@ pub struct FrameDiagnostics {
     /// Matched from the prediction with the coarse windows placed by it: whether that pair held (false:
     /// it gave way to the reference moved by the prediction); `None` when not tried.
     pub guided_windows: Option<bool>,
+    /// The first pair (no velocity yet) checked from starts ahead and behind
+    /// (`motion_model.start_check_m`): whether one of them held a motion of its own further from the
+    /// frame's than `motion_model.max_deviation` (true: the motion may be an alias, e.g. evenly spaced
+    /// posts passed at speed); `None` when not checked.
+    pub ambiguous_start: Option<bool>,
     /// With `matching.symmetric`: RANSAC inliers of the scan matched back against the previous one.
     pub backward_inliers: Option<usize>,
     /// NDT against the map converged.

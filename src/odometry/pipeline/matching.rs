@@ -152,6 +152,15 @@ impl<M: FrameMatcher> Odometry<M> {
         if let Some(fallback) = judged.fallback {
             diagnostics.fallback = Some(fallback.name().to_string());
         }
+        if let (false, Some(ahead)) = (
+            self.motion.is_measured(),
+            self.config.motion_model.start_check_m,
+        ) {
+            let ambiguous =
+                self.another_start_holds(previous, target, features, &judged.motion, ahead)?;
+            diagnostics.ambiguous_start = Some(ambiguous);
+            watch.lap("start_check", diagnostics);
+        }
         Ok(judged.motion)
     }
 

@@ -187,6 +187,44 @@ impl<M: FrameMatcher> Odometry<M> {
         Ok(again)
     }
 
+    /// Whether the pair, matched again from the reference moved `ahead` metres forward and backward along
+    /// its x axis (one round each), finds a motion of its own — `min_inliers` inliers, `min_inlier_votes`
+    /// with tilt votes — further from `motion` than `motion_model.max_deviation`. Without a velocity the
+    /// pair is matched from the identity, and where the scene repeats along the way (a guard rail's posts
+    /// passed at highway speed) its motion can be an alias that looks as good as the truth.
+    pub(super) fn another_start_holds(
+        &self,
+        previous: &Reference<M::Features>,
+        target: &Projected,
+        features: &M::Features,
+        motion: &Matrix4<f64>,
+        ahead: f64,
+    ) -> Result<bool> {
+        let limits = &self.config.motion_model;
+        for start in search_starts(&[ahead, -ahead], &[0.0]) {
+            let again = self.rematch(
+                &previous.cloud,
+                &start,
+                &target.range,
+                features,
+                1..=1,
+                None,
+                true,
+            )?;
+            let Some(again) = again else {
+                continue;
+            };
+            let votes_hold = again
+                .motion
+                .inlier_votes
+                .is_none_or(|votes| votes >= limits.min_inlier_votes);
+            if votes_hold && pose_difference(&again.transform, motion).0 > limits.max_deviation {
+                return Ok(true);
+            }
+        }
+        Ok(false)
+    }
+
     /// `T_tgt_ref` of `reference` and the target scan with no usable guess but `starts`: the wide window
     /// from every start, the start with the most inliers (one vote each: starts are compared by their
     /// counts) going on to rounds of the model's own window.

@@ -25,6 +25,9 @@ struct OracleMatcher {
     guided: Option<bool>,
     /// The expected flows it was given, one mean Δcol a call.
     guides: std::cell::RefCell<Vec<f64>>,
+    /// Motions to answer the next flows under, one a call, before the truth again (`None`: no flow, NaN
+    /// everywhere): the motion of a moved reference, which the truth between the scans given is not.
+    answers: std::cell::RefCell<std::collections::VecDeque<Option<Isometry3<f64>>>>,
 }
 
 impl OracleMatcher {
@@ -38,6 +41,7 @@ impl OracleMatcher {
             asked_amiss: Cell::new(0),
             guided: None,
             guides: Default::default(),
+            answers: Default::default(),
         }
     }
 }
@@ -74,7 +78,16 @@ impl FrameMatcher for OracleMatcher {
         cells: &[bool],
     ) -> Result<DenseFlow> {
         self.asked_for_cells.set(self.asked_for_cells.get() + 1);
-        let mut flow = self.flow(reference, target)?;
+        let mut flow = match self.answers.borrow_mut().pop_front() {
+            Some(Some(motion)) => true_flow(&reference.1, &target.1, &motion, &self.cylinder)?,
+            Some(None) => DenseFlow {
+                flow: vec![f32::NAN; 2 * reference.1.len()],
+                confidence: vec![0.0; reference.1.len()],
+                height: self.cylinder.height,
+                width: self.cylinder.width,
+            },
+            None => self.flow(reference, target)?,
+        };
         let cell_count = cells.len();
         for (cell, (&asked, &range)) in cells.iter().zip(&reference.1).enumerate() {
             if asked != (range > 0.0) {
@@ -166,6 +179,7 @@ fn config(mapping: bool) -> OdometryConfig {
     // The oracle knows the motion between the scans given, not that of a moved reference.
     config.motion_model.rematch_gap = None;
     config.motion_model.match_from_prediction_m = None;
+    config.motion_model.start_check_m = None;
     config
 }
 
@@ -971,4 +985,64 @@ fn the_expected_flow_of_a_turn_is_its_angle_in_columns_the_short_way_round() {
         "{:?}",
         flow[cell]
     );
+}
+
+/// `T_tgt_ref` of `matrix`, a rigid motion, as an isometry.
+fn isometry(matrix: &Matrix4<f64>) -> Isometry3<f64> {
+    let rotation =
+        nalgebra::Rotation3::from_matrix_unchecked(matrix.fixed_view::<3, 3>(0, 0).into_owned());
+    Isometry3::from_parts(
+        matrix.fixed_view::<3, 1>(0, 3).into_owned().into(),
+        nalgebra::UnitQuaternion::from_rotation_matrix(&rotation),
+    )
+}
+
+#[test]
+fn a_first_pair_that_another_start_explains_as_well_is_flagged_and_keeps_its_motion() {
+    let mut config = config(false);
+    config.motion_model.start_check_m = Some(3.0);
+    let truth = true_pose(1).inverse() * true_pose(0);
+    let starts = rematching::search_starts(&[3.0, -3.0], &[0.0]);
+    // The moved reference's motion to the target, which brings each start back to the truth.
+    let from_start = |k: usize| Some(truth * isometry(&starts[k]).inverse());
+    let first_pair = |config: &OdometryConfig, answers: Vec<Option<Isometry3<f64>>>| {
+        let mut odometry = Odometry::new(OracleMatcher::new(), config.clone()).unwrap();
+        register(&mut odometry, &scan(0), 0, 0);
+        odometry.matcher.answers.borrow_mut().extend(answers);
+        let pose = register(&mut odometry, &scan(1), 0, 1);
+        assert!(
+            odometry.matcher.answers.borrow().is_empty(),
+            "{:?}",
+            odometry.diagnostics()[1]
+        );
+        register(&mut odometry, &scan(2), 1, 2);
+        (odometry, pose)
+    };
+
+    // From the identity the flow says the scene stood still (an alias); from 3 m ahead the truth, 0.4 m
+    // away, holds as well: flagged, and the frame keeps the identity's motion.
+    let (odometry, pose) = first_pair(&config, vec![Some(Isometry3::identity()), from_start(0)]);
+    let d = odometry.diagnostics();
+    assert_eq!(d[1].ambiguous_start, Some(true), "{:?}", d[1]);
+    assert!(d[1].timings_ms.contains_key("start_check"));
+    assert!(error_to_truth(&pose, 1).0 > 0.2, "{pose}"); // the identity's (alias) motion, not the start's
+    assert_eq!((d[0].ambiguous_start, d[2].ambiguous_start), (None, None)); // a velocity is measured
+    assert_eq!(odometry.matcher.encoded.get(), 3 + 1);
+
+    // Both starts come back to the pair's own motion, or find nothing: not ambiguous.
+    for answers in [
+        vec![Some(truth), from_start(0), from_start(1)],
+        vec![Some(truth), None, None],
+    ] {
+        let (odometry, pose) = first_pair(&config, answers);
+        assert_eq!(odometry.diagnostics()[1].ambiguous_start, Some(false));
+        assert!(error_to_truth(&pose, 1).0 < 0.02);
+        assert_eq!(odometry.matcher.encoded.get(), 3 + 2);
+    }
+
+    // Not asked for: nothing matched again.
+    config.motion_model.start_check_m = None;
+    let (odometry, _) = first_pair(&config, vec![]);
+    assert_eq!(odometry.diagnostics()[1].ambiguous_start, None);
+    assert_eq!(odometry.matcher.encoded.get(), 3);
 }
