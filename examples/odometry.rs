@@ -243,6 +243,17 @@ where
         files.len() as f64 / seconds,
         arguments.out.join("poses_kitti.txt").display()
     );
+    if odometry
+        .diagnostics()
+        .iter()
+        .any(|d| d.ambiguous_start == Some(true))
+    {
+        eprintln!(
+            "warning: the first motion is ambiguous (another start explained the scans as well: a drive \
+             that began at speed past a repeating scene?); the trajectory may be off from its start on \
+             (diagnostics.jsonl: ambiguous_start)"
+        );
+    }
     Ok(())
 }
 
