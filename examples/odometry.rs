@@ -243,15 +243,21 @@ where
         files.len() as f64 / seconds,
         arguments.out.join("poses_kitti.txt").display()
     );
-    if odometry
-        .diagnostics()
-        .iter()
-        .any(|d| d.ambiguous_start == Some(true))
-    {
+    let diagnostics = odometry.diagnostics();
+    if diagnostics.iter().any(|d| d.ambiguous_start == Some(true)) {
+        let taken = if diagnostics
+            .iter()
+            .any(|d| d.fallback.as_deref() == Some("forward_start"))
+        {
+            "the start driving forward was taken over the pair's reversing motion \
+             (motion_model.start_max_reverse_m); "
+        } else {
+            ""
+        };
         eprintln!(
             "warning: the first motion is ambiguous (another start explained the scans as well: a drive \
-             that began at speed past a repeating scene?); the trajectory may be off from its start on \
-             (diagnostics.jsonl: ambiguous_start)"
+             that began at speed past a repeating scene?); {taken}the trajectory may be off from its start \
+             on (diagnostics.jsonl: ambiguous_start)"
         );
     }
     Ok(())

@@ -156,6 +156,10 @@ pub struct MotionModelSection {
     /// this far (m) ahead and behind along its x axis; another motion that holds flags the frame
     /// (`FrameDiagnostics::ambiguous_start`). `None`: never.
     pub start_check_m: Option<f64>,
+    /// A flagged first pair whose motion drives backwards (along the sensor's x axis) further than this
+    /// (m a frame) while a start's motion drives forward as far takes the forward motion (fallback
+    /// `forward_start`). `None`: the frame keeps its motion.
+    pub start_max_reverse_m: Option<f64>,
 }
 
 impl Default for MotionModelSection {
@@ -172,6 +176,7 @@ impl Default for MotionModelSection {
             prediction_rounds: None,
             guided_windows: None,
             start_check_m: Some(3.0),
+            start_max_reverse_m: Some(0.5),
         }
     }
 }

@@ -146,9 +146,11 @@ def format_summary(summary) -> str:  # type: ignore[no-untyped-def]
         f"results in {summary.out_dir}/",
     ]
     if summary.ambiguous_starts:
+        taken = ("the start driving forward was taken over the pair's reversing motion "
+                 "(motion_model.start_max_reverse_m); " if summary.fallbacks.get("forward_start") else "")
         lines.insert(1, "warning: the first motion is ambiguous (another start explained the scans as well: a drive "
-                        "that began at speed past a repeating scene?); the trajectory may be off from its start on "
-                        "(diagnostics.jsonl: ambiguous_start)")
+                        f"that began at speed past a repeating scene?); {taken}the trajectory may be off from its "
+                        "start on (diagnostics.jsonl: ambiguous_start)")
     if summary.moving_share is not None:
         lines.insert(1, f"moving objects: the network left out {100 * summary.moving_share:.1f} % of a scan's points "
                         "on average (--keep-moving keeps them)")

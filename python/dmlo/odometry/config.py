@@ -175,6 +175,12 @@ class MotionModelConfig:
     # spaced posts can match an alias as well as the truth, and the chain would inherit it. The frame keeps
     # its motion. None: never.
     start_check_m: Positive | None = 3.0
+    # Beyond the paper: a flagged first pair (above) whose motion drives backwards along the sensor's x axis
+    # (the way KITTI's and the simulator's sensors face) further than this (m a frame) while a start's motion
+    # drives forward as far takes the forward motion (`FrameDiagnostics.fallback == "forward_start"`): at
+    # highway speed the aliases of evenly spaced posts reversed and the truth drove forward, and no vehicle
+    # reverses at such speeds. None: the frame keeps its motion (a sensor mounted facing another way).
+    start_max_reverse_m: Positive | None = 0.5
 
 
 @with_config(_SCHEMA)

@@ -68,8 +68,9 @@ class FrameDiagnostics:
     # "guided_consensus" (the matches agreeing with the prediction were solved) or "implausible_motion" (too
     # few agreed: the prediction was taken); "rematched_from_prediction" when the pair matched again from the
     # prediction gave the motion (`motion_model.rematch_gap`); "degenerate_scene" when the inliers rest on too
-    # few upright surfaces to tell the horizontal motion (`motion_model.min_inlier_votes`); "too_few_points" /
-    # "unreadable_scan" for scans not matched
+    # few upright surfaces to tell the horizontal motion (`motion_model.min_inlier_votes`); "forward_start" when
+    # an ambiguous first pair drove backwards and a start's forward motion was taken
+    # (`motion_model.start_max_reverse_m`); "too_few_points" / "unreadable_scan" for scans not matched
     fallback: str | None = None
     # with motion_model.rematch_gap or match_from_prediction_m: the rounds of matching from the prediction whose
     # motion was taken, 0 when they were tried and none was kept; None when not tried

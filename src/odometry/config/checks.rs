@@ -77,6 +77,9 @@ impl OdometryConfig {
         if let Some(v) = mm.start_check_m {
             positive("motion_model.start_check_m", v)?;
         }
+        if let Some(v) = mm.start_max_reverse_m {
+            positive("motion_model.start_max_reverse_m", v)?;
+        }
         if let Some(rounds) = mm.prediction_rounds {
             at_least_u("motion_model.prediction_rounds", rounds, 1)?;
         }

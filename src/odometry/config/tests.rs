@@ -22,6 +22,7 @@ fn the_config_python_saves_loads_unchanged() {
     assert_eq!(config.motion_model.prediction_rounds, Some(3));
     assert_eq!(config.motion_model.guided_windows, Some(false));
     assert_eq!(config.motion_model.start_check_m, Some(2.5));
+    assert_eq!(config.motion_model.start_max_reverse_m, None);
     assert!(config.deskew.enabled);
     assert_eq!(config.mapping.keyframe_distance, f64::INFINITY);
     assert_eq!(config.mapping.voxel_size, 0.8);

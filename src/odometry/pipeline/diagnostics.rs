@@ -27,7 +27,7 @@ pub struct FrameDiagnostics {
     /// With tilt votes: the inliers' votes above the floor.
     #[serde(serialize_with = "rounded_option::<2, _>")]
     pub inlier_votes: Option<f64>,
-    /// The fallback taken (`constant_velocity`, `degenerate_scene`, `guided_consensus`,
+    /// The fallback taken (`constant_velocity`, `degenerate_scene`, `forward_start`, `guided_consensus`,
     /// `implausible_motion`, `rematched_from_prediction`, `too_few_points`, `unreadable_scan`).
     pub fallback: Option<String>,
     /// Rounds of matching from the prediction whose motion was taken (0: tried, none kept).
@@ -38,7 +38,8 @@ pub struct FrameDiagnostics {
     /// The first pair (no velocity yet) checked from starts ahead and behind
     /// (`motion_model.start_check_m`): whether one of them held a motion of its own further from the
     /// frame's than `motion_model.max_deviation` (true: the motion may be an alias, e.g. evenly spaced
-    /// posts passed at speed); `None` when not checked.
+    /// posts passed at speed; with `motion_model.start_max_reverse_m`, a frame driving backwards took a
+    /// start's forward motion: `fallback` `forward_start`); `None` when not checked.
     pub ambiguous_start: Option<bool>,
     /// With `matching.symmetric`: RANSAC inliers of the scan matched back against the previous one.
     pub backward_inliers: Option<usize>,

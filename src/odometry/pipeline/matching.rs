@@ -152,16 +152,22 @@ impl<M: FrameMatcher> Odometry<M> {
         if let Some(fallback) = judged.fallback {
             diagnostics.fallback = Some(fallback.name().to_string());
         }
+        let mut motion = judged.motion;
         if let (false, Some(ahead)) = (
             self.motion.is_measured(),
             self.config.motion_model.start_check_m,
         ) {
-            let ambiguous =
-                self.another_start_holds(previous, target, features, &judged.motion, ahead)?;
-            diagnostics.ambiguous_start = Some(ambiguous);
+            let others = self.other_starts(previous, target, features, &motion, ahead)?;
+            diagnostics.ambiguous_start = Some(!others.is_empty());
+            if let Some(forward) = self.forward_start(&motion, others) {
+                diagnostics.fallback = Some("forward_start".into());
+                diagnostics.count_matches(&forward);
+                diagnostics.inlier_votes = forward.motion.inlier_votes;
+                motion = forward.transform;
+            }
             watch.lap("start_check", diagnostics);
         }
-        Ok(judged.motion)
+        Ok(motion)
     }
 
     /// The forward pair (`flow`, reference → target) and the target matched back against the reference

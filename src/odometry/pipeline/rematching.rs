@@ -187,20 +187,22 @@ impl<M: FrameMatcher> Odometry<M> {
         Ok(again)
     }
 
-    /// Whether the pair, matched again from the reference moved `ahead` metres forward and backward along
-    /// its x axis (one round each), finds a motion of its own — `min_inliers` inliers, `min_inlier_votes`
-    /// with tilt votes — further from `motion` than `motion_model.max_deviation`. Without a velocity the
-    /// pair is matched from the identity, and where the scene repeats along the way (a guard rail's posts
-    /// passed at highway speed) its motion can be an alias that looks as good as the truth.
-    pub(super) fn another_start_holds(
+    /// The pair matched again from the reference moved `ahead` metres forward and backward along its x
+    /// axis (one round each), at each start that finds a motion of its own — `min_inliers` inliers,
+    /// `min_inlier_votes` with tilt votes — further from `motion` than `motion_model.max_deviation`.
+    /// Without a velocity the pair is matched from the identity, and where the scene repeats along the
+    /// way (a guard rail's posts passed at highway speed) its motion can be an alias that looks as good as
+    /// the truth.
+    pub(super) fn other_starts(
         &self,
         previous: &Reference<M::Features>,
         target: &Projected,
         features: &M::Features,
         motion: &Matrix4<f64>,
         ahead: f64,
-    ) -> Result<bool> {
+    ) -> Result<Vec<Matched>> {
         let limits = &self.config.motion_model;
+        let mut held = Vec::new();
         for start in search_starts(&[ahead, -ahead], &[0.0]) {
             let again = self.rematch(
                 &previous.cloud,
@@ -219,10 +221,29 @@ impl<M: FrameMatcher> Odometry<M> {
                 .inlier_votes
                 .is_none_or(|votes| votes >= limits.min_inlier_votes);
             if votes_hold && pose_difference(&again.transform, motion).0 > limits.max_deviation {
-                return Ok(true);
+                held.push(again);
             }
         }
-        Ok(false)
+        Ok(held)
+    }
+
+    /// Of `others`, the motion that drives forward at least `motion_model.start_max_reverse_m` (the one
+    /// with the most inliers) when `motion` drives backwards further than that; `None` otherwise. A
+    /// vehicle does not reverse at the speeds where a start's alias can pass for the truth.
+    pub(super) fn forward_start(
+        &self,
+        motion: &Matrix4<f64>,
+        others: Vec<Matched>,
+    ) -> Option<Matched> {
+        let limit = self.config.motion_model.start_max_reverse_m?;
+        // `T_tgt_ref` of a sensor driving forward along its x axis moves the scene towards −x.
+        if motion[(0, 3)] <= limit {
+            return None;
+        }
+        others
+            .into_iter()
+            .filter(|other| other.transform[(0, 3)] < -limit)
+            .max_by_key(|other| other.motion.num_inliers)
     }
 
     /// `T_tgt_ref` of `reference` and the target scan with no usable guess but `starts`: the wide window

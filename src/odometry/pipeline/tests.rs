@@ -998,7 +998,8 @@ fn isometry(matrix: &Matrix4<f64>) -> Isometry3<f64> {
 }
 
 #[test]
-fn a_first_pair_that_another_start_explains_as_well_is_flagged_and_keeps_its_motion() {
+fn a_first_pair_that_another_start_explains_as_well_is_flagged_and_a_reversing_one_takes_the_forward_start(
+) {
     let mut config = config(false);
     config.motion_model.start_check_m = Some(3.0);
     let truth = true_pose(1).inverse() * true_pose(0);
@@ -1021,13 +1022,41 @@ fn a_first_pair_that_another_start_explains_as_well_is_flagged_and_keeps_its_mot
 
     // From the identity the flow says the scene stood still (an alias); from 3 m ahead the truth, 0.4 m
     // away, holds as well: flagged, and the frame keeps the identity's motion.
-    let (odometry, pose) = first_pair(&config, vec![Some(Isometry3::identity()), from_start(0)]);
+    let (odometry, pose) = first_pair(
+        &config,
+        vec![Some(Isometry3::identity()), from_start(0), None],
+    );
     let d = odometry.diagnostics();
     assert_eq!(d[1].ambiguous_start, Some(true), "{:?}", d[1]);
     assert!(d[1].timings_ms.contains_key("start_check"));
     assert!(error_to_truth(&pose, 1).0 > 0.2, "{pose}"); // the identity's (alias) motion, not the start's
+    assert_eq!(d[1].fallback, None); // standing still is no reversing: no start is preferred
     assert_eq!((d[0].ambiguous_start, d[2].ambiguous_start), (None, None)); // a velocity is measured
-    assert_eq!(odometry.matcher.encoded.get(), 3 + 1);
+    assert_eq!(odometry.matcher.encoded.get(), 3 + 2);
+
+    // From the identity the car drives backwards as fast as it truly drives forward (the aliases of posts
+    // passed at speed reversed so): the start's forward motion is taken, and said so.
+    config.motion_model.start_max_reverse_m = Some(0.2); // the truth drives 0.4 m a frame
+    let reversing = Some(truth.inverse());
+    let (odometry, pose) = first_pair(&config, vec![reversing, from_start(0), from_start(1)]);
+    let d = &odometry.diagnostics()[1];
+    assert_eq!(d.ambiguous_start, Some(true), "{d:?}");
+    assert_eq!(d.fallback.as_deref(), Some("forward_start"));
+    assert!(d.num_inliers >= 10, "{d:?}");
+    assert!(error_to_truth(&pose, 1).0 < 0.02, "{pose}");
+    assert_eq!(odometry.matcher.encoded.get(), 3 + 2);
+    // … not when the reversing is within the limit, nor when no limit is set.
+    for limit in [Some(0.6), None] {
+        config.motion_model.start_max_reverse_m = limit;
+        let (odometry, pose) = first_pair(&config, vec![reversing, from_start(0), from_start(1)]);
+        let d = &odometry.diagnostics()[1];
+        assert_eq!(
+            (d.ambiguous_start, d.fallback.as_deref()),
+            (Some(true), None)
+        );
+        assert!(error_to_truth(&pose, 1).0 > 0.7, "{pose}");
+    }
+    config.motion_model.start_max_reverse_m = Some(0.5);
 
     // Both starts come back to the pair's own motion, or find nothing: not ambiguous.
     for answers in [
