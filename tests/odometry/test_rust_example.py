@@ -30,28 +30,28 @@ def _poses(path: Path) -> np.ndarray:
 
 def _dmlo_run_and_example(
     scans: Path, out: Path, mapping: bool, keep_moving: bool = False, encode_ahead: bool = False
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, str]:
     """The poses of `dmlo run` and of the example over the `.bin` folder `scans`, with the config `dmlo run`
-    wrote. `keep_moving`: neither runs the moving-object network; `encode_ahead`: the example encodes each scan
-    while the one before it is registered."""
+    wrote, and what the example wrote to stderr. `keep_moving`: neither runs the moving-object network;
+    `encode_ahead`: the example encodes each scan while the one before it is registered."""
     from dmlo.cli import main
 
     example = rust_example("odometry")
     python_out, rust_out = out / "dmlo_run", out / "rust"
     assert main(["run", str(scans), "--out", str(python_out), "--mapping" if mapping else "--no-mapping"]
                 + (["--keep-moving"] if keep_moving else [])) == 0
-    printed = subprocess.run(
+    finished = subprocess.run(
         [str(example), str(scans), "--out", str(rust_out), "--model", str(MODEL),
          "--config", str(python_out / "config.json"), "--onnxruntime", str(onnxruntime_library())]
         + (["--encode-ahead"] if encode_ahead else []),
         check=True, capture_output=True, text=True,
-    ).stdout
-    assert f"{len(list(scans.glob('*.bin')))} scans" in printed, printed
+    )
+    assert f"{len(list(scans.glob('*.bin')))} scans" in finished.stdout, finished.stdout
     flagged = [[json.loads(line)["num_moving_predicted"] for line in (folder / "diagnostics.jsonl").open()]
                for folder in (python_out, rust_out)]
     assert flagged[0] == flagged[1]
     assert all(count is None for count in flagged[0]) if keep_moving else all(count > 0 for count in flagged[0])
-    return _poses(python_out / "poses_kitti.txt"), _poses(rust_out / "poses_kitti.txt")
+    return _poses(python_out / "poses_kitti.txt"), _poses(rust_out / "poses_kitti.txt"), finished.stderr
 
 
 def _assert_same_poses(expected: np.ndarray, got: np.ndarray) -> None:
@@ -66,7 +66,7 @@ def _assert_same_poses(expected: np.ndarray, got: np.ndarray) -> None:
 @pytest.mark.parametrize("mapping", [True, False], ids=["mapping", "frame_to_frame"])
 def test_the_rust_example_gives_dmlo_runs_poses_on_a_simulated_drive(drive: Path, tmp_path: Path,
                                                                       mapping: bool) -> None:
-    expected, got = _dmlo_run_and_example(drive / "velodyne", tmp_path, mapping)
+    expected, got, _ = _dmlo_run_and_example(drive / "velodyne", tmp_path, mapping)
     assert got.shape == (5, 3, 4)
     _assert_same_poses(expected, got)
 
@@ -83,5 +83,22 @@ def test_the_rust_example_gives_dmlo_runs_poses_on_real_scans(shared_data: Path,
                                                               mapping: bool, mode: str) -> None:
     keep_moving, encode_ahead = MODES[mode]
     scans = shared_data / "kitti_real" / name / "velodyne"
-    expected, got = _dmlo_run_and_example(scans, tmp_path, mapping, keep_moving, encode_ahead)
+    expected, got, _ = _dmlo_run_and_example(scans, tmp_path, mapping, keep_moving, encode_ahead)
     _assert_same_poses(expected, got)
+
+
+def test_the_rust_example_takes_the_forward_start_as_dmlo_run_does(shared_data: Path, tmp_path: Path) -> None:
+    """Two scans of the simulated highway at 2.4 m a frame whose first pair, matched from the identity, reverses
+    (an alias of the guard rails' posts; `test_start_at_speed.py`): both take a start's forward motion, and say
+    so."""
+    from dmlo.simulator import simulate_sequence
+
+    simulate_sequence(tmp_path / "highway", frames=2, seed=32, scene="highway", start=150, laser_gain_spread=0.6,
+                      progress=False, trajectory=shared_data / "kitti_gt_poses" / "01.txt")
+    expected, got, stderr = _dmlo_run_and_example(tmp_path / "highway" / "velodyne", tmp_path, mapping=True,
+                                                  keep_moving=True)
+    _assert_same_poses(expected, got)
+    assert expected[1, 0, 3] > 2.0  # forward, as far as the truth
+    assert "the start driving forward was taken" in stderr, stderr
+    rows = [json.loads(line) for line in (tmp_path / "rust" / "diagnostics.jsonl").open()]
+    assert rows[1]["ambiguous_start"] is True and rows[1]["fallback"] == "forward_start"
