@@ -173,7 +173,7 @@ class MotionModelConfig:
     # motion of its own there (`min_inliers`, `min_inlier_votes`) further than `max_deviation` from the
     # frame's flags the frame (`FrameDiagnostics.ambiguous_start`): a drive that starts at speed past evenly
     # spaced posts can match an alias as well as the truth, and the chain would inherit it. The frame keeps
-    # its motion. None: never.
+    # its motion unless `start_max_reverse_m` (below) prefers a start's. None: never.
     start_check_m: Positive | None = 3.0
     # Beyond the paper: a flagged first pair (above) whose motion drives backwards along the sensor's x axis
     # (the way KITTI's and the simulator's sensors face) further than this (m a frame) while a start's motion
