@@ -32,7 +32,7 @@ import numpy as np
 import numpy.typing as npt
 from tqdm import tqdm
 
-from dmlo.peers.consensus import ConsensusReference, available_gicps, gicp_consensus
+from dmlo.peers.consensus import ConsensusReference, available_gicps, gicp_consensus, missing_gicps
 from dmlo.peers.peers import PEERS, FrameOdometry
 from dmlo.peers.runner import REFERENCE_PEER
 from dmlo.datasets import DatasetError, open_sequence
@@ -163,9 +163,10 @@ def main() -> None:
             print(f"warning: {peer.name} left out: {peer.unavailable_reason}", file=sys.stderr)
     gicps = available_gicps()
     if len(gicps) == 1:
+        why = "; ".join(missing_gicps().values())
         print(
-            f"warning: the reference is {gicps[0]} alone, not the consensus of two independent GICPs "
-            "(pip install 'dmlo[bench]' for both): its own row compares it with itself",
+            f"warning: the reference is {gicps[0]} alone, not the consensus of two independent GICPs ({why}): "
+            "its own row compares it with itself",
             file=sys.stderr,
         )
 

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from dmlo.odometry.matcher import default_model_path
+from dmlo.peers.consensus import missing_gicps
 from dmlo.simulator import simulate_sequence
 from support import REPO, rust_example
 
@@ -132,6 +133,9 @@ def test_real_scan_benchmark_runs_on_a_plain_folder_of_scans(drive: Path, tmp_pa
     command = [sys.executable, str(SCRIPTS / "real.py"), str(scans), "--peers", "--out", str(out)]
     result = subprocess.run(command, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
+    missing = missing_gicps()
+    if len(missing) == 1:  # a single GICP: the warning says why the other is missing
+        assert next(iter(missing.values())) in result.stderr, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| DMLO")]
     assert [row.split(" | ")[0] for row in rows] == ["| DMLO", "| DMLO + mapping"]
     report = json.loads((out / "real.json").read_text())

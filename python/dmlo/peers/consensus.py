@@ -87,6 +87,11 @@ def available_gicps() -> list[str]:
     return [name for name, package, _ in GICPS if _import_problem(package) is None]
 
 
+def missing_gicps() -> dict[str, str]:
+    """The GICPs that cannot run here, each with why (not installed, or installed but not loading)."""
+    return {name: problem for name, package, _ in GICPS if (problem := _import_problem(package)) is not None}
+
+
 def gicp_consensus(
     scans: Sequence[npt.NDArray[np.float32]], ground_truth: npt.NDArray[np.float64] | None = None
 ) -> ConsensusReference:
