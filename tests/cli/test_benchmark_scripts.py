@@ -138,11 +138,16 @@ def test_real_scan_benchmark_runs_on_a_plain_folder_of_scans(drive: Path, tmp_pa
         assert next(iter(missing.values())) in result.stderr, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| DMLO")]
     assert [row.split(" | ")[0] for row in rows] == ["| DMLO", "| DMLO + mapping"]
+    assert "on every pair up to 3 scans apart, solved jointly" in result.stdout  # the multi-scan reference
+    assert all(row.split(" | ")[6] != "—" for row in rows)  # … with the consecutive pairs' figures beside it
     report = json.loads((out / "real.json").read_text())
     (entry,) = report["sets"].values()
-    assert len(entry["reference"]["motions"]) == 2
+    assert len(entry["reference"]["motions"]) == 2 and entry["reference"]["span"] == 3
+    assert len(entry["reference"]["residual_m"]) == 3 * len(entry["reference"]["sources"])  # 0-1, 1-2, 0-2
     refused = subprocess.run([*command[:-2], "--max-frames", "1"], capture_output=True, text=True)
     assert refused.returncode == 2 and "--max-frames" in refused.stderr
+    refused = subprocess.run([*command[:-2], "--span", "0"], capture_output=True, text=True)
+    assert refused.returncode == 2 and "--span: at least 1" in refused.stderr
 
 
 def test_real_scan_benchmark_names_an_unreadable_set_and_keeps_the_others(drive: Path, tmp_path: Path) -> None:
@@ -209,6 +214,13 @@ def test_real_scan_pair_errors_are_measured_against_the_reference() -> None:
     row = pair_errors("m", np.stack(estimate), reference, hz=10.0)
     assert row.translation_mean_cm == pytest.approx(2.0) and row.translation_max_cm == pytest.approx(2.0)
     assert row.rotation_mean_deg == pytest.approx(0.1) and row.pitch_bias_deg == pytest.approx(0.1)
+    assert row.consecutive_translation_mean_cm is None  # a reference of consecutive pairs alone
+    consecutive = motions.copy()
+    consecutive[:, :3, 3] += [0.0, 0.03, 0.0]
+    multi = ConsensusReference(motions, np.zeros(5), np.zeros(5), ("test",), span=3, consecutive_motions=consecutive)
+    row = pair_errors("m", np.stack(estimate), multi, hz=10.0)
+    assert row.translation_mean_cm == pytest.approx(2.0)
+    assert row.consecutive_translation_mean_cm is not None and row.consecutive_translation_mean_cm > 3.0  # 2 and 3 cm apart
 
 
 def test_odometry_benchmark_adds_the_named_highway_drive(tmp_path: Path) -> None:
