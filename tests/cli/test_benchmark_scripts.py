@@ -223,6 +223,18 @@ def test_real_scan_pair_errors_are_measured_against_the_reference() -> None:
     assert row.consecutive_translation_mean_cm is not None and row.consecutive_translation_mean_cm > 3.0  # 2 and 3 cm apart
 
 
+def test_reference_benchmark_measures_the_consensus_against_a_simulated_truth(capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("small_gicp")
+    script("reference").main(["--seeds", "5", "--frames", "5", "--spans", "1", "3"])
+    out = capsys.readouterr().out
+    rows = {line.split(" | ")[0]: line for line in out.splitlines() if line.startswith("| 1 |") or line.startswith("| 3 |")}
+    assert set(rows) == {"| 1", "| 3"}, out
+    error = {span: float(rows[f"| {span}"].split(" | ")[1]) for span in (1, 3)}
+    assert 0 < error[3] < error[1] < 5, error  # the multi-scan consensus is the nearer the truth
+    with pytest.raises(SystemExit):
+        script("reference").main(["--spans", "0"])
+
+
 def test_odometry_benchmark_adds_the_named_highway_drive(tmp_path: Path) -> None:
     command = [sys.executable, str(SCRIPTS / "odometry.py"), "--frames", "3", "--seeds", "1", "--highway", "3",
                "--poses", str(tmp_path / "no_poses"), "--peers", "--out", str(tmp_path)]
