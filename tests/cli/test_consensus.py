@@ -84,8 +84,10 @@ def test_an_alignment_that_failed_outright_does_not_drag_the_others() -> None:
 
 def test_edges_that_cannot_place_every_scan_are_refused() -> None:
     poses = np.tile(np.eye(4), (4, 1, 1))
-    with pytest.raises(ValueError, match=r"scan\(s\) \[3\] joined by no edge"):
+    with pytest.raises(ValueError, match=r"scan\(s\) \[3\] not joined to the first"):
         solve_pose_graph(poses, [(0, 1), (1, 2)], poses[:2])
+    with pytest.raises(ValueError, match=r"scan\(s\) \[2, 3\] not joined to the first"):
+        solve_pose_graph(poses, [(0, 1), (2, 3)], poses[:2])  # every scan on an edge, two islands
     with pytest.raises(ValueError, match="two different scans"):
         solve_pose_graph(poses, [(0, 1), (1, 4), (2, 3)], poses[:3])
     with pytest.raises(ValueError, match="two different scans"):

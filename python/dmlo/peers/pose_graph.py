@@ -14,7 +14,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import coo_matrix, lil_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
 Poses = npt.NDArray[np.float64]
@@ -37,8 +38,8 @@ def solve_pose_graph(initial: Poses, edges: npt.ArrayLike, motions: Poses) -> Po
     """The poses (N, 4, 4) that fit the measured motions best, the first held at `initial[0]`.
 
     `edges` (E, 2) pairs scan indices `(i, j)`, `motions` (E, 4, 4) the motion `T_i_j` measured between them
-    (`inv(P_i) P_j` of the true poses); `initial` is where the solve starts (a chain of motions). Every pose
-    must be reached by some edge, or it could not be placed.
+    (`inv(P_i) P_j` of the true poses); `initial` is where the solve starts (a chain of motions). The edges
+    must join every scan to the first, through others or directly, or it could not be placed.
     """
     edges = np.asarray(edges, dtype=np.intp).reshape(-1, 2)
     count = len(initial)
@@ -46,13 +47,13 @@ def solve_pose_graph(initial: Poses, edges: npt.ArrayLike, motions: Poses) -> Po
         raise ValueError(f"{len(edges)} edges but {len(motions)} motions")
     if edges.size and (edges.min() < 0 or edges.max() >= count or np.any(edges[:, 0] == edges[:, 1])):
         raise ValueError(f"edges must join two different scans of the {count}")
-    reached = np.zeros(count, dtype=bool)
-    reached[0] = True
-    reached[edges.ravel()] = True
-    if not reached.all():
-        raise ValueError(f"scan(s) {np.flatnonzero(~reached).tolist()} joined by no edge")
     if count < 2:
         return initial.copy()
+    adjacency = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(count, count))
+    _, component = connected_components(adjacency, directed=False)
+    apart = np.flatnonzero(component != component[0])
+    if apart.size:
+        raise ValueError(f"scan(s) {apart.tolist()} not joined to the first by the edges")
 
     def poses(x: npt.NDArray[np.float64]) -> Poses:
         # Small corrections of the initial poses, never an absolute angle near the rotation vector's
