@@ -15,7 +15,7 @@ give the multi-scan consensus, whose error of one alignment is averaged with its
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -165,11 +165,9 @@ def _multi_scan(
     edge_array, motions = np.asarray(edges, dtype=np.intp), np.stack(measured)
     poses = solve_pose_graph(chain, edge_array, motions)
     residual = np.linalg.norm(edge_residuals(poses, edge_array, motions)[:, 3:], axis=1)
-    return ConsensusReference(
+    return replace(
+        consecutive,
         motions=np.linalg.inv(poses[:-1]) @ poses[1:],
-        disagreement_m=consecutive.disagreement_m,
-        disagreement_deg=consecutive.disagreement_deg,
-        sources=consecutive.sources,
         span=span,
         residual_m=residual,
         consecutive_motions=consecutive.motions,
