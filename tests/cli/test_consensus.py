@@ -82,6 +82,26 @@ def test_an_alignment_that_failed_outright_does_not_drag_the_others() -> None:
     assert _delta_errors_m(solved, truth).max() < 0.01
 
 
+def test_a_long_drive_is_solved_to_the_end() -> None:
+    """A drive of hundreds of scans (a user's own, in `benchmarks/real.py`): the solve ends where solving
+    again from its answer moves nothing, every pair nearer the truth than the chain it started from."""
+    rng = np.random.default_rng(4)
+    count = 300
+    truth = _random_drive(rng, count)
+    edges = _edges(count, 3)
+    measured = np.stack([_perturbed(m, rng, 0.01, 0.0005) for m in _relative(truth, edges)])
+    failed = np.flatnonzero((edges[:, 0] == 150) & (edges[:, 1] == 152))[0]
+    measured[failed, :3, 3] += [2.0, -1.0, 0.0]
+    consecutive = edges[:, 1] - edges[:, 0] == 1
+    chain = [np.eye(4)]
+    for motion in measured[consecutive]:
+        chain.append(chain[-1] @ motion)
+    solved = solve_pose_graph(np.stack(chain), edges, measured)
+    again = solve_pose_graph(solved, edges, measured)
+    assert np.abs(again - solved).max() < 1e-6
+    assert _delta_errors_m(solved, truth).mean() < 0.75 * _delta_errors_m(np.stack(chain), truth).mean()
+
+
 def test_edges_that_cannot_place_every_scan_are_refused() -> None:
     poses = np.tile(np.eye(4), (4, 1, 1))
     with pytest.raises(ValueError, match=r"scan\(s\) \[3\] not joined to the first"):

@@ -2,8 +2,8 @@
 
 The multi-scan reference (`dmlo.peers.consensus`) aligns each scan with the next few, not only the next; no
 chain of poses satisfies every such alignment exactly, and the poses that fit them all best average out the
-error of each single alignment. Solved by scipy's trust-region least squares with a sparse Jacobian (each
-edge touches two poses) and a robust loss, twice: a soft L1 loss first, which bounds the pull of a large
+error of each single alignment. Solved by GTSAM (Levenberg–Marquardt on its sparse factor graph, one
+between-factor an alignment) with a robust loss, twice: a Huber loss first, which bounds the pull of a large
 residual and, being convex, leaves the start's chain wherever the alignments say; then a Cauchy loss from
 there, whose pull fades for residuals far beyond its scale, so that an alignment that failed outright
 (metres off) does not drag the others along.
@@ -11,10 +11,10 @@ there, whose pull fades for residuals far beyond its scale, so that an alignment
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix, lil_matrix
+from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
@@ -34,6 +34,25 @@ def edge_residuals(poses: Poses, edges: npt.NDArray[np.intp], motions: Poses) ->
     return np.concatenate([Rotation.from_matrix(error[:, :3, :3]).as_rotvec(), error[:, :3, 3]], axis=1)
 
 
+def _check_edges(count: int, edges: npt.NDArray[np.intp], motions: Poses) -> None:
+    if len(edges) != len(motions):
+        raise ValueError(f"{len(edges)} edges but {len(motions)} motions")
+    if edges.size and (edges.min() < 0 or edges.max() >= count or np.any(edges[:, 0] == edges[:, 1])):
+        raise ValueError(f"edges must join two different scans of the {count}")
+    adjacency = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(count, count))
+    _, component = connected_components(adjacency, directed=False)
+    apart = np.flatnonzero(component != component[0])
+    if apart.size:
+        raise ValueError(f"scan(s) {apart.tolist()} not joined to the first by the edges")
+
+
+def _rigid(matrix: npt.NDArray[np.float64]) -> gtsam.Pose3:
+    """GTSAM's pose of a 4×4 matrix whose rotation carries the last bits of float error (gtsam takes the
+    3×3 as given; products of many motions drift off orthonormal)."""
+    rotation = Rotation.from_matrix(matrix[:3, :3]).as_matrix()
+    return gtsam.Pose3(gtsam.Rot3(rotation), np.asarray(matrix[:3, 3], dtype=np.float64))
+
+
 def solve_pose_graph(initial: Poses, edges: npt.ArrayLike, motions: Poses) -> Poses:
     """The poses (N, 4, 4) that fit the measured motions best, the first held at `initial[0]`.
 
@@ -43,43 +62,26 @@ def solve_pose_graph(initial: Poses, edges: npt.ArrayLike, motions: Poses) -> Po
     """
     edges = np.asarray(edges, dtype=np.intp).reshape(-1, 2)
     count = len(initial)
-    if len(edges) != len(motions):
-        raise ValueError(f"{len(edges)} edges but {len(motions)} motions")
-    if edges.size and (edges.min() < 0 or edges.max() >= count or np.any(edges[:, 0] == edges[:, 1])):
-        raise ValueError(f"edges must join two different scans of the {count}")
+    _check_edges(count, edges, motions)
     if count < 2:
         return initial.copy()
-    adjacency = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(count, count))
-    _, component = connected_components(adjacency, directed=False)
-    apart = np.flatnonzero(component != component[0])
-    if apart.size:
-        raise ValueError(f"scan(s) {apart.tolist()} not joined to the first by the edges")
-
-    def poses(x: npt.NDArray[np.float64]) -> Poses:
-        # Small corrections of the initial poses, never an absolute angle near the rotation vector's
-        # singularity at 180° (a drive that turns round).
-        step = x.reshape(count - 1, 6)
-        out = initial.copy()
-        out[1:, :3, :3] = initial[1:, :3, :3] @ Rotation.from_rotvec(step[:, :3]).as_matrix()
-        out[1:, :3, 3] = initial[1:, :3, 3] + step[:, 3:]
-        return out
-
-    scale = np.array([LEVER_ARM_M] * 3 + [1.0] * 3)
-
-    def residuals(x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        return (edge_residuals(poses(x), edges, motions) * scale).ravel()
-
-    sparsity = lil_matrix((6 * len(edges), 6 * (count - 1)), dtype=np.int8)
-    for row, pair in enumerate(edges):
-        for index in pair:
-            if index > 0:
-                sparsity[6 * row : 6 * row + 6, 6 * (index - 1) : 6 * index] = 1
-    solution = np.zeros(6 * (count - 1))
-    # Steps scaled by the Jacobian's columns: a rotation parameter weighs the lever arm's metres, a translation
-    # one a metre; unscaled, a hundred-scan graph took the iteration limit without converging.
-    for loss in ("soft_l1", "cauchy"):
-        solution = least_squares(
-            residuals, solution, jac_sparsity=sparsity, loss=loss, f_scale=ROBUST_SCALE_M,
-            x_scale="jac", max_nfev=200,
-        ).x
-    return poses(solution)
+    # GTSAM's pose tangent is rotation (rad) then translation (m): a radian weighs the lever arm's metres.
+    weights = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0 / LEVER_ARM_M] * 3 + [1.0] * 3))
+    measured = [_rigid(motion) for motion in motions]
+    values = gtsam.Values()
+    for index, pose in enumerate(initial):
+        values.insert(index, _rigid(pose))
+    first = values.atPose3(0)
+    for loss in (gtsam.noiseModel.mEstimator.Huber, gtsam.noiseModel.mEstimator.Cauchy):
+        noise = gtsam.noiseModel.Robust.Create(loss.Create(ROBUST_SCALE_M), weights)
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.NonlinearEqualityPose3(0, first))
+        for (i, j), motion in zip(edges, measured):
+            graph.add(gtsam.BetweenFactorPose3(int(i), int(j), motion, noise))
+        parameters = gtsam.LevenbergMarquardtParams()
+        # Tolerances well below the alignments' millimetres; GTSAM's defaults stop at 1e-5 relative.
+        parameters.setRelativeErrorTol(1e-10)
+        parameters.setAbsoluteErrorTol(1e-12)
+        parameters.setMaxIterations(100)
+        values = gtsam.LevenbergMarquardtOptimizer(graph, values, parameters).optimize()
+    return np.stack([values.atPose3(index).matrix() for index in range(count)])
