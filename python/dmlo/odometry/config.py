@@ -217,10 +217,7 @@ class MappingConfig:
     paper's frame-to-frame DMLO."""
 
     enabled: Flag = True
-    # The map's voxels (m). The map lies behind the scan it aligns (its keyframes are past poses), so what its
-    # Gaussians smooth over pulls the scan the same way frame after frame — a small pitch that piles up into
-    # vertical drift; smaller voxels smooth less, and want a scan thinned finer than themselves.
-    voxel_size: Positive = 0.75
+    voxel_size: Positive = 1.0
     max_scans: AtLeastOne = 10  # keyframes the local map keeps
     # A scan enters the map only once it moved this far (metres) or turned this much (degrees) from the
     # newest map scan; 0 and 0 put every scan in.
@@ -236,7 +233,7 @@ class MappingConfig:
     # prediction and the better-scoring alignment wins (a wrong RANSAC consensus is caught by the map).
     motion_model_start_distance: Limit = 0.3
     motion_model_start_angle_deg: Limit = 1.5
-    downsample: NonNegative = 0.4  # voxel (m) of the scan aligned to the map; 0: every point
+    downsample: NonNegative = 0.75  # voxel (m) of the scan aligned to the map; 0: every point
     max_iterations: AtLeastOne = 30
     # Translations (rotations) with less than this fraction of the best-constrained translation's
     # (rotation's) information keep the DMLO estimate instead of the map's pull; 0 turns the test off.
