@@ -45,6 +45,14 @@ def _relative(poses: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return np.linalg.inv(poses[edges[:, 0]]) @ poses[edges[:, 1]]
 
 
+def _chain(edges: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """The poses the consecutive pairs' measured motions alone give: where the solve starts."""
+    chain = [np.eye(4)]
+    for motion in measured[edges[:, 1] - edges[:, 0] == 1]:
+        chain.append(chain[-1] @ motion)
+    return np.stack(chain)
+
+
 def test_consistent_motions_give_back_the_poses_from_a_wrong_start() -> None:
     rng = np.random.default_rng(1)
     truth = _random_drive(rng, 7)
@@ -62,12 +70,9 @@ def test_noisy_alignments_of_scans_further_apart_average_out() -> None:
         truth = _random_drive(rng, 10)
         edges = _edges(10, 3)
         measured = np.stack([_perturbed(m, rng, 0.01, 0.0005) for m in _relative(truth, edges)])
-        consecutive = edges[:, 1] - edges[:, 0] == 1
-        chain = [np.eye(4)]
-        for motion in measured[consecutive]:
-            chain.append(chain[-1] @ motion)
-        chained.append(_delta_errors_m(np.stack(chain), truth).mean())
-        solved.append(_delta_errors_m(solve_pose_graph(np.stack(chain), edges, measured), truth).mean())
+        chain = _chain(edges, measured)
+        chained.append(_delta_errors_m(chain, truth).mean())
+        solved.append(_delta_errors_m(solve_pose_graph(chain, edges, measured), truth).mean())
     assert np.mean(solved) < 0.75 * np.mean(chained), (np.mean(solved), np.mean(chained))
 
 
@@ -92,14 +97,11 @@ def test_a_long_drive_is_solved_to_the_end() -> None:
     measured = np.stack([_perturbed(m, rng, 0.01, 0.0005) for m in _relative(truth, edges)])
     failed = np.flatnonzero((edges[:, 0] == 150) & (edges[:, 1] == 152))[0]
     measured[failed, :3, 3] += [2.0, -1.0, 0.0]
-    consecutive = edges[:, 1] - edges[:, 0] == 1
-    chain = [np.eye(4)]
-    for motion in measured[consecutive]:
-        chain.append(chain[-1] @ motion)
-    solved = solve_pose_graph(np.stack(chain), edges, measured)
+    chain = _chain(edges, measured)
+    solved = solve_pose_graph(chain, edges, measured)
     again = solve_pose_graph(solved, edges, measured)
     assert np.abs(again - solved).max() < 1e-6
-    assert _delta_errors_m(solved, truth).mean() < 0.75 * _delta_errors_m(np.stack(chain), truth).mean()
+    assert _delta_errors_m(solved, truth).mean() < 0.75 * _delta_errors_m(chain, truth).mean()
 
 
 def test_edges_that_cannot_place_every_scan_are_refused() -> None:

@@ -72,16 +72,16 @@ def solve_pose_graph(initial: Poses, edges: npt.ArrayLike, motions: Poses) -> Po
     for index, pose in enumerate(initial):
         values.insert(index, _rigid(pose))
     first = values.atPose3(0)
+    parameters = gtsam.LevenbergMarquardtParams()
+    # Tolerances well below the alignments' millimetres; GTSAM's defaults stop at 1e-5 relative.
+    parameters.setRelativeErrorTol(1e-10)
+    parameters.setAbsoluteErrorTol(1e-12)
+    parameters.setMaxIterations(100)
     for loss in (gtsam.noiseModel.mEstimator.Huber, gtsam.noiseModel.mEstimator.Cauchy):
         noise = gtsam.noiseModel.Robust.Create(loss.Create(ROBUST_SCALE_M), weights)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.NonlinearEqualityPose3(0, first))
         for (i, j), motion in zip(edges, measured):
             graph.add(gtsam.BetweenFactorPose3(int(i), int(j), motion, noise))
-        parameters = gtsam.LevenbergMarquardtParams()
-        # Tolerances well below the alignments' millimetres; GTSAM's defaults stop at 1e-5 relative.
-        parameters.setRelativeErrorTol(1e-10)
-        parameters.setAbsoluteErrorTol(1e-12)
-        parameters.setMaxIterations(100)
         values = gtsam.LevenbergMarquardtOptimizer(graph, values, parameters).optimize()
     return np.stack([values.atPose3(index).matrix() for index in range(count)])
