@@ -679,6 +679,8 @@ class LocalMap:
         motion_model_start_distance: float = 0.3,
         motion_model_start_angle_deg: float = 1.5,
         downsample: float = 0.75,
+        downsample_far: float = 0.4,
+        far_range: float = 15.0,
         max_iterations: int = 30,
         degeneracy_threshold: float = 0.05,
         rotation_degeneracy_threshold: float = 0.01,

@@ -34,7 +34,7 @@ use step::{is_small, line_search, newton_direction};
 
 use super::map::NdtMap;
 use super::score::{apply_increment, ScoreConstants, ScoreContext, Scorer};
-use super::voxel::voxel_downsample;
+use super::voxel::range_voxel_downsample;
 use crate::{Error, Result};
 
 /// `T` from a 4×4 matrix, refusing anything that is not a rigid motion (within float32 round-off).
@@ -111,7 +111,12 @@ impl NdtMap {
                 "has a non-finite entry",
             ));
         }
-        let source = voxel_downsample(points, config.source_voxel_size);
+        let source = range_voxel_downsample(
+            points,
+            config.source_voxel_size,
+            config.source_far_range,
+            config.source_far_voxel_size,
+        );
         let voxel_size = self.config().voxel_size;
         let context = ScoreContext {
             gaussians: self.gaussians(),

@@ -368,6 +368,26 @@ pub fn voxel_downsample(points: &[Point3<f64>], voxel_size: f64) -> Vec<Point3<f
         .collect()
 }
 
+/// [`voxel_downsample`] by a voxel of `near_size` within `range` of the origin and of `far_size` beyond
+/// it: the near points' centroids first, then the far points'. An infinite `range` is `voxel_downsample`
+/// by `near_size`.
+pub fn range_voxel_downsample(
+    points: &[Point3<f64>],
+    near_size: f64,
+    range: f64,
+    far_size: f64,
+) -> Vec<Point3<f64>> {
+    if range.is_infinite() {
+        return voxel_downsample(points, near_size);
+    }
+    let (near, far): (Vec<Point3<f64>>, Vec<Point3<f64>>) = points
+        .iter()
+        .partition(|point| point.coords.norm() <= range);
+    let mut thinned = voxel_downsample(&near, near_size);
+    thinned.extend(voxel_downsample(&far, far_size));
+    thinned
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -528,5 +548,29 @@ mod tests {
         assert_eq!(thinned.len(), 2);
         assert!((thinned[0] - Point3::new(1.3, 0.2, 0.2)).norm() < 1e-12);
         assert!((thinned[1] - points[1]).norm() < 1e-12);
+    }
+
+    #[test]
+    fn range_downsample_thins_near_and_far_points_by_their_own_voxels() {
+        // Along a ray in the x-y plane, 0.1 m apart, from 0.05 to 19.95 m out.
+        let direction = Vector3::new(0.6, 0.8, 0.0);
+        let points: Vec<Point3<f64>> = (0..200)
+            .map(|i| Point3::from(direction * (0.05 + 0.1 * i as f64)))
+            .collect();
+        let thinned = range_voxel_downsample(&points, 2.0, 10.0, 0.5);
+        let (near, far): (Vec<Point3<f64>>, Vec<Point3<f64>>) =
+            thinned.iter().partition(|p| p.coords.norm() <= 10.0);
+        assert_eq!(near, voxel_downsample(&points[..100], 2.0));
+        assert_eq!(far, voxel_downsample(&points[100..], 0.5));
+        assert!(
+            far.len() > 2 * near.len(),
+            "{} far, {} near",
+            far.len(),
+            near.len()
+        );
+        assert_eq!(
+            range_voxel_downsample(&points, 2.0, f64::INFINITY, 0.5),
+            voxel_downsample(&points, 2.0)
+        );
     }
 }

@@ -229,8 +229,13 @@ pub struct MappingSection {
     /// … or this much turned (°).
     #[serde(deserialize_with = "limit")]
     pub motion_model_start_angle_deg: f64,
-    /// Voxel (m) of the scan aligned to the map; 0: every point.
+    /// Voxel (m) of the scan aligned to the map within `far_range` of the sensor; 0: every point …
     pub downsample: f64,
+    /// … and beyond it.
+    pub downsample_far: f64,
+    /// Metres from the sensor.
+    #[serde(deserialize_with = "limit")]
+    pub far_range: f64,
     /// Newton steps at most.
     pub max_iterations: u64,
     /// The translations' degeneracy threshold.
@@ -252,6 +257,8 @@ impl Default for MappingSection {
             motion_model_start_distance: c.motion_model_start_distance,
             motion_model_start_angle_deg: c.motion_model_start_angle_deg,
             downsample: c.downsample,
+            downsample_far: c.downsample_far,
+            far_range: c.far_range,
             max_iterations: c.max_iterations as u64,
             degeneracy_threshold: c.degeneracy_threshold,
             rotation_degeneracy_threshold: c.rotation_degeneracy_threshold,
@@ -499,6 +506,8 @@ impl OdometryConfig {
             motion_model_start_distance: p.motion_model_start_distance,
             motion_model_start_angle_deg: p.motion_model_start_angle_deg,
             downsample: p.downsample,
+            downsample_far: p.downsample_far,
+            far_range: p.far_range,
             max_iterations: p.max_iterations as usize,
             degeneracy_threshold: p.degeneracy_threshold,
             rotation_degeneracy_threshold: p.rotation_degeneracy_threshold,

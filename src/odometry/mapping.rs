@@ -46,8 +46,12 @@ pub struct MappingConfig {
     pub motion_model_start_distance: f64,
     /// … or this much turned (°).
     pub motion_model_start_angle_deg: f64,
-    /// Voxel (m) of the scan aligned to the map; 0: every point.
+    /// Voxel (m) of the scan aligned to the map within `far_range` of the sensor; 0: every point …
     pub downsample: f64,
+    /// … and beyond it.
+    pub downsample_far: f64,
+    /// Metres from the sensor (limit).
+    pub far_range: f64,
     /// Newton steps at most.
     pub max_iterations: usize,
     /// NDT's degeneracy threshold of the translations ([`NdtAlignConfig::degeneracy_threshold`]).
@@ -67,6 +71,8 @@ impl Default for MappingConfig {
             motion_model_start_distance: 0.3,
             motion_model_start_angle_deg: 1.5,
             downsample: 0.75,
+            downsample_far: 0.4,
+            far_range: 15.0,
             max_iterations: 30,
             degeneracy_threshold: 0.05,
             rotation_degeneracy_threshold: 0.01,
@@ -80,6 +86,8 @@ impl MappingConfig {
         NdtAlignConfig {
             max_iterations: self.max_iterations,
             source_voxel_size: self.downsample,
+            source_far_range: self.far_range,
+            source_far_voxel_size: self.downsample_far,
             degeneracy_threshold: self.degeneracy_threshold,
             rotation_degeneracy_threshold: self.rotation_degeneracy_threshold,
             ..Default::default()
@@ -100,17 +108,23 @@ impl MappingConfig {
                 "motion_model_start_angle_deg",
                 self.motion_model_start_angle_deg,
             ),
+            ("far_range", self.far_range),
         ];
         for (name, value) in limits {
             if value.is_nan() || value < 0.0 {
                 return Err(Error::invalid(name, format!("must be ≥ 0, got {value}")));
             }
         }
-        if !(self.downsample.is_finite() && self.downsample >= 0.0) {
-            return Err(Error::invalid(
-                "downsample",
-                format!("must be finite and ≥ 0, got {}", self.downsample),
-            ));
+        for (name, value) in [
+            ("downsample", self.downsample),
+            ("downsample_far", self.downsample_far),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(Error::invalid(
+                    name,
+                    format!("must be finite and ≥ 0, got {value}"),
+                ));
+            }
         }
         self.map_config().validate()?;
         self.align_config().validate()

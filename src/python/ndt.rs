@@ -296,6 +296,7 @@ impl PyNdtMap {
             min_correspondences,
             degeneracy_threshold,
             rotation_degeneracy_threshold,
+            ..Default::default()
         };
         let points = read_points(points, "points")?;
         let initial = read_transform(initial_transform, "initial_transform")?;

@@ -233,7 +233,13 @@ class MappingConfig:
     # prediction and the better-scoring alignment wins (a wrong RANSAC consensus is caught by the map).
     motion_model_start_distance: Limit = 0.3
     motion_model_start_angle_deg: Limit = 1.5
-    downsample: NonNegative = 0.75  # voxel (m) of the scan aligned to the map; 0: every point
+    # Voxel (m) of the scan aligned to the map, within `far_range` metres of the sensor and beyond it; 0: every
+    # point. Near the sensor every surface is sampled densely and the nearest objects, often vehicles keeping
+    # pace, fill much of the scan: the coarser voxel keeps them from outweighing the static scene. Farther
+    # out the finer voxel keeps the sparse scene's structure (a far point's lever arm constrains rotation).
+    downsample: NonNegative = 0.75
+    downsample_far: NonNegative = 0.4
+    far_range: Limit = 15.0
     max_iterations: AtLeastOne = 30
     # Translations (rotations) with less than this fraction of the best-constrained translation's
     # (rotation's) information keep the DMLO estimate instead of the map's pull; 0 turns the test off.

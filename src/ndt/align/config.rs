@@ -26,8 +26,13 @@ pub struct NdtAlignConfig {
     pub rotation_epsilon_deg: f64,
     /// Expected fraction of source points with no counterpart in the map (sets `d1`, `d2`).
     pub outlier_ratio: f64,
-    /// The source is thinned by a voxel-grid filter of this size first, metres (0 keeps every point).
+    /// The source is thinned by a voxel-grid filter of this size first, metres (0 keeps every point) …
     pub source_voxel_size: f64,
+    /// … but its points farther than this from the sensor (the source frame's origin), metres, by one of
+    /// `source_far_voxel_size` (infinite: every point by `source_voxel_size`).
+    pub source_far_range: f64,
+    /// The far points' voxel, metres (0 keeps every far point).
+    pub source_far_voxel_size: f64,
     /// Which map voxels each point is scored against.
     pub neighbours: NeighbourSearch,
     /// A Newton step is shortened so that it translates by at most this, metres …
@@ -54,6 +59,8 @@ impl Default for NdtAlignConfig {
             rotation_epsilon_deg: 1e-3,
             outlier_ratio: 0.55,
             source_voxel_size: 0.5,
+            source_far_range: f64::INFINITY,
+            source_far_voxel_size: 0.5,
             neighbours: NeighbourSearch::Direct7,
             max_step_translation: 0.5,
             max_step_rotation_deg: 5.0,
@@ -88,10 +95,21 @@ impl NdtAlignConfig {
                 format!("must lie in (0, 1), got {}", self.outlier_ratio),
             ));
         }
-        if !(self.source_voxel_size.is_finite() && self.source_voxel_size >= 0.0) {
+        for (value, name) in [
+            (self.source_voxel_size, "source_voxel_size"),
+            (self.source_far_voxel_size, "source_far_voxel_size"),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(Error::invalid(
+                    name,
+                    format!("must be finite and >= 0, got {value}"),
+                ));
+            }
+        }
+        if !(self.source_far_range >= 0.0) {
             return Err(Error::invalid(
-                "source_voxel_size",
-                format!("must be finite and >= 0, got {}", self.source_voxel_size),
+                "source_far_range",
+                format!("must be >= 0, got {}", self.source_far_range),
             ));
         }
         positive(self.max_step_translation, "max_step_translation")?;

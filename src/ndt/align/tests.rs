@@ -231,6 +231,22 @@ fn degenerate_inputs_are_errors() {
         argument_of(map.align(&source, &identity, &bad)),
         "rotation_degeneracy_threshold"
     );
+    let bad = NdtAlignConfig {
+        source_far_range: -1.0,
+        ..config.clone()
+    };
+    assert_eq!(
+        argument_of(map.align(&source, &identity, &bad)),
+        "source_far_range"
+    );
+    let bad = NdtAlignConfig {
+        source_far_voxel_size: f64::INFINITY,
+        ..config.clone()
+    };
+    assert_eq!(
+        argument_of(map.align(&source, &identity, &bad)),
+        "source_far_voxel_size"
+    );
     let far_away = motion([500.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
     assert_eq!(
         map.align(&source, &far_away, &config),

@@ -102,6 +102,8 @@ impl OdometryConfig {
             p.motion_model_start_angle_deg,
         )?;
         non_negative("mapping.downsample", p.downsample)?;
+        non_negative("mapping.downsample_far", p.downsample_far)?;
+        limit_value("mapping.far_range", p.far_range)?;
         at_least_u("mapping.max_iterations", p.max_iterations, 1)?;
         let d = p.degeneracy_threshold;
         check(

@@ -133,7 +133,7 @@ pub(super) fn config_error(path: String, error: &serde_json::Error) -> Error {
 /// The unlimited settings of `config` written back as the mark that [`OdometryConfig::to_json`] turns into
 /// `Infinity` (serde_json writes a non-finite number as `null`, which would read back as "no setting").
 pub(super) fn restore_infinities(value: &mut serde_json::Value, config: &OdometryConfig) {
-    let limits: [(&str, &str, f64); 10] = [
+    let limits: [(&str, &str, f64); 11] = [
         (
             "motion_model",
             "max_deviation",
@@ -169,6 +169,7 @@ pub(super) fn restore_infinities(value: &mut serde_json::Value, config: &Odometr
             "motion_model_start_angle_deg",
             config.mapping.motion_model_start_angle_deg,
         ),
+        ("mapping", "far_range", config.mapping.far_range),
         ("large_motion", "min_step", config.large_motion.min_step),
         (
             "large_motion",

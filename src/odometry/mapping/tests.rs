@@ -275,7 +275,7 @@ fn a_pair_is_refined_against_its_reference_alone() {
 
 #[test]
 fn bad_settings_are_named() {
-    let cases: [(MappingConfig, &str); 3] = [
+    let cases: [(MappingConfig, &str); 5] = [
         (
             MappingConfig {
                 keyframe_distance: -1.0,
@@ -289,6 +289,20 @@ fn bad_settings_are_named() {
                 ..Default::default()
             },
             "downsample",
+        ),
+        (
+            MappingConfig {
+                downsample_far: -0.4,
+                ..Default::default()
+            },
+            "downsample_far",
+        ),
+        (
+            MappingConfig {
+                far_range: f64::NAN,
+                ..Default::default()
+            },
+            "far_range",
         ),
         (
             MappingConfig {
