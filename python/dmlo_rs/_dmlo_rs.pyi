@@ -681,6 +681,7 @@ class LocalMap:
         downsample: float = 0.75,
         downsample_far: float = 0.4,
         far_range: float = 15.0,
+        level_without_far_upright: bool = False,
         max_iterations: int = 30,
         degeneracy_threshold: float = 0.05,
         rotation_degeneracy_threshold: float = 0.01,

@@ -236,6 +236,8 @@ pub struct MappingSection {
     /// Metres from the sensor.
     #[serde(deserialize_with = "limit")]
     pub far_range: f64,
+    /// The height, roll and pitch from NDT without the upright surfaces beyond `far_range`.
+    pub level_without_far_upright: bool,
     /// Newton steps at most.
     pub max_iterations: u64,
     /// The translations' degeneracy threshold.
@@ -259,6 +261,7 @@ impl Default for MappingSection {
             downsample: c.downsample,
             downsample_far: c.downsample_far,
             far_range: c.far_range,
+            level_without_far_upright: c.level_without_far_upright,
             max_iterations: c.max_iterations as u64,
             degeneracy_threshold: c.degeneracy_threshold,
             rotation_degeneracy_threshold: c.rotation_degeneracy_threshold,
@@ -508,6 +511,7 @@ impl OdometryConfig {
             downsample: p.downsample,
             downsample_far: p.downsample_far,
             far_range: p.far_range,
+            level_without_far_upright: p.level_without_far_upright,
             max_iterations: p.max_iterations as usize,
             degeneracy_threshold: p.degeneracy_threshold,
             rotation_degeneracy_threshold: p.rotation_degeneracy_threshold,

@@ -52,6 +52,9 @@ pub struct MappingConfig {
     pub downsample_far: f64,
     /// Metres from the sensor (limit).
     pub far_range: f64,
+    /// The height, roll and pitch come from a second NDT that leaves out the upright surfaces beyond
+    /// `far_range` ([`level_points`]); off by default: it costs a plane fit a far cell.
+    pub level_without_far_upright: bool,
     /// Newton steps at most.
     pub max_iterations: usize,
     /// NDT's degeneracy threshold of the translations ([`NdtAlignConfig::degeneracy_threshold`]).
@@ -73,6 +76,7 @@ impl Default for MappingConfig {
             downsample: 0.75,
             downsample_far: 0.4,
             far_range: 15.0,
+            level_without_far_upright: false,
             max_iterations: 30,
             degeneracy_threshold: 0.05,
             rotation_degeneracy_threshold: 0.01,
@@ -171,6 +175,25 @@ pub fn standing(keyframe: &Matrix4<f64>, pose: &Matrix4<f64>) -> bool {
     moved < STANDING_DISTANCE && turned < STANDING_ANGLE_DEG
 }
 
+/// The first of `cells` (in their order) in each `voxel` (m) of a point image, the voxels in the order of
+/// their keys.
+fn one_cell_a_voxel(points: &[f32], cells: &[usize], voxel: f64) -> Vec<usize> {
+    // One integer a voxel, as the odometry's Python side keyed them: voxels a million apart may share it.
+    let size = voxel as f32;
+    // Wrapping, as numpy's int64 arithmetic wraps for coordinates thousands of kilometres out.
+    let key = |cell: usize| -> i64 {
+        let k =
+            |axis: usize| ((points[3 * cell + axis] / size).floor() as i64).wrapping_add(1 << 20);
+        k(0).wrapping_shl(42)
+            .wrapping_add(k(1).wrapping_shl(21))
+            .wrapping_add(k(2))
+    };
+    let mut keyed: Vec<(i64, usize)> = cells.iter().map(|&cell| (key(cell), cell)).collect();
+    keyed.sort_by_key(|&(key, _)| key); // stable: the first cell of each voxel leads it
+    keyed.dedup_by_key(|&mut (key, _)| key);
+    keyed.into_iter().map(|(_, cell)| cell).collect()
+}
+
 /// The upright surfaces of a scan's point image `points` (`H × W × 3`, NaN where empty): each kept
 /// point whose surface's normal is mostly horizontal ([`horizontal_votes`]: walls, poles, trunks, car
 /// bodies), one cell per `voxel` (m; 0: every cell), the first in row-major order of each voxel, the
@@ -201,21 +224,7 @@ pub fn upright_points(
         .filter(|&cell| points[3 * cell].is_finite())
         .collect();
     if voxel > 0.0 {
-        // One integer a voxel, as the odometry's Python side keyed them: voxels a million apart may share it.
-        let size = voxel as f32;
-        // Wrapping, as numpy's int64 arithmetic wraps for coordinates thousands of kilometres out.
-        let key = |cell: usize| -> i64 {
-            let k = |axis: usize| {
-                ((points[3 * cell + axis] / size).floor() as i64).wrapping_add(1 << 20)
-            };
-            k(0).wrapping_shl(42)
-                .wrapping_add(k(1).wrapping_shl(21))
-                .wrapping_add(k(2))
-        };
-        let mut keyed: Vec<(i64, usize)> = kept.iter().map(|&cell| (key(cell), cell)).collect();
-        keyed.sort_by_key(|&(key, _)| key); // stable: the first cell of each voxel leads it
-        keyed.dedup_by_key(|&mut (key, _)| key);
-        kept = keyed.into_iter().map(|(_, cell)| cell).collect();
+        kept = one_cell_a_voxel(points, &kept, voxel);
     }
     let grid: Vec<[usize; 2]> = kept
         .iter()
@@ -231,6 +240,62 @@ pub fn upright_points(
             Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)
         })
         .collect())
+}
+
+/// The points of a point image (`H × W × 3`, NaN where empty) that [`LocalMap::refine`] takes the height,
+/// roll and pitch from: every point within `range` of the sensor, and beyond it, thinned to one a `voxel`,
+/// those whose surface is not upright (the ground). Seen from the keyframes behind, the far walls, poles and
+/// trees tilt the scan nose-down a little every frame, while the far ground does not (docs/measurements.md).
+pub fn level_points(
+    points: &[f32],
+    cylinder: &CylinderConfig,
+    voxel: f64,
+    range: f64,
+) -> Result<Vec<Point3<f64>>> {
+    let cells = cylinder.height * cylinder.width;
+    if points.len() != 3 * cells {
+        return Err(Error::invalid(
+            "points",
+            format!(
+                "expected {} values (H × W × 3), got {}",
+                3 * cells,
+                points.len()
+            ),
+        ));
+    }
+    let mut near = Vec::new();
+    let mut far_cells = Vec::new();
+    for cell in 0..cells {
+        let p = &points[3 * cell..3 * cell + 3];
+        if !p[0].is_finite() {
+            continue;
+        }
+        let point = Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        if point.coords.norm() <= range {
+            near.push(point);
+        } else {
+            far_cells.push(cell);
+        }
+    }
+    if voxel > 0.0 {
+        far_cells = one_cell_a_voxel(points, &far_cells, voxel);
+    }
+    let grid: Vec<[usize; 2]> = far_cells
+        .iter()
+        .map(|&cell| [cell / cylinder.width, cell % cylinder.width])
+        .collect();
+    let votes = horizontal_votes(points, cylinder, &grid, UPRIGHT_VOTE / 2.0)?;
+    near.extend(
+        far_cells
+            .iter()
+            .zip(votes)
+            .filter(|&(_, vote)| vote < UPRIGHT_VOTE)
+            .map(|(&cell, _)| {
+                let p = &points[3 * cell..3 * cell + 3];
+                Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)
+            }),
+    );
+    Ok(near)
 }
 
 /// A pose with the horizontal position and heading (yaw) of `horizontal` and the height, roll and pitch
@@ -495,12 +560,38 @@ impl LocalMap {
                 start: None,
             },
             Some((name, result)) => MapRefinement {
-                pose: result.transform.to_homogeneous(),
+                pose: self.level(&result.transform.to_homogeneous(), points, cylinder)?,
                 converged: true,
                 degenerate_directions: Some(result.degenerate_directions),
                 upright_only: false,
                 start: Some(name),
             },
+        })
+    }
+
+    /// `pose` with its height, roll and pitch from NDT of the scan's points within `far_range` and the
+    /// far ones off upright surfaces ([`level_points`]), started from it; unchanged when
+    /// `level_without_far_upright` is off, `far_range` is infinite or that alignment fails.
+    fn level(
+        &self,
+        pose: &Matrix4<f64>,
+        points: &[f32],
+        cylinder: &CylinderConfig,
+    ) -> Result<Matrix4<f64>> {
+        if !self.config.level_without_far_upright || self.config.far_range.is_infinite() {
+            return Ok(*pose);
+        }
+        let level_cloud = level_points(
+            points,
+            cylinder,
+            self.config.downsample_far,
+            self.config.far_range,
+        )?;
+        Ok(match solvable(self.align(&level_cloud, pose))? {
+            Some(level) if level.converged => {
+                heading_and_level(pose, &level.transform.to_homogeneous())
+            }
+            _ => *pose,
         })
     }
 

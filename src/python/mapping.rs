@@ -86,7 +86,8 @@ impl PyLocalMap {
     #[pyo3(signature = (cylinder, *, voxel_size = 1.0, max_scans = 10, keyframe_distance = 2.0,
                         keyframe_angle_deg = 5.0, ring_lock_distance = 0.5,
                         motion_model_start_distance = 0.3, motion_model_start_angle_deg = 1.5,
-                        downsample = 0.75, downsample_far = 0.4, far_range = 15.0, max_iterations = 30, degeneracy_threshold = 0.05,
+                        downsample = 0.75, downsample_far = 0.4, far_range = 15.0,
+                        level_without_far_upright = false, max_iterations = 30, degeneracy_threshold = 0.05,
                         rotation_degeneracy_threshold = 0.01))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -101,6 +102,7 @@ impl PyLocalMap {
         downsample: f64,
         downsample_far: f64,
         far_range: f64,
+        level_without_far_upright: bool,
         #[pyo3(from_py_with = counts::max_iterations)] max_iterations: usize,
         degeneracy_threshold: f64,
         rotation_degeneracy_threshold: f64,
@@ -116,6 +118,7 @@ impl PyLocalMap {
             downsample,
             downsample_far,
             far_range,
+            level_without_far_upright,
             max_iterations,
             degeneracy_threshold,
             rotation_degeneracy_threshold,

@@ -216,6 +216,88 @@ fn upright_points_keep_the_walls_and_posts_and_leave_the_floor() {
 }
 
 #[test]
+fn level_points_keep_the_near_scene_and_the_far_floor_and_leave_the_far_walls() {
+    let scan = scan_at(&Isometry3::identity(), 7);
+    let cylinder = CylinderConfig::kitti();
+    let finite: Vec<Point3<f64>> = scan
+        .points
+        .chunks_exact(3)
+        .filter(|p| p[0].is_finite())
+        .map(|p| Point3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+        .collect();
+    let count = |points: &[Point3<f64>], keep: &dyn Fn(&Point3<f64>) -> bool| {
+        points.iter().filter(|p| keep(p)).count()
+    };
+    let near = |p: &Point3<f64>| p.coords.norm() <= 10.0;
+    let far_walls = |p: &Point3<f64>| p.coords.norm() > 10.0 && p.z > -1.0;
+    let far_floor = |p: &Point3<f64>| p.coords.norm() > 10.0 && p.z < -1.6;
+    let level = level_points(&scan.points, &cylinder, 0.0, 10.0).unwrap();
+    assert_eq!(count(&level, &near), count(&finite, &near));
+    let (walls_kept, walls) = (count(&level, &far_walls), count(&finite, &far_walls));
+    assert!(
+        walls > 1000 && walls_kept * 20 < walls,
+        "{walls_kept} of {walls} far wall points kept"
+    );
+    let (floor_kept, floor) = (count(&level, &far_floor), count(&finite, &far_floor));
+    assert!(
+        floor_kept * 10 > floor * 9,
+        "{floor_kept} of {floor} far floor points kept"
+    );
+    let thinned = level_points(&scan.points, &cylinder, 0.75, 10.0).unwrap();
+    assert_eq!(count(&thinned, &near), count(&finite, &near));
+    assert!(count(&thinned, &far_floor) * 2 < floor_kept);
+    assert_eq!(
+        level_points(&scan.points, &cylinder, 0.4, f64::INFINITY)
+            .unwrap()
+            .len(),
+        finite.len()
+    );
+    assert!(matches!(
+        level_points(&scan.points[3..], &cylinder, 0.0, 10.0),
+        Err(Error::InvalidArgument {
+            argument: "points",
+            ..
+        })
+    ));
+}
+
+#[test]
+fn the_level_from_the_near_scene_and_the_far_floor_refines_the_pose_too() {
+    let refine = |level_without_far_upright: bool| {
+        let config = MappingConfig {
+            far_range: 10.0,
+            level_without_far_upright,
+            ..Default::default()
+        };
+        let mut map = LocalMap::new(config).unwrap();
+        let first = scan_at(&Isometry3::identity(), 1);
+        map.insert(&first.cloud, &Matrix4::identity(), &first.points)
+            .unwrap();
+        let scan = scan_at(&pose(0.9, 0.05, 1.0), 2);
+        let dmlo = (pose(0.9, 0.05, 1.0) * pose(0.05, -0.03, 0.3)).to_homogeneous();
+        map.refine(
+            &scan.cloud,
+            &scan.points,
+            &dmlo,
+            None,
+            &CylinderConfig::kitti(),
+        )
+        .unwrap()
+    };
+    let (whole, levelled) = (refine(false), refine(true));
+    assert!(whole.converged && levelled.converged);
+    let truth = pose(0.9, 0.05, 1.0).to_homogeneous();
+    let (moved, turned) = off(&levelled.pose, &truth);
+    assert!(moved < 0.02 && turned < 0.1, "{moved} m, {turned}°");
+    // The second alignment ran: its height differs from the whole scan's by round-off at least.
+    assert_ne!(levelled.pose[(2, 3)], whole.pose[(2, 3)]);
+    assert_eq!(
+        [levelled.pose[(0, 3)], levelled.pose[(1, 3)]],
+        [whole.pose[(0, 3)], whole.pose[(1, 3)]]
+    );
+}
+
+#[test]
 fn heading_and_level_take_their_angles_and_position_from_either_pose() {
     let angles =
         |yaw: f64, pitch: f64, roll: f64| UnitQuaternion::from_euler_angles(roll, pitch, yaw);
