@@ -209,36 +209,19 @@ pub fn upright_points(
             format!("must be finite and ≥ 0, got {voxel}"),
         ));
     }
-    let cells = cylinder.height * cylinder.width;
-    if points.len() != 3 * cells {
-        return Err(Error::invalid(
-            "points",
-            format!(
-                "expected {} values (H × W × 3), got {}",
-                3 * cells,
-                points.len()
-            ),
-        ));
-    }
+    let cells = point_image_cells(points, cylinder)?;
     let mut kept: Vec<usize> = (0..cells)
         .filter(|&cell| points[3 * cell].is_finite())
         .collect();
     if voxel > 0.0 {
         kept = one_cell_a_voxel(points, &kept, voxel);
     }
-    let grid: Vec<[usize; 2]> = kept
-        .iter()
-        .map(|&cell| [cell / cylinder.width, cell % cylinder.width])
-        .collect();
-    let votes = horizontal_votes(points, cylinder, &grid, UPRIGHT_VOTE / 2.0)?;
+    let upright = upright_cells(points, cylinder, &kept)?;
     Ok(kept
         .iter()
-        .zip(votes)
-        .filter(|&(_, vote)| vote >= UPRIGHT_VOTE)
-        .map(|(&cell, _)| {
-            let p = &points[3 * cell..3 * cell + 3];
-            Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)
-        })
+        .zip(upright)
+        .filter(|&(_, upright)| upright)
+        .map(|(&cell, _)| cell_point(points, cell))
         .collect())
 }
 
@@ -252,6 +235,33 @@ pub fn level_points(
     voxel: f64,
     range: f64,
 ) -> Result<Vec<Point3<f64>>> {
+    let cells = point_image_cells(points, cylinder)?;
+    let mut near = Vec::new();
+    let mut far_cells = Vec::new();
+    for cell in (0..cells).filter(|&cell| points[3 * cell].is_finite()) {
+        let point = cell_point(points, cell);
+        if point.coords.norm() <= range {
+            near.push(point);
+        } else {
+            far_cells.push(cell);
+        }
+    }
+    if voxel > 0.0 {
+        far_cells = one_cell_a_voxel(points, &far_cells, voxel);
+    }
+    let upright = upright_cells(points, cylinder, &far_cells)?;
+    near.extend(
+        far_cells
+            .iter()
+            .zip(upright)
+            .filter(|&(_, upright)| !upright)
+            .map(|(&cell, _)| cell_point(points, cell)),
+    );
+    Ok(near)
+}
+
+/// The number of cells of a point image, or an error naming `points` when its length does not fit.
+fn point_image_cells(points: &[f32], cylinder: &CylinderConfig) -> Result<usize> {
     let cells = cylinder.height * cylinder.width;
     if points.len() != 3 * cells {
         return Err(Error::invalid(
@@ -263,39 +273,22 @@ pub fn level_points(
             ),
         ));
     }
-    let mut near = Vec::new();
-    let mut far_cells = Vec::new();
-    for cell in 0..cells {
-        let p = &points[3 * cell..3 * cell + 3];
-        if !p[0].is_finite() {
-            continue;
-        }
-        let point = Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-        if point.coords.norm() <= range {
-            near.push(point);
-        } else {
-            far_cells.push(cell);
-        }
-    }
-    if voxel > 0.0 {
-        far_cells = one_cell_a_voxel(points, &far_cells, voxel);
-    }
-    let grid: Vec<[usize; 2]> = far_cells
+    Ok(cells)
+}
+
+fn cell_point(points: &[f32], cell: usize) -> Point3<f64> {
+    let p = &points[3 * cell..3 * cell + 3];
+    Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)
+}
+
+/// Whether each of `cells` lies on an upright surface ([`horizontal_votes`] of at least [`UPRIGHT_VOTE`]).
+fn upright_cells(points: &[f32], cylinder: &CylinderConfig, cells: &[usize]) -> Result<Vec<bool>> {
+    let grid: Vec<[usize; 2]> = cells
         .iter()
         .map(|&cell| [cell / cylinder.width, cell % cylinder.width])
         .collect();
     let votes = horizontal_votes(points, cylinder, &grid, UPRIGHT_VOTE / 2.0)?;
-    near.extend(
-        far_cells
-            .iter()
-            .zip(votes)
-            .filter(|&(_, vote)| vote < UPRIGHT_VOTE)
-            .map(|(&cell, _)| {
-                let p = &points[3 * cell..3 * cell + 3];
-                Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)
-            }),
-    );
-    Ok(near)
+    Ok(votes.into_iter().map(|vote| vote >= UPRIGHT_VOTE).collect())
 }
 
 /// A pose with the horizontal position and heading (yaw) of `horizontal` and the height, roll and pitch
