@@ -242,8 +242,8 @@ class MappingConfig:
     far_range: Limit = 15.0
     # The height, roll and pitch come from a second NDT of the points within `far_range` and the far ones off
     # upright surfaces (the ground): seen from the keyframes behind, far walls, poles and trees tilt the scan
-    # nose-down a little every frame, and each keyframe would carry the tilt into the map. Off by default: the
-    # far cells' plane fits cost a sixth of the frame rate.
+    # nose-down a little every frame, and each keyframe would carry the tilt into the map. Off by default: it costs a
+    # plane fit a far cell and a second alignment (docs/measurements.md).
     level_without_far_upright: Flag = False
     max_iterations: AtLeastOne = 30
     # Translations (rotations) with less than this fraction of the best-constrained translation's
