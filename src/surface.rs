@@ -188,6 +188,66 @@ pub fn horizontal_votes(
         .collect()
 }
 
+/// Rows searched up and down a column for the next ring's point (a real sensor's lasers leave some
+/// rows of an even elevation grid empty).
+const RING_ROWS: usize = 4;
+
+/// Per cell `[row, col]` of a scan's point image `points` ([`check_cell_points`]): whether it lies on an
+/// upright surface, told without a plane fit: the segment to the nearest point of its column above or
+/// below (within [`RING_ROWS`] rows) rises at least as steeply as a surface whose normal's horizontal
+/// part is `min_sine` (the sine of the segment's elevation, as [`horizontal_votes`] gives the sine of
+/// the surface's tilt). Either side counts, so the lowest row of a wall, whose neighbour below lies on
+/// the road in front of it, still counts as upright; an empty cell, or one with no neighbour in its
+/// column, counts as upright too, as an unknown normal keeps the full vote. Far from the sensor the
+/// road's rings lie metres apart at one height and a wall's centimetres apart above each other, so the one
+/// segment tells them where [`horizontal_votes`] reads hundreds of neighbours a cell (and, with its
+/// neighbourhood a tenth of the range wide, calls the foot of a far wall or a post level with the road).
+pub fn steep_to_next_ring(
+    points: &[f32],
+    config: &CylinderConfig,
+    cells: &[[usize; 2]],
+    min_sine: f64,
+) -> Result<Vec<bool>> {
+    check_cell_points(points, config)?;
+    if !(0.0..=1.0).contains(&min_sine) {
+        return Err(Error::invalid(
+            "min_sine",
+            format!("must lie in [0, 1], got {min_sine}"),
+        ));
+    }
+    let (height, width) = (config.height, config.width);
+    let at = |r: usize, c: usize| -> Option<Vector3<f64>> {
+        let i = 3 * (r * width + c);
+        let p = Vector3::new(points[i] as f64, points[i + 1] as f64, points[i + 2] as f64);
+        p.x.is_finite().then_some(p)
+    };
+    let steep = |from: &Vector3<f64>, to: &Vector3<f64>| {
+        let d = to - from;
+        d.z.abs() >= min_sine * d.norm()
+    };
+    cells
+        .iter()
+        .map(|&[row, col]| {
+            if row >= height || col >= width {
+                return Err(Error::invalid(
+                    "cells",
+                    format!("[{row}, {col}] lies outside the {height}x{width} image"),
+                ));
+            }
+            let Some(centre) = at(row, col) else {
+                return Ok(true);
+            };
+            let above = (row.saturating_sub(RING_ROWS)..row)
+                .rev()
+                .find_map(|r| at(r, col));
+            let below = (row + 1..(row + RING_ROWS + 1).min(height)).find_map(|r| at(r, col));
+            let neighbours = [above, below];
+            Ok(neighbours.iter().all(Option::is_none)
+                || neighbours.iter().flatten().any(|p| steep(&centre, p)))
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -352,6 +412,100 @@ mod tests {
         assert!(err.to_string().starts_with("points:"), "{err}");
         points[7] = f32::INFINITY;
         let err = horizontal_votes(&points, &config, &[], 0.0).unwrap_err();
+        assert!(err.to_string().starts_with("points:"), "{err}");
+    }
+
+    /// The occupied cells of an image and whether [`steep_to_next_ring`] calls each upright.
+    fn steep_cells(image: &[[f32; 3]], config: &CylinderConfig) -> Vec<([usize; 2], bool)> {
+        let cells: Vec<[usize; 2]> = (0..image.len())
+            .filter(|&i| !image[i][0].is_nan())
+            .map(|i| [i / config.width, i % config.width])
+            .collect();
+        let steep = steep_to_next_ring(&flat(image), config, &cells, 0.5).unwrap();
+        cells.into_iter().zip(steep).collect()
+    }
+
+    #[test]
+    fn the_next_ring_tells_the_road_and_a_gentle_ramp_from_a_wall() {
+        let config = CylinderConfig::kitti();
+        for (normal, d, upright) in [
+            (Vector3::z(), -1.73, false),
+            (Vector3::new(0.6, 0.8, 0.0), 12.0, true),
+            (
+                Vector3::new(20f64.to_radians().sin(), 0.0, 20f64.to_radians().cos()),
+                -2.0,
+                false,
+            ),
+        ] {
+            let image = plane_image(&config, normal, d);
+            // The cells alone in their column within four rows count as upright whatever the surface.
+            let lone = |[row, col]: [usize; 2]| {
+                (row.saturating_sub(RING_ROWS)..(row + RING_ROWS + 1).min(config.height))
+                    .filter(|&r| r != row)
+                    .all(|r| image[r * config.width + col][0].is_nan())
+            };
+            let told: Vec<bool> = steep_cells(&image, &config)
+                .into_iter()
+                .filter(|&(cell, _)| !lone(cell))
+                .map(|(_, steep)| steep)
+                .collect();
+            assert!(told.len() > 1000, "{normal:?}: {} cells", told.len());
+            assert!(told.iter().all(|&steep| steep == upright), "{normal:?}");
+        }
+        let mut lone = vec![EMPTY; config.height * config.width];
+        lone[10 * config.width + 100] = [5.0, 0.0, 0.0];
+        assert_eq!(steep_cells(&lone, &config), vec![([10, 100], true)]);
+    }
+
+    #[test]
+    fn the_lowest_ring_on_a_wall_is_upright_and_the_road_before_it_is_not() {
+        // A wall 20 m ahead across the road: the ring below the wall's lowest lies on the road metres
+        // nearer at nearly its height, the ring above on the wall.
+        let config = CylinderConfig::kitti();
+        let road = plane_image(&config, Vector3::z(), -1.73);
+        let wall = plane_image(&config, Vector3::x(), 20.0);
+        let scene: Vec<[f32; 3]> = road
+            .iter()
+            .zip(&wall)
+            .map(|(r, w)| {
+                if w[0].is_nan() || (!r[0].is_nan() && r[0] < w[0]) {
+                    *r
+                } else {
+                    *w
+                }
+            })
+            .collect();
+        let col = (0..config.width)
+            .min_by_key(|&c| {
+                let ray = config.unproject(0.0, c as f64, 1.0).coords;
+                (ray.y.atan2(ray.x).abs() * 1e6) as i64
+            })
+            .unwrap();
+        let column: Vec<([usize; 2], bool)> = steep_cells(&scene, &config)
+            .into_iter()
+            .filter(|&([_, c], _)| c == col)
+            .collect();
+        let lowest_on_wall = column
+            .iter()
+            .rposition(|&([row, c], _)| (scene[row * config.width + c][0] - 20.0).abs() < 1e-3)
+            .unwrap();
+        assert!(column[lowest_on_wall].1);
+        assert!(!column[lowest_on_wall + 1].1, "the road's farthest ring");
+        assert!(column[..lowest_on_wall].iter().all(|&(_, steep)| steep));
+        assert!(column[lowest_on_wall + 2..]
+            .iter()
+            .all(|&(_, steep)| !steep));
+    }
+
+    #[test]
+    fn bad_arguments_of_the_ring_test_are_named() {
+        let config = CylinderConfig::kitti();
+        let points = vec![f32::NAN; 3 * config.height * config.width];
+        let err = steep_to_next_ring(&points, &config, &[[0, config.width]], 0.5).unwrap_err();
+        assert!(err.to_string().starts_with("cells:"), "{err}");
+        let err = steep_to_next_ring(&points, &config, &[], -0.1).unwrap_err();
+        assert!(err.to_string().starts_with("min_sine:"), "{err}");
+        let err = steep_to_next_ring(&points[3..], &config, &[], 0.5).unwrap_err();
         assert!(err.to_string().starts_with("points:"), "{err}");
     }
 }

@@ -32,6 +32,7 @@ __all__ += [
     "ray_noise_refit",
     "refit_rigid",
     "horizontal_votes",
+    "steep_to_next_ring",
     "point_to_plane",
     "nms",
     "decode_matches",
@@ -289,6 +290,20 @@ def horizontal_votes(
     of the normal of the plane through the scan's points around it in `points` ([H, W, 3], each cell's
     kept point, NaN where empty): ~0 on level ground, 1 on a wall; at least `floor` (0..1), and 1 where
     no plane fits (too few neighbours, or one ring's)."""
+
+def steep_to_next_ring(
+    points: npt.NDArray[np.floating],
+    rows: npt.NDArray[np.integer],
+    cols: npt.NDArray[np.integer],
+    config: CylinderConfig,
+    *,
+    min_sine: float = 0.5,
+) -> npt.NDArray[np.bool_]:
+    """Per cell (rows[i], cols[i]) of `points` ([H, W, 3], NaN where empty): whether it lies on an upright
+    surface, told from the segment to the next point of its column above or below alone (either rising at
+    least as steeply as a surface whose normal's horizontal part is `min_sine`, 0..1), without
+    horizontal_votes' plane fit; True for an empty cell and where its column holds no other point within four
+    rows."""
 
 def nms(
     rows: npt.NDArray[np.integer],
@@ -681,7 +696,7 @@ class LocalMap:
         downsample: float = 0.75,
         downsample_far: float = 0.4,
         far_range: float = 15.0,
-        level_without_far_upright: bool = False,
+        level_without_far_upright: bool = True,
         max_iterations: int = 30,
         degeneracy_threshold: float = 0.05,
         rotation_degeneracy_threshold: float = 0.01,

@@ -9,7 +9,9 @@
 //! ground rings, which sit at fixed ranges from the sensor, would hold a creeping car in place, so the
 //! horizontal motion and heading come from the scan's upright surfaces alone and the height, roll and
 //! pitch from the whole scan (LeGO-LOAM's split); a car standing at the keyframe is aligned to it by
-//! projective point-to-plane ICP, where NDT's voxels leave millimetres. Poses are 4×4 `T_map_lidar`.
+//! projective point-to-plane ICP, where NDT's voxels leave millimetres. Farther from it the height, roll
+//! and pitch come from a second, short NDT without the far upright surfaces ([`level_points`]), which,
+//! seen from the keyframes behind, tilt the scan a little every frame. Poses are 4×4 `T_map_lidar`.
 
 use nalgebra::{Matrix3, Matrix4, Point3};
 
@@ -19,7 +21,7 @@ use crate::ndt::{NdtAlignConfig, NdtMap, NdtMapConfig, NdtResult};
 use crate::projection::CylinderConfig;
 use crate::projective::{point_to_plane, PointToPlaneConfig};
 use crate::rigid::isometry_from_matrix;
-use crate::surface::horizontal_votes;
+use crate::surface::{horizontal_votes, steep_to_next_ring};
 
 /// The horizontal part of a surface's normal from which it counts as upright.
 pub const UPRIGHT_VOTE: f64 = 0.5;
@@ -27,6 +29,9 @@ pub const UPRIGHT_VOTE: f64 = 0.5;
 pub const STANDING_DISTANCE: f64 = 0.02;
 /// … and how little turned (°).
 pub const STANDING_ANGLE_DEG: f64 = 0.1;
+/// Newton steps of the alignment that gives the height, roll and pitch ([`level_points`]): it starts
+/// from the pose that fits every point best, a step or two from the one that fits its points best.
+pub const LEVEL_NEWTON_STEPS: usize = 2;
 
 /// `dmlo.Odometry`'s `mapping` settings (`Default`: its defaults).
 #[derive(Debug, Clone, PartialEq)]
@@ -52,8 +57,8 @@ pub struct MappingConfig {
     pub downsample_far: f64,
     /// Metres from the sensor (limit).
     pub far_range: f64,
-    /// The height, roll and pitch come from a second NDT that leaves out the upright surfaces beyond
-    /// `far_range` ([`level_points`]); off by default: it costs a plane fit a far cell.
+    /// The height, roll and pitch come from a second, short NDT that leaves out the upright surfaces beyond
+    /// `far_range` ([`level_points`]).
     pub level_without_far_upright: bool,
     /// Newton steps at most.
     pub max_iterations: usize,
@@ -76,7 +81,7 @@ impl Default for MappingConfig {
             downsample: 0.75,
             downsample_far: 0.4,
             far_range: 15.0,
-            level_without_far_upright: false,
+            level_without_far_upright: true,
             max_iterations: 30,
             degeneracy_threshold: 0.05,
             rotation_degeneracy_threshold: 0.01,
@@ -226,9 +231,10 @@ pub fn upright_points(
 }
 
 /// The points of a point image (`H × W × 3`, NaN where empty) that [`LocalMap::refine`] takes the height,
-/// roll and pitch from: every point within `range` of the sensor, and beyond it, thinned to one a `voxel`,
-/// those whose surface is not upright (the ground). Seen from the keyframes behind, the far walls, poles and
-/// trees tilt the scan nose-down a little every frame, while the far ground does not (docs/measurements.md).
+/// roll and pitch from: every point within `range` of the sensor, and beyond it those not on an upright
+/// surface ([`steep_to_next_ring`]: the ground, roofs), thinned to one a `voxel`. Seen from the keyframes
+/// behind, the far walls, poles and trees tilt the scan nose-down a little every frame, while the far
+/// ground does not (docs/measurements.md).
 pub fn level_points(
     points: &[f32],
     cylinder: &CylinderConfig,
@@ -246,17 +252,21 @@ pub fn level_points(
             far_cells.push(cell);
         }
     }
+    let grid: Vec<[usize; 2]> = far_cells
+        .iter()
+        .map(|&cell| [cell / cylinder.width, cell % cylinder.width])
+        .collect();
+    let upright = steep_to_next_ring(points, cylinder, &grid, UPRIGHT_VOTE)?;
+    let mut far_ground: Vec<usize> = far_cells
+        .into_iter()
+        .zip(upright)
+        .filter(|&(_, upright)| !upright)
+        .map(|(cell, _)| cell)
+        .collect();
     if voxel > 0.0 {
-        far_cells = one_cell_a_voxel(points, &far_cells, voxel);
+        far_ground = one_cell_a_voxel(points, &far_ground, voxel);
     }
-    let upright = upright_cells(points, cylinder, &far_cells)?;
-    near.extend(
-        far_cells
-            .iter()
-            .zip(upright)
-            .filter(|&(_, upright)| !upright)
-            .map(|(&cell, _)| cell_point(points, cell)),
-    );
+    near.extend(far_ground.into_iter().map(|cell| cell_point(points, cell)));
     Ok(near)
 }
 
@@ -562,9 +572,9 @@ impl LocalMap {
         })
     }
 
-    /// `pose` with its height, roll and pitch from NDT of the scan's points within `far_range` and the
-    /// far ones off upright surfaces ([`level_points`]), started from it; unchanged when
-    /// `level_without_far_upright` is off, `far_range` is infinite or that alignment fails.
+    /// `pose` with its height, roll and pitch from [`LEVEL_NEWTON_STEPS`] of NDT of the scan's points
+    /// within `far_range` and the far ones off upright surfaces ([`level_points`]), started from it;
+    /// unchanged when `level_without_far_upright` is off, `far_range` is infinite or that alignment fails.
     fn level(
         &self,
         pose: &Matrix4<f64>,
@@ -580,12 +590,18 @@ impl LocalMap {
             self.config.downsample_far,
             self.config.far_range,
         )?;
-        Ok(match solvable(self.align(&level_cloud, pose))? {
-            Some(level) if level.converged => {
-                heading_and_level(pose, &level.transform.to_homogeneous())
-            }
-            _ => *pose,
-        })
+        let config = NdtAlignConfig {
+            max_iterations: LEVEL_NEWTON_STEPS,
+            ..self.config.align_config()
+        };
+        // So few steps seldom meet the convergence tolerances; the line search takes each only where it
+        // improves the fit.
+        Ok(
+            match solvable(self.map.align_matrix(&level_cloud, pose, &config))? {
+                Some(level) => heading_and_level(pose, &level.transform.to_homogeneous()),
+                None => *pose,
+            },
+        )
     }
 
     /// Near the newest keyframe ([`near_keyframe_alignment`]): a standing car by point-to-plane ICP

@@ -87,7 +87,7 @@ impl PyLocalMap {
                         keyframe_angle_deg = 5.0, ring_lock_distance = 0.5,
                         motion_model_start_distance = 0.3, motion_model_start_angle_deg = 1.5,
                         downsample = 0.75, downsample_far = 0.4, far_range = 15.0,
-                        level_without_far_upright = false, max_iterations = 30, degeneracy_threshold = 0.05,
+                        level_without_far_upright = true, max_iterations = 30, degeneracy_threshold = 0.05,
                         rotation_degeneracy_threshold = 0.01))]
     #[allow(clippy::too_many_arguments)]
     fn new(

@@ -1,5 +1,6 @@
 """Each match's vote in RANSAC by the tilt of the surface under it (`dmlo_rs.horizontal_votes`,
-`ransac_rigid(votes=)`, `ransac.vote_by_tilt`)."""
+`ransac_rigid(votes=)`, `ransac.vote_by_tilt`), and the plane-free upright test of the mapping's level alignment
+(`dmlo_rs.steep_to_next_ring`)."""
 
 from __future__ import annotations
 
@@ -165,3 +166,53 @@ def test_a_bad_vote_voxel_is_refused_by_name(value: object) -> None:
     config.ransac.vote_voxel = value  # type: ignore[assignment]
     with pytest.raises(ValueError, match="^ransac.vote_voxel: "):
         Odometry.from_default(config)  # and when changed after loading
+
+
+# SemanticKITTI classes: building, fence, pole, trunk, traffic sign; road, parking, sidewalk, other ground, terrain.
+_UPRIGHT_CLASSES = (50, 51, 80, 71, 81)
+_GROUND_CLASSES = (40, 44, 48, 49, 72)
+
+
+@pytest.mark.parametrize("name", ["odometry_01", "odometry_02", "odometry_03"])
+def test_the_next_ring_tells_the_far_walls_from_the_far_ground_on_real_scans(shared_data: Path, name: str) -> None:
+    """`dmlo_rs.steep_to_next_ring` on labelled real scans beyond 15 m, where the mapping's level alignment
+    (`mapping.level_without_far_upright`) leaves the upright surfaces out: most walls, poles and signs are
+    upright, nearly no road or terrain is."""
+    from dmlo.datasets import open_sequence
+
+    config = CylinderConfig.kitti()
+    sequence = open_sequence(shared_data / "kitti_real" / name)
+    upright: list[np.ndarray] = []
+    ground: list[np.ndarray] = []
+    for i in range(0, len(sequence), 3):
+        frame = sequence[i]
+        assert frame.labels is not None
+        projection = dmlo_rs.project(frame.points, config)
+        rows, cols = np.nonzero(projection.index >= 0)
+        index = projection.index[rows, cols]
+        points = np.full((config.height, config.width, 3), np.nan, np.float32)
+        points[rows, cols] = frame.points[index, :3]
+        far = np.linalg.norm(points[rows, cols], axis=1) > 15.0
+        steep = dmlo_rs.steep_to_next_ring(points, rows[far], cols[far], config)
+        labels = np.asarray(frame.labels)[index[far]] & 0xFFFF
+        upright.append(steep[np.isin(labels, _UPRIGHT_CLASSES)])
+        ground.append(steep[np.isin(labels, _GROUND_CLASSES)])
+    upright_share, ground_share = np.concatenate(upright), np.concatenate(ground)
+    assert len(upright_share) > 1000 and len(ground_share) > 1000
+    assert upright_share.mean() > 0.75, upright_share.mean()
+    assert ground_share.mean() < 0.06, ground_share.mean()
+
+
+def test_bad_arguments_of_the_ring_test_are_named() -> None:
+    config = CylinderConfig.kitti()
+    points = np.full((config.height, config.width, 3), np.nan, np.float32)
+    one = np.array([1])
+    with pytest.raises(ValueError, match="points"):
+        dmlo_rs.steep_to_next_ring(points[1:], one, one, config)
+    with pytest.raises(ValueError, match="rows and cols"):
+        dmlo_rs.steep_to_next_ring(points, one, np.array([1, 2]), config)
+    with pytest.raises(ValueError, match="cells"):
+        dmlo_rs.steep_to_next_ring(points, np.array([config.height]), one, config)
+    with pytest.raises(ValueError, match="min_sine"):
+        dmlo_rs.steep_to_next_ring(points, one, one, config, min_sine=1.5)
+    assert dmlo_rs.steep_to_next_ring(points, one, one, config).tolist() == [True]  # an empty cell

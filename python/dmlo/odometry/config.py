@@ -240,11 +240,11 @@ class MappingConfig:
     downsample: NonNegative = 0.75
     downsample_far: NonNegative = 0.4
     far_range: Limit = 15.0
-    # The height, roll and pitch come from a second NDT of the points within `far_range` and the far ones off
-    # upright surfaces (the ground): seen from the keyframes behind, far walls, poles and trees tilt the scan
-    # nose-down a little every frame, and each keyframe would carry the tilt into the map. Off by default: it costs a
-    # plane fit a far cell and a second alignment (docs/measurements.md).
-    level_without_far_upright: Flag = False
+    # The height, roll and pitch come from a second, two-step NDT of the points within `far_range` and the far
+    # ones off upright surfaces (the ground, told by the slope to the next ring): seen from the keyframes
+    # behind, far walls, poles and trees tilt the scan nose-down a little every frame, and each keyframe would
+    # carry the tilt into the map (docs/measurements.md).
+    level_without_far_upright: Flag = True
     max_iterations: AtLeastOne = 30
     # Translations (rotations) with less than this fraction of the best-constrained translation's
     # (rotation's) information keep the DMLO estimate instead of the map's pull; 0 turns the test off.

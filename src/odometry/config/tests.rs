@@ -27,7 +27,7 @@ fn the_config_python_saves_loads_unchanged() {
     assert_eq!(config.mapping.keyframe_distance, f64::INFINITY);
     assert_eq!(config.mapping.voxel_size, 0.8);
     assert_eq!(config.mapping.far_range, f64::INFINITY);
-    assert!(config.mapping.level_without_far_upright);
+    assert!(!config.mapping.level_without_far_upright);
     assert_eq!(config.large_motion.search_yaw_deg, vec![0.0, 90.0, -90.0]);
     assert_eq!(config.moving_objects.threshold, 0.7);
     assert_eq!(config.threads, 2);
@@ -50,7 +50,7 @@ fn the_config_python_saves_loads_unchanged() {
             keyframe_distance: f64::INFINITY,
             voxel_size: 0.8,
             far_range: f64::INFINITY,
-            level_without_far_upright: true,
+            level_without_far_upright: false,
             ..Default::default()
         },
         large_motion: LargeMotionSection {
