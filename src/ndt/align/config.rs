@@ -106,7 +106,8 @@ impl NdtAlignConfig {
                 ));
             }
         }
-        if !(self.source_far_range >= 0.0) {
+        // NaN fails as well as a negative range: infinity (every point near) is allowed.
+        if self.source_far_range.is_nan() || self.source_far_range < 0.0 {
             return Err(Error::invalid(
                 "source_far_range",
                 format!("must be >= 0, got {}", self.source_far_range),
