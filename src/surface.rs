@@ -48,6 +48,38 @@ pub fn check_cell_points(points: &[f32], config: &CylinderConfig) -> Result<()> 
     Ok(())
 }
 
+/// The point of cell (`row`, `col`) of a point image `width` cells wide, `None` where it is empty.
+fn point_at(points: &[f32], width: usize, row: usize, col: usize) -> Option<Vector3<f64>> {
+    let i = 3 * (row * width + col);
+    let p = Vector3::new(points[i] as f64, points[i + 1] as f64, points[i + 2] as f64);
+    p.iter().all(|v| v.is_finite()).then_some(p)
+}
+
+/// An error naming `cells` when `[row, col]` lies outside `config`'s image.
+fn check_cell(row: usize, col: usize, config: &CylinderConfig) -> Result<()> {
+    if row >= config.height || col >= config.width {
+        return Err(Error::invalid(
+            "cells",
+            format!(
+                "[{row}, {col}] lies outside the {}x{} image",
+                config.height, config.width
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// An error naming `name` when `value` lies outside [0, 1] (NaN included).
+fn check_unit_interval(value: f64, name: &'static str) -> Result<()> {
+    if !(0.0..=1.0).contains(&value) {
+        return Err(Error::invalid(
+            name,
+            format!("must lie in [0, 1], got {value}"),
+        ));
+    }
+    Ok(())
+}
+
 /// The neighbourhood of a cell, first (near): rows searched above and below (a real sensor's lasers
 /// leave some rows of an even elevation grid empty) and its radius, this many metres or this fraction of
 /// the cell's range, whichever is larger.
@@ -102,11 +134,7 @@ fn plane_normal(
     around: &Neighbourhood,
 ) -> Option<Vector3<f64>> {
     let (height, width) = (config.height, config.width);
-    let at = |r: usize, c: usize| -> Option<Vector3<f64>> {
-        let i = 3 * (r * width + c);
-        let p = Vector3::new(points[i] as f64, points[i + 1] as f64, points[i + 2] as f64);
-        (p.iter().all(|v| v.is_finite())).then_some(p)
-    };
+    let at = |r: usize, c: usize| point_at(points, width, r, c);
     let centre = at(row, col)?;
     let radius = around
         .min_radius
@@ -163,25 +191,12 @@ pub fn horizontal_votes(
     floor: f64,
 ) -> Result<Vec<f64>> {
     check_cell_points(points, config)?;
-    if !(0.0..=1.0).contains(&floor) {
-        return Err(Error::invalid(
-            "floor",
-            format!("must lie in [0, 1], got {floor}"),
-        ));
-    }
+    check_unit_interval(floor, "floor")?;
     // Each cell's plane fit reads a few hundred neighbours: a thousand matches are worth the pool.
     cells
         .par_iter()
         .map(|&[row, col]| {
-            if row >= config.height || col >= config.width {
-                return Err(Error::invalid(
-                    "cells",
-                    format!(
-                        "[{row}, {col}] lies outside the {}x{} image",
-                        config.height, config.width
-                    ),
-                ));
-            }
+            check_cell(row, col, config)?;
             Ok(surface_normal(points, config, row, col)
                 .map_or(1.0, |n| (n.x * n.x + n.y * n.y).sqrt().max(floor)))
         })
@@ -209,18 +224,9 @@ pub fn steep_to_next_ring(
     min_sine: f64,
 ) -> Result<Vec<bool>> {
     check_cell_points(points, config)?;
-    if !(0.0..=1.0).contains(&min_sine) {
-        return Err(Error::invalid(
-            "min_sine",
-            format!("must lie in [0, 1], got {min_sine}"),
-        ));
-    }
+    check_unit_interval(min_sine, "min_sine")?;
     let (height, width) = (config.height, config.width);
-    let at = |r: usize, c: usize| -> Option<Vector3<f64>> {
-        let i = 3 * (r * width + c);
-        let p = Vector3::new(points[i] as f64, points[i + 1] as f64, points[i + 2] as f64);
-        p.x.is_finite().then_some(p)
-    };
+    let at = |r: usize, c: usize| point_at(points, width, r, c);
     let steep = |from: &Vector3<f64>, to: &Vector3<f64>| {
         let d = to - from;
         d.z.abs() >= min_sine * d.norm()
@@ -228,12 +234,7 @@ pub fn steep_to_next_ring(
     cells
         .iter()
         .map(|&[row, col]| {
-            if row >= height || col >= width {
-                return Err(Error::invalid(
-                    "cells",
-                    format!("[{row}, {col}] lies outside the {height}x{width} image"),
-                ));
-            }
+            check_cell(row, col, config)?;
             let Some(centre) = at(row, col) else {
                 return Ok(true);
             };

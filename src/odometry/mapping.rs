@@ -252,11 +252,12 @@ pub fn level_points(
             far_cells.push(cell);
         }
     }
-    let grid: Vec<[usize; 2]> = far_cells
-        .iter()
-        .map(|&cell| [cell / cylinder.width, cell % cylinder.width])
-        .collect();
-    let upright = steep_to_next_ring(points, cylinder, &grid, UPRIGHT_VOTE)?;
+    let upright = steep_to_next_ring(
+        points,
+        cylinder,
+        &grid_cells(&far_cells, cylinder),
+        UPRIGHT_VOTE,
+    )?;
     let mut far_ground: Vec<usize> = far_cells
         .into_iter()
         .zip(upright)
@@ -286,6 +287,14 @@ fn point_image_cells(points: &[f32], cylinder: &CylinderConfig) -> Result<usize>
     Ok(cells)
 }
 
+/// Row-major cell indices of a point image as `[row, col]`.
+fn grid_cells(cells: &[usize], cylinder: &CylinderConfig) -> Vec<[usize; 2]> {
+    cells
+        .iter()
+        .map(|&cell| [cell / cylinder.width, cell % cylinder.width])
+        .collect()
+}
+
 fn cell_point(points: &[f32], cell: usize) -> Point3<f64> {
     let p = &points[3 * cell..3 * cell + 3];
     Point3::new(p[0] as f64, p[1] as f64, p[2] as f64)
@@ -293,11 +302,12 @@ fn cell_point(points: &[f32], cell: usize) -> Point3<f64> {
 
 /// Whether each of `cells` lies on an upright surface ([`horizontal_votes`] of at least [`UPRIGHT_VOTE`]).
 fn upright_cells(points: &[f32], cylinder: &CylinderConfig, cells: &[usize]) -> Result<Vec<bool>> {
-    let grid: Vec<[usize; 2]> = cells
-        .iter()
-        .map(|&cell| [cell / cylinder.width, cell % cylinder.width])
-        .collect();
-    let votes = horizontal_votes(points, cylinder, &grid, UPRIGHT_VOTE / 2.0)?;
+    let votes = horizontal_votes(
+        points,
+        cylinder,
+        &grid_cells(cells, cylinder),
+        UPRIGHT_VOTE / 2.0,
+    )?;
     Ok(votes.into_iter().map(|vote| vote >= UPRIGHT_VOTE).collect())
 }
 

@@ -6,6 +6,7 @@ use numpy::{IntoPyArray, PyArray1};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
+use crate::projection::CylinderConfig;
 use crate::surface;
 
 use super::convert::{point_image, vector_i64};
@@ -26,15 +27,9 @@ fn horizontal_votes<'py>(
     config: &PyCylinderConfig,
     floor: f64,
 ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-    let cylinder = config.inner;
-    let points = point_image("points", points, &cylinder)?;
-    let cells = image_cells(rows, cols)?;
-    let points = points.f32_data();
-    let points: &[f32] = &points;
-    let votes = run(py, Some(1), || {
-        surface::horizontal_votes(points, &cylinder, &cells, floor)
-    })?;
-    Ok(Array1::from_vec(votes).into_pyarray(py))
+    per_cell(py, points, rows, cols, config, |points, cylinder, cells| {
+        surface::horizontal_votes(points, cylinder, cells, floor)
+    })
 }
 
 /// Per cell (`rows[i]`, `cols[i]`) of a scan's point image `points` (`[H, W, 3]`, NaN where empty):
@@ -52,15 +47,28 @@ fn steep_to_next_ring<'py>(
     config: &PyCylinderConfig,
     min_sine: f64,
 ) -> PyResult<Bound<'py, PyArray1<bool>>> {
+    per_cell(py, points, rows, cols, config, |points, cylinder, cells| {
+        surface::steep_to_next_ring(points, cylinder, cells, min_sine)
+    })
+}
+
+/// `answer` of the point image `points` (`[H, W, 3]` of `config`'s image) at the cells (`rows[i]`,
+/// `cols[i]`), checked and converted as both surface functions take them, off the GIL on one thread.
+fn per_cell<'py, T: numpy::Element + Send>(
+    py: Python<'py>,
+    points: &Bound<'py, PyAny>,
+    rows: &Bound<'py, PyAny>,
+    cols: &Bound<'py, PyAny>,
+    config: &PyCylinderConfig,
+    answer: impl FnOnce(&[f32], &CylinderConfig, &[[usize; 2]]) -> crate::Result<Vec<T>> + Send,
+) -> PyResult<Bound<'py, PyArray1<T>>> {
     let cylinder = config.inner;
     let points = point_image("points", points, &cylinder)?;
     let cells = image_cells(rows, cols)?;
     let points = points.f32_data();
     let points: &[f32] = &points;
-    let steep = run(py, Some(1), || {
-        surface::steep_to_next_ring(points, &cylinder, &cells, min_sine)
-    })?;
-    Ok(Array1::from_vec(steep).into_pyarray(py))
+    let values = run(py, Some(1), || answer(points, &cylinder, &cells))?;
+    Ok(Array1::from_vec(values).into_pyarray(py))
 }
 
 /// The cells `[row, col]` of two equally long integer arrays, or an error naming them.
