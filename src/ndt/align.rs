@@ -152,9 +152,10 @@ impl NdtMap {
             };
             iterations += 1;
             if is_small(&direction, config.translation_epsilon, rotation_epsilon) {
-                // Below the tolerances the cost change is lost in round-off: take the step unchecked.
+                // Below the tolerances the cost change is lost in round-off: take the step unchecked, and
+                // keep the score and correspondences of where it starts rather than evaluate the scan again
+                // for a change it cannot show.
                 pose = apply_increment(&pose, &direction);
-                current = scorer.evaluate(&pose);
                 converged = true;
                 break;
             }

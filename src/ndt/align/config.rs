@@ -145,11 +145,13 @@ pub struct NdtResult {
     pub converged: bool,
     /// Newton steps taken.
     pub iterations: usize,
-    /// Source points (after thinning) with a map distribution in their neighbourhood at `transform`.
+    /// Source points (after thinning) with a map distribution in their neighbourhood at `transform`, or
+    /// where the last step started when that step was below both epsilons (it is taken unchecked).
     pub num_correspondences: usize,
     /// Mean over the thinned source points of `Σ exp(−d2/2·qᵀΣ⁻¹q)` over their neighbouring distributions:
     /// each distribution adds up to 1 (a point on its mean), 0 far from every distribution; with neighbour
     /// search the sum can exceed 1. Higher is better; comparable only between runs with the same settings.
+    /// Taken where `num_correspondences` is.
     pub score: f64,
     /// Directions of the pose held at the initial estimate because the map does not constrain them.
     pub degenerate_directions: usize,
