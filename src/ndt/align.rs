@@ -30,7 +30,7 @@ pub use config::{
     NdtAlignConfig, NdtResult, DEFAULT_DEGENERACY_THRESHOLD, DEFAULT_ROTATION_DEGENERACY_THRESHOLD,
 };
 use degeneracy::Degeneracy;
-use step::{is_small, line_search, newton_direction};
+use step::{is_small, line_search, newton_direction, LineSearch};
 
 use super::map::NdtMap;
 use super::score::{apply_increment, ScoreConstants, ScoreContext, Scorer};
@@ -159,10 +159,20 @@ impl NdtMap {
                 converged = true;
                 break;
             }
-            let Some((next_pose, next, step)) =
-                line_search(&mut scorer, &pose, &current, &direction)
-            else {
-                break;
+            let (next_pose, next, step) = match line_search(
+                &mut scorer,
+                &pose,
+                &current,
+                &direction,
+                config.translation_epsilon,
+                rotation_epsilon,
+            ) {
+                LineSearch::Decreased(pose, evaluation, step) => (pose, evaluation, step),
+                LineSearch::Stalled => {
+                    converged = true;
+                    break;
+                }
+                LineSearch::Failed => break,
             };
             pose = next_pose;
             current = next;

@@ -88,24 +88,44 @@ fn positive_definite_solve(
     Some(-(eigen.eigenvectors * projected.component_mul(&inverse)))
 }
 
-/// Backtracks along `direction` until the cost drops enough (Armijo). Returns the new pose, its
-/// evaluation and the step taken; `None` when no tried step decreases the cost.
+/// How a line search along a Newton direction ended.
+// Made once a search and matched at once: boxing the evaluation would buy nothing.
+#[allow(clippy::large_enum_variant)]
+pub(super) enum LineSearch {
+    /// The cost dropped enough at this pose (its evaluation, the step taken).
+    Decreased(Isometry3<f64>, Evaluation, Vector6<f64>),
+    /// Backtracking shortened the step below the tolerances without the cost dropping enough: the pose
+    /// already sits at the optimum as closely as they ask.
+    Stalled,
+    /// No tried step decreased the cost.
+    Failed,
+}
+
+/// Backtracks along `direction` (a descent direction) until the cost drops enough (Armijo), evaluating no
+/// step shorter than the tolerances (metres, radians): near the optimum the cost changes less than it
+/// jumps where thinned points cross voxel borders, and halving on would evaluate the scan again and again
+/// for moves the convergence test already counts as none.
 pub(super) fn line_search(
     scorer: &mut Scorer<'_>,
     pose: &Isometry3<f64>,
     current: &Evaluation,
     direction: &Vector6<f64>,
-) -> Option<(Isometry3<f64>, Evaluation, Vector6<f64>)> {
+    translation_epsilon: f64,
+    rotation_epsilon: f64,
+) -> LineSearch {
     let slope = current.gradient.dot(direction);
     let mut length = 1.0;
     for _ in 0..=MAX_LINE_SEARCH_HALVINGS {
         let step = direction * length;
+        if is_small(&step, translation_epsilon, rotation_epsilon) {
+            return LineSearch::Stalled;
+        }
         let candidate = apply_increment(pose, &step);
         let evaluation = scorer.evaluate(&candidate);
         if evaluation.cost <= current.cost + ARMIJO * length * slope {
-            return Some((candidate, evaluation, step));
+            return LineSearch::Decreased(candidate, evaluation, step);
         }
         length *= 0.5;
     }
-    None
+    LineSearch::Failed
 }

@@ -1,6 +1,6 @@
 use super::*;
 use crate::ndt::NdtMapConfig;
-use nalgebra::{Matrix4, Vector3};
+use nalgebra::{Matrix4, Vector3, Vector6};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -393,4 +393,71 @@ fn rigid_matrix_round_trips() {
     let pose = motion([1.0, -2.0, 3.0], [10.0, 20.0, -30.0]);
     let back = isometry_from_matrix4(&pose.to_homogeneous(), "m").unwrap();
     assert!(errors(&back, &pose).0 < 1e-12 && errors(&back, &pose).1 < 1e-9);
+}
+
+#[test]
+fn a_line_search_that_finds_no_decrease_stops_below_the_tolerances() {
+    let truth = motion([0.3, -0.2, 0.05], [0.5, -0.3, 4.0]);
+    let config = NdtAlignConfig::default();
+    let map = map_of(&sample_scene(40_000, 1));
+    let source: Vec<Point3<f64>> = sample_scene(8_000, 2)
+        .iter()
+        .map(|p| truth.inverse_transform_point(p))
+        .collect();
+    let optimum = map.align(&source, &truth, &config).unwrap();
+    assert!(optimum.converged, "{optimum:?}");
+    let context = ScoreContext {
+        gaussians: map.gaussians(),
+        voxel_size: map.config().voxel_size,
+        neighbours: config.neighbours,
+        constants: ScoreConstants::new(config.outlier_ratio, map.config().voxel_size),
+    };
+    // The points the alignment scored.
+    let thinned = range_voxel_downsample(
+        &source,
+        config.source_voxel_size,
+        config.source_far_range,
+        config.source_far_voxel_size,
+    );
+    let mut scorer = Scorer::new(&context, &thinned);
+    let (translation_epsilon, rotation_epsilon) = (
+        config.translation_epsilon,
+        config.rotation_epsilon_deg.to_radians(),
+    );
+    // 2 cm along x from the optimum, the way the gradient rises: no length lowers the cost. Twelve halvings
+    // would end far below the tolerances; the search stops at the first step below them instead of
+    // evaluating on and failing.
+    let at = scorer.evaluate(&optimum.transform);
+    let mut uphill = Vector6::zeros();
+    uphill[0] = 0.02_f64.copysign(at.gradient[0]);
+    let uphill_search = line_search(
+        &mut scorer,
+        &optimum.transform,
+        &at,
+        &uphill,
+        translation_epsilon,
+        rotation_epsilon,
+    );
+    match uphill_search {
+        LineSearch::Stalled => {}
+        LineSearch::Decreased(_, _, step) => {
+            panic!("expected the search to stop below the tolerances, it took the step {step}")
+        }
+        LineSearch::Failed => panic!("the search evaluated steps below the tolerances"),
+    }
+    // Downhill from a start 2 cm off, a step is taken.
+    let off = motion([0.02, 0.0, 0.0], [0.0, 0.0, 0.0]) * optimum.transform;
+    let at = scorer.evaluate(&off);
+    let downhill = -at.gradient.normalize() * 0.005;
+    assert!(matches!(
+        line_search(
+            &mut scorer,
+            &off,
+            &at,
+            &downhill,
+            translation_epsilon,
+            rotation_epsilon
+        ),
+        LineSearch::Decreased(..)
+    ));
 }
