@@ -170,12 +170,8 @@ impl NdtMap {
                 ),
             ));
         }
-        let (order, mut stats) = voxel_statistics(points_world, self.config.voxel_size);
-        let scan: Vec<(VoxelKey, VoxelStats)> = order
-            .iter()
-            .map(|key| (*key, stats.remove(key).unwrap_or_default()))
-            .collect();
-        let mut touched: Vec<VoxelKey> = order;
+        let scan = voxel_statistics(points_world, self.config.voxel_size);
+        let mut touched: Vec<VoxelKey> = scan.iter().map(|(key, _)| *key).collect();
         for (key, scan_stats) in &scan {
             self.voxels.entry(*key).or_default().merge(scan_stats);
         }

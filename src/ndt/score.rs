@@ -342,10 +342,9 @@ mod tests {
                 points.push(Point3::new(0.3 * v + jitter, u, v));
             }
         }
-        let (order, stats) = voxel_statistics(&points, 1.0);
         let mut gaussians = Distributions::default();
-        for key in order {
-            if let Some(g) = stats[&key].gaussian(&key.corner(1.0), 5, 0.01) {
+        for (key, stats) in voxel_statistics(&points, 1.0) {
+            if let Some(g) = stats.gaussian(&key.corner(1.0), 5, 0.01) {
                 gaussians.insert(key, g);
             }
         }

@@ -291,27 +291,65 @@ impl Accumulator for Centroid {
     }
 }
 
-/// Keys in order of first appearance, and what each voxel accumulated.
-type Accumulated<A> = (Vec<VoxelKey>, VoxelMap<A>);
+/// What each voxel accumulated, in the order its first point came (`values[i]` is `keys[i]`'s), and where
+/// each key's value lies: merged and read by index, no voxel is looked up by key once it is in.
+struct Accumulated<A> {
+    keys: Vec<VoxelKey>,
+    values: Vec<A>,
+    slots: VoxelMap<usize>,
+}
+
+impl<A: Accumulator> Accumulated<A> {
+    fn new() -> Self {
+        Accumulated {
+            keys: Vec::new(),
+            values: Vec::new(),
+            slots: VoxelMap::default(),
+        }
+    }
+
+    /// The accumulator of `key`, appended (empty) when the key is new.
+    fn entry(&mut self, key: VoxelKey) -> &mut A {
+        let index = match self.slots.entry(key) {
+            Entry::Occupied(slot) => *slot.get(),
+            Entry::Vacant(slot) => {
+                slot.insert(self.values.len());
+                self.keys.push(key);
+                self.values.push(A::default());
+                self.values.len() - 1
+            }
+        };
+        &mut self.values[index]
+    }
+
+    /// Adds what another part of the points accumulated for `key`.
+    fn merge(&mut self, key: VoxelKey, value: A) {
+        match self.slots.entry(key) {
+            Entry::Occupied(slot) => self.values[*slot.get()].merge(&value),
+            Entry::Vacant(slot) => {
+                slot.insert(self.values.len());
+                self.keys.push(key);
+                self.values.push(value);
+            }
+        }
+    }
+
+    fn into_pairs(self) -> impl Iterator<Item = (VoxelKey, A)> {
+        self.keys.into_iter().zip(self.values)
+    }
+}
 
 fn accumulate_chunk<A: Accumulator>(points: &[Point3<f64>], voxel_size: f64) -> Accumulated<A> {
     let inverse = 1.0 / voxel_size;
-    let mut order = Vec::new();
-    let mut voxels: VoxelMap<A> = VoxelMap::default();
+    let mut accumulated = Accumulated::<A>::new();
     for point in points {
         let Some(key) = VoxelKey::containing(point, inverse) else {
             continue;
         };
         let local = point.coords - key.corner(voxel_size);
-        voxels
-            .entry(key)
-            .or_insert_with(|| {
-                order.push(key);
-                A::default()
-            })
-            .add_local(&local);
+        accumulated.entry(key).add_local(&local);
     }
-    (order, voxels)
+    accumulated
 }
 
 /// Chunks accumulated in parallel, then merged in chunk order: the keys keep the order in which a single
@@ -322,34 +360,22 @@ fn accumulate<A: Accumulator>(points: &[Point3<f64>], voxel_size: f64) -> Accumu
         .map(|chunk| accumulate_chunk::<A>(chunk, voxel_size))
         .collect::<Vec<_>>()
         .into_iter();
-    let Some((mut order, mut voxels)) = chunks.next() else {
-        return (Vec::new(), VoxelMap::default());
+    let Some(mut accumulated) = chunks.next() else {
+        return Accumulated::new();
     };
-    for (chunk_order, mut chunk_voxels) in chunks {
-        for key in chunk_order {
-            let Some(accumulated) = chunk_voxels.remove(&key) else {
-                continue;
-            };
-            match voxels.entry(key) {
-                Entry::Occupied(mut entry) => entry.get_mut().merge(&accumulated),
-                Entry::Vacant(entry) => {
-                    order.push(key);
-                    entry.insert(accumulated);
-                }
-            }
+    for chunk in chunks {
+        for (key, value) in chunk.into_pairs() {
+            accumulated.merge(key, value);
         }
     }
-    (order, voxels)
+    accumulated
 }
 
-/// Per-voxel statistics of a set of points, plus the voxel keys in order of first appearance so that
+/// Per-voxel statistics of a set of points, each voxel once, in order of first appearance so that
 /// anything iterating over the result is deterministic. Parallel over chunks of points; the result does
 /// not depend on the number of threads.
-pub fn voxel_statistics(
-    points: &[Point3<f64>],
-    voxel_size: f64,
-) -> (Vec<VoxelKey>, VoxelMap<VoxelStats>) {
-    accumulate(points, voxel_size)
+pub fn voxel_statistics(points: &[Point3<f64>], voxel_size: f64) -> Vec<(VoxelKey, VoxelStats)> {
+    accumulate(points, voxel_size).into_pairs().collect()
 }
 
 /// Voxel-grid filter: the centroid of the points in each occupied voxel, in order of first appearance.
@@ -358,11 +384,9 @@ pub fn voxel_downsample(points: &[Point3<f64>], voxel_size: f64) -> Vec<Point3<f
     if voxel_size <= 0.0 {
         return points.to_vec();
     }
-    let (order, centroids) = accumulate::<Centroid>(points, voxel_size);
-    order
-        .iter()
-        .map(|key| {
-            let centroid = &centroids[key];
+    accumulate::<Centroid>(points, voxel_size)
+        .into_pairs()
+        .map(|(key, centroid)| {
             Point3::from(key.corner(voxel_size) + centroid.sum / centroid.count as f64)
         })
         .collect()
@@ -422,11 +446,10 @@ mod tests {
             .iter()
             .map(|p| Point3::from(Vector3::new(p[0], p[1], p[2]) + offset))
             .collect();
-        let (order, stats) = voxel_statistics(&points, 1.0);
-        assert_eq!(order.len(), 1);
-        let gaussian = stats[&order[0]]
-            .gaussian(&order[0].corner(1.0), 5, 1e-9)
-            .unwrap();
+        let stats = voxel_statistics(&points, 1.0);
+        assert_eq!(stats.len(), 1);
+        let (key, voxel) = &stats[0];
+        let gaussian = voxel.gaussian(&key.corner(1.0), 5, 1e-9).unwrap();
         let mean = points
             .iter()
             .fold(Vector3::zeros(), |acc, p| acc + p.coords)
@@ -446,11 +469,11 @@ mod tests {
         let points: Vec<Point3<f64>> = (0..10)
             .map(|i| Point3::new(0.05 + 0.09 * i as f64, 0.5 + 0.04 * (i % 3) as f64, 0.5))
             .collect();
-        let (order, stats) = voxel_statistics(&points, 1.0);
-        let voxel = &stats[&order[0]];
-        let gaussian = voxel.gaussian(&order[0].corner(1.0), 5, 0.01).unwrap();
+        let stats = voxel_statistics(&points, 1.0);
+        let (key, voxel) = &stats[0];
+        let gaussian = voxel.gaussian(&key.corner(1.0), 5, 0.01).unwrap();
         assert!(gaussian.inverse_covariance.iter().all(|v| v.is_finite()));
-        assert!(voxel.gaussian(&order[0].corner(1.0), 11, 0.01).is_none());
+        assert!(voxel.gaussian(&key.corner(1.0), 11, 0.01).is_none());
     }
 
     #[test]
@@ -520,18 +543,19 @@ mod tests {
                 )
             })
             .collect();
-        let (order, stats) = voxel_statistics(&points, 0.8);
-        let (sequential_order, sequential) = accumulate_chunk::<VoxelStats>(&points, 0.8);
-        assert_eq!(order, sequential_order, "first-seen order");
-        for key in &order {
-            let (a, b) = (&stats[key], &sequential[key]);
+        let stats = voxel_statistics(&points, 0.8);
+        let sequential: Vec<(VoxelKey, VoxelStats)> = accumulate_chunk::<VoxelStats>(&points, 0.8)
+            .into_pairs()
+            .collect();
+        assert_eq!(stats.len(), sequential.len());
+        for ((key, a), (sequential_key, b)) in stats.iter().zip(&sequential) {
+            assert_eq!(key, sequential_key, "first-seen order");
             assert_eq!(a.count, b.count);
             assert!((a.sum - b.sum).norm() < 1e-9 && (a.sum_outer - b.sum_outer).norm() < 1e-9);
         }
         let thinned = voxel_downsample(&points, 0.8);
-        assert_eq!(thinned.len(), order.len());
-        for (point, key) in thinned.iter().zip(&order) {
-            let voxel = &sequential[key];
+        assert_eq!(thinned.len(), sequential.len());
+        for (point, (key, voxel)) in thinned.iter().zip(&sequential) {
             let centroid = key.corner(0.8) + voxel.sum / voxel.count as f64;
             assert!((point.coords - centroid).norm() < 1e-12);
         }

@@ -17,6 +17,7 @@ use nalgebra::{Matrix3, Matrix4, Point3};
 
 use super::motion::{pose_difference, rigid_inverse};
 use crate::error::{Error, Result};
+use crate::ndt::voxel::range_voxel_downsample;
 use crate::ndt::{NdtAlignConfig, NdtMap, NdtMapConfig, NdtResult};
 use crate::projection::CylinderConfig;
 use crate::projective::{point_to_plane, PointToPlaneConfig};
@@ -548,10 +549,21 @@ impl LocalMap {
                 starts.push((MapStart::MotionModel, *predicted));
             }
         }
+        // The level alignment's points need no pose: thinned beside the first alignment, on a core it
+        // leaves idle part of the time.
+        let (aligned, level_cloud) = rayon::join(
+            || {
+                starts
+                    .into_iter()
+                    .map(|(name, start)| (name, self.align(cloud, &start)))
+                    .collect::<Vec<_>>()
+            },
+            || self.level_cloud(points, cylinder),
+        );
         let mut dmlo_degenerate = None;
         let mut best: Option<(MapStart, NdtResult)> = None;
-        for (name, start) in starts {
-            let Some(result) = solvable(self.align(cloud, &start))? else {
+        for (name, result) in aligned {
+            let Some(result) = solvable(result)? else {
                 continue;
             };
             if name == MapStart::Dmlo {
@@ -573,7 +585,7 @@ impl LocalMap {
                 start: None,
             },
             Some((name, result)) => MapRefinement {
-                pose: self.level(&result.transform.to_homogeneous(), points, cylinder)?,
+                pose: self.level(&result.transform.to_homogeneous(), level_cloud?)?,
                 converged: true,
                 degenerate_directions: Some(result.degenerate_directions),
                 upright_only: false,
@@ -582,26 +594,47 @@ impl LocalMap {
         })
     }
 
-    /// `pose` with its height, roll and pitch from [`LEVEL_NEWTON_STEPS`] of NDT of the scan's points
-    /// within `far_range` and the far ones off upright surfaces ([`level_points`]), started from it;
-    /// unchanged when `level_without_far_upright` is off, `far_range` is infinite or that alignment fails.
-    fn level(
+    /// The points the level alignment fits ([`level`](Self::level)), thinned as the alignment would
+    /// thin them: the scan's points within `far_range` and the far ones off upright surfaces
+    /// ([`level_points`]); `None` when `level_without_far_upright` is off or `far_range` is infinite.
+    fn level_cloud(
         &self,
-        pose: &Matrix4<f64>,
         points: &[f32],
         cylinder: &CylinderConfig,
-    ) -> Result<Matrix4<f64>> {
+    ) -> Result<Option<Vec<Point3<f64>>>> {
         if !self.config.level_without_far_upright || self.config.far_range.is_infinite() {
-            return Ok(*pose);
+            return Ok(None);
         }
-        let level_cloud = level_points(
+        let level = level_points(
             points,
             cylinder,
             self.config.downsample_far,
             self.config.far_range,
         )?;
+        Ok(Some(range_voxel_downsample(
+            &level,
+            self.config.downsample,
+            self.config.far_range,
+            self.config.downsample_far,
+        )))
+    }
+
+    /// `pose` with its height, roll and pitch from [`LEVEL_NEWTON_STEPS`] of NDT of the level cloud
+    /// ([`level_cloud`](Self::level_cloud), already thinned), started from it; unchanged without a level
+    /// cloud or when that alignment fails.
+    fn level(
+        &self,
+        pose: &Matrix4<f64>,
+        level_cloud: Option<Vec<Point3<f64>>>,
+    ) -> Result<Matrix4<f64>> {
+        let Some(level_cloud) = level_cloud else {
+            return Ok(*pose);
+        };
         let config = NdtAlignConfig {
             max_iterations: LEVEL_NEWTON_STEPS,
+            // Thinned already: a voxel of zero keeps every point.
+            source_voxel_size: 0.0,
+            source_far_range: f64::INFINITY,
             ..self.config.align_config()
         };
         // So few steps seldom meet the convergence tolerances; the line search takes each only where it
