@@ -460,10 +460,13 @@ class NdtResult:
     @property
     def iterations(self) -> int: ...
     @property
-    def num_correspondences(self) -> int: ...
+    def num_correspondences(self) -> int:
+        """Thinned source points near a map distribution at `transform`, or where the last step started when
+        that step was below the tolerances (it is taken unchecked)."""
     @property
     def score(self) -> float:
-        """Mean NDT likelihood per thinned source point (each nearby distribution adds up to 1, far away 0)."""
+        """Mean NDT likelihood per thinned source point (each nearby distribution adds up to 1, far away 0),
+        taken where `num_correspondences` is."""
     @property
     def degenerate_directions(self) -> int:
         """Directions of the pose held at the initial estimate because the map does not constrain them."""
