@@ -611,11 +611,12 @@ impl LocalMap {
             self.config.downsample_far,
             self.config.far_range,
         )?;
+        let thinning = self.config.align_config();
         Ok(Some(range_voxel_downsample(
             &level,
-            self.config.downsample,
-            self.config.far_range,
-            self.config.downsample_far,
+            thinning.source_voxel_size,
+            thinning.source_far_range,
+            thinning.source_far_voxel_size,
         )))
     }
 

@@ -98,12 +98,18 @@ fn errors(estimate: &Isometry3<f64>, truth: &Isometry3<f64>) -> (f64, f64) {
 }
 
 /// Map from one sample of the scene; the source an independent sample seen from `T_map_source`.
-fn align_scene(truth: &Isometry3<f64>, initial: &Isometry3<f64>) -> NdtResult {
+fn map_and_source(truth: &Isometry3<f64>) -> (NdtMap, Vec<Point3<f64>>) {
     let map = map_of(&sample_scene(40_000, 1));
-    let source: Vec<Point3<f64>> = sample_scene(8_000, 2)
+    let source = sample_scene(8_000, 2)
         .iter()
         .map(|p| truth.inverse_transform_point(p))
         .collect();
+    (map, source)
+}
+
+/// [`map_and_source`] aligned from `initial`.
+fn align_scene(truth: &Isometry3<f64>, initial: &Isometry3<f64>) -> NdtResult {
+    let (map, source) = map_and_source(truth);
     map.align(&source, initial, &NdtAlignConfig::default())
         .unwrap()
 }
@@ -399,11 +405,7 @@ fn rigid_matrix_round_trips() {
 fn a_line_search_that_finds_no_decrease_stops_below_the_tolerances() {
     let truth = motion([0.3, -0.2, 0.05], [0.5, -0.3, 4.0]);
     let config = NdtAlignConfig::default();
-    let map = map_of(&sample_scene(40_000, 1));
-    let source: Vec<Point3<f64>> = sample_scene(8_000, 2)
-        .iter()
-        .map(|p| truth.inverse_transform_point(p))
-        .collect();
+    let (map, source) = map_and_source(&truth);
     let optimum = map.align(&source, &truth, &config).unwrap();
     assert!(optimum.converged, "{optimum:?}");
     let context = ScoreContext {

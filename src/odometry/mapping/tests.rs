@@ -33,7 +33,12 @@ fn off(a: &Matrix4<f64>, b: &Matrix4<f64>) -> (f64, f64) {
 
 /// A map holding the yard seen from the origin.
 fn yard_map() -> LocalMap {
-    let mut map = LocalMap::new(MappingConfig::default()).unwrap();
+    yard_map_with(MappingConfig::default())
+}
+
+/// The same with `config`.
+fn yard_map_with(config: MappingConfig) -> LocalMap {
+    let mut map = LocalMap::new(config).unwrap();
     let first = scan_at(&Isometry3::identity(), 1);
     map.insert(&first.cloud, &Matrix4::identity(), &first.points)
         .unwrap();
@@ -269,10 +274,7 @@ fn the_level_from_the_near_scene_and_the_far_floor_refines_the_pose_too() {
             level_without_far_upright,
             ..Default::default()
         };
-        let mut map = LocalMap::new(config).unwrap();
-        let first = scan_at(&Isometry3::identity(), 1);
-        map.insert(&first.cloud, &Matrix4::identity(), &first.points)
-            .unwrap();
+        let map = yard_map_with(config);
         let scan = scan_at(&pose(0.9, 0.05, 1.0), 2);
         let dmlo = (pose(0.9, 0.05, 1.0) * pose(0.05, -0.03, 0.3)).to_homogeneous();
         map.refine(
@@ -299,14 +301,10 @@ fn the_level_from_the_near_scene_and_the_far_floor_refines_the_pose_too() {
 
 #[test]
 fn the_level_alignment_takes_out_a_height_and_a_tilt_and_keeps_the_rest() {
-    let mut map = LocalMap::new(MappingConfig {
+    let map = yard_map_with(MappingConfig {
         far_range: 10.0,
         ..Default::default()
-    })
-    .unwrap();
-    let first = scan_at(&Isometry3::identity(), 1);
-    map.insert(&first.cloud, &Matrix4::identity(), &first.points)
-        .unwrap();
+    });
     let truth = pose(0.9, 0.05, 1.0);
     let scan = scan_at(&truth, 2);
     let cylinder = CylinderConfig::kitti();
