@@ -1,11 +1,11 @@
 """Whether this processor runs the compiled extension, asked before it is imported.
 
-On x86-64 the extension is built for x86-64-v3 (AVX2, FMA and their companions; `.cargo/config.toml`), which
-every x86-64 processor of the last decade has. On one without them, importing it would kill the interpreter
-with SIGILL, an illegal instruction, and no message. So where `/proc/cpuinfo` lacks a v3 feature the
-extension is first imported in a child process: if the child dies, the import here raises an `ImportError`
-that names what is missing and how to build for this processor; if it imports (a build for the baseline,
-made with `RUSTFLAGS`), the import goes on.
+On x86-64 the extension is built for x86-64-v3 (AVX2, FMA and their companions; `.cargo/config.toml`): Intel's
+processors since Haswell and AMD's since Excavator have them, not every Pentium, Celeron or Atom. On one
+without them, importing it would kill the interpreter with SIGILL, an illegal instruction, and no message.
+So where `/proc/cpuinfo` lacks a v3 feature the extension is first imported in a child process: if the child
+dies of SIGILL, the import here raises an `ImportError` that names what is missing and how to build for this
+processor; otherwise (a build for the baseline, made with `RUSTFLAGS`) the import goes on.
 """
 
 from __future__ import annotations
