@@ -60,7 +60,8 @@ def missing_features(cpuinfo: str) -> list[str]:
 
 def extension_imports() -> int:
     """The exit status of a child process that imports the extension (negative: the signal that killed it)."""
-    env = {**os.environ, TRIAL_VARIABLE: "1"}
+    # The child searches where this interpreter does, which may be more than its environment says.
+    env = {**os.environ, TRIAL_VARIABLE: "1", "PYTHONPATH": os.pathsep.join(path for path in sys.path if path)}
     return subprocess.run([sys.executable, "-c", "import dmlo_rs._dmlo_rs"], env=env, check=False).returncode
 
 
