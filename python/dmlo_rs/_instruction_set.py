@@ -75,7 +75,11 @@ def check_instruction_set(
         return
     if (machine or platform.machine()).lower() not in ("x86_64", "amd64") or not cpuinfo.is_file():
         return
-    missing = missing_features(cpuinfo.read_text(errors="replace"))
+    try:
+        text = cpuinfo.read_text(errors="replace")
+    except OSError:  # unreadable here (a sandbox): nothing to judge by, as on a system without the file
+        return
+    missing = missing_features(text)
     if not missing:
         return
     status = trial()

@@ -42,6 +42,16 @@ def test_other_machines_are_not_judged_by_x86_flags(tmp_path: Path) -> None:
     check_instruction_set(tmp_path / "absent", machine="x86_64", trial=never("no cpuinfo"))
 
 
+def test_an_unreadable_cpuinfo_is_not_judged(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = cpuinfo(tmp_path, "fpu sse sse2")
+
+    def refused(self: Path, *args: object, **kwargs: object) -> str:
+        raise PermissionError(f"{self}: permission denied")
+
+    monkeypatch.setattr(Path, "read_text", refused)
+    check_instruction_set(path, machine="x86_64", trial=never("unreadable cpuinfo"))
+
+
 def test_a_build_that_dies_of_an_illegal_instruction_is_refused_by_name(tmp_path: Path) -> None:
     old = cpuinfo(tmp_path, ALL_FLAGS.replace(" avx2", "").replace(" fma", ""))
     with pytest.raises(ImportError, match=r"lacks AVX2, FMA.*target-cpu=native"):
