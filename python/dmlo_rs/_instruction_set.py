@@ -1,8 +1,8 @@
 """Whether this processor runs the compiled extension, asked before it is imported.
 
-On x86-64 the extension is built for x86-64-v3 (AVX2, FMA and their companions; `.cargo/config.toml`): Intel's
-processors since Haswell and AMD's since Excavator have them, not every Pentium, Celeron or Atom. On one
-without them, importing it would kill the interpreter with SIGILL, an illegal instruction, and no message.
+On x86-64 the extension is built for x86-64-v3 without FMA (AVX2 and its companions; `.cargo/config.toml`):
+Intel's processors since Haswell and AMD's since Excavator have them, not every Pentium, Celeron or Atom. On
+one without them, importing it would kill the interpreter with SIGILL, an illegal instruction, and no message.
 So where `/proc/cpuinfo` lacks a v3 feature the extension is first imported in a child process: if the child
 dies of SIGILL, the import here raises an `ImportError` that names what is missing and how to build for this
 processor; otherwise (a build for the baseline, made with `RUSTFLAGS`) the import goes on.
@@ -18,8 +18,8 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-# The flags `/proc/cpuinfo` shows for the features x86-64-v3 adds to the baseline (v2's included), by the
-# name people know them by.
+# The flags `/proc/cpuinfo` shows for the features x86-64-v3 adds to the baseline (v2's included; FMA, which
+# the build leaves out, excepted), by the name people know them by.
 X86_64_V3_FLAGS = {
     "cx16": "CMPXCHG16B",
     "lahf_lm": "LAHF/SAHF",
@@ -33,7 +33,6 @@ X86_64_V3_FLAGS = {
     "bmi1": "BMI1",
     "bmi2": "BMI2",
     "f16c": "F16C",
-    "fma": "FMA",
     "abm": "LZCNT",
     "movbe": "MOVBE",
     "xsave": "XSAVE",
@@ -43,7 +42,8 @@ X86_64_V3_FLAGS = {
 TRIAL_VARIABLE = "DMLO_RS_INSTRUCTION_SET_TRIAL"
 
 REBUILD = (
-    "build dmlo_rs for this processor instead: RUSTFLAGS='-C target-cpu=native' maturin develop --release "
+    "build dmlo_rs for this processor instead: RUSTFLAGS='-C target-cpu=native -C target-feature=-fma' "
+    "maturin develop --release "
     "(or the same variable before `pip install`)"
 )
 
