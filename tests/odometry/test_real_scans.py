@@ -14,6 +14,7 @@ import pytest
 
 from dmlo.peers.consensus import gicp_consensus
 from dmlo.datasets import open_sequence
+from dmlo.metrics import rotation_angle_deg
 from dmlo.odometry import Odometry, OdometryConfig
 from support import frame_to_frame
 
@@ -45,11 +46,10 @@ def _pair_errors(config: OdometryConfig, scans: list[np.ndarray], reference: np.
     poses = np.stack([odometry.register(points) for points in scans])
     deltas = np.linalg.inv(poses[:-1]) @ poses[1:]
     residuals = np.linalg.inv(reference) @ deltas
-    cosines = np.clip((np.trace(residuals[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
     return PairErrors(
         moved=np.linalg.norm(deltas[:, :3, 3], axis=1),
         translation=np.linalg.norm(residuals[:, :3, 3], axis=1),
-        rotation_deg=np.degrees(np.arccos(cosines)),
+        rotation_deg=rotation_angle_deg(residuals[:, :3, :3]),
     )
 
 
