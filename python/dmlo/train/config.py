@@ -37,6 +37,12 @@ class TrainConfig:
     """Rows losing up to this share of their cells (`Augmentation`); 0: off."""
     reflectance_dropout: float = 0.0
     """Share of the pairs trained without their reflectance (`Augmentation`); 0: off."""
+    reflectance_remap: float = 0.0
+    """Share of the pairs whose reflectance passes through a random monotone curve (`Augmentation`); 0: off."""
+    reflectance_falloff: float = 0.0
+    """Share of the pairs whose reflectance fades with range (`Augmentation`); 0: off."""
+    reflectance_zeros: float = 0.0
+    """Largest share of cells whose reflectance is zeroed in each scan (`Augmentation`); 0: off."""
     max_gap: int = 2
     """Pairs 1 … max_gap frames apart (2: the paper's triplets)."""
     val_max_pairs: int = 64
@@ -75,6 +81,17 @@ class TrainConfig:
             raise ValueError(f"lr must be > 0, got {self.lr}")
         if self.val_width is not None and (self.val_width <= 0 or self.val_width % 8):
             raise ValueError(f"val_width must be a positive multiple of 8, got {self.val_width}")
+
+    def augmentation(self) -> Any:
+        """The training pairs' `Augmentation` these settings describe."""
+        from dmlo.train.dataset import Augmentation
+
+        return Augmentation(
+            self.crop_height, self.crop_width, self.yaw_roll, mirror=self.mirror,
+            laser_gain_spread=self.laser_gain_spread, row_dropout=self.row_dropout,
+            reflectance_dropout=self.reflectance_dropout, reflectance_remap=self.reflectance_remap,
+            reflectance_falloff=self.reflectance_falloff, reflectance_zeros=self.reflectance_zeros,
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

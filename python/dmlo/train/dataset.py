@@ -21,6 +21,9 @@ Augmentations keep the geometry honest:
 - *row dropout* (optional): each row loses its own share of cells, independently in the two scans — a real
   sensor's lasers sit off the image's even row grid, so its rows are partly empty where the simulator's are
   full. Reference cells that lose their point lose their ground truth; the flow is unchanged.
+- *reflectance remaps* (optional): a random monotone curve over both scans' reflectance, a fade with range
+  and cells whose reflectance is zero — a real sensor's brightness differs from the simulator's in its
+  calibration curve, its fall with range and its empty returns; the flow is unchanged.
 
 With ``pose_jacobian=True`` a sample also holds ``pose_jacobian`` float32 (6, 2, H, W): how the ground-truth
 flow of every cell moves when the pose changes (see :func:`flow_pose_jacobian`), NaN where a perturbed pose
@@ -100,14 +103,27 @@ class Augmentation:
     reflectance_dropout: float = 0.0
     """Share of the samples whose reflectance is zeroed in both scans (the range-only model's input), so that
     the matcher cannot lean on brightness alone; drawn last, so runs without it are unchanged."""
+    reflectance_remap: float = 0.0
+    """Share of the samples whose reflectance passes through one random monotone curve (the same in both
+    scans) and is rounded to KITTI's steps of 0.01: a real sensor's calibration maps brightness to values
+    its own way, so only the order of the brightnesses carries over from the simulator. Drawn after the
+    reflectance dropout, as are the falloff and the zeros, so runs without them are unchanged."""
+    reflectance_falloff: float = 0.0
+    """Share of the samples whose reflectance fades to 0 with each cell's own range (from a random range on,
+    over a random width), as a real sensor's does far away; a point's brightness then changes between the
+    two scans as its range does."""
+    reflectance_zeros: float = 0.0
+    """Largest share of cells whose reflectance is zeroed, drawn apart in the two scans, as real scans hold
+    returns of zero reflectance where the simulator has almost none."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.laser_gain_spread < 1.0:
             raise ValueError(f"laser_gain_spread must be in [0, 1), got {self.laser_gain_spread}")
         if not 0.0 <= self.row_dropout < 1.0:
             raise ValueError(f"row_dropout must be in [0, 1), got {self.row_dropout}")
-        if not 0.0 <= self.reflectance_dropout <= 1.0:
-            raise ValueError(f"reflectance_dropout must be in [0, 1], got {self.reflectance_dropout}")
+        for name in ("reflectance_dropout", "reflectance_remap", "reflectance_falloff", "reflectance_zeros"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.crop_height is not None and (self.crop_height <= 0 or self.crop_height % 4):
             raise ValueError(f"crop_height must be a positive multiple of 4, got {self.crop_height}")
         if self.crop_width is not None and (self.crop_width <= 0 or self.crop_width % 8):
@@ -136,6 +152,12 @@ class Augmentation:
             sample = drop_row_cells(sample, self.row_dropout, rng)
         if self.random and self.reflectance_dropout > 0 and rng.random() < self.reflectance_dropout:
             sample = without_reflectance(sample)
+        if self.random and self.reflectance_remap > 0 and rng.random() < self.reflectance_remap:
+            sample = remap_reflectance(sample, rng)
+        if self.random and self.reflectance_falloff > 0 and rng.random() < self.reflectance_falloff:
+            sample = fade_reflectance_with_range(sample, rng)
+        if self.random and self.reflectance_zeros > 0:
+            sample = zero_reflectance_cells(sample, self.reflectance_zeros, rng)
         return sample
 
 
@@ -145,6 +167,49 @@ def without_reflectance(sample: Sample) -> Sample:
     for key in ("ref", "tgt"):
         image = sample[key].copy()
         image[1] = 0.0
+        zeroed[key] = image
+    return zeroed
+
+
+# Knots of the random monotone reflectance curve: enough to bend the mid-tones apart from the ends.
+_REMAP_SEGMENTS = 5
+
+
+def remap_reflectance(sample: Sample, rng: np.random.Generator) -> Sample:
+    """Both scans' reflectance through one random non-decreasing curve from 0 (0 stays 0, as a real sensor's
+    empty returns do) to a random top in [0.5, 1], rounded to steps of 0.01 as KITTI's are."""
+    rises = rng.dirichlet(np.full(_REMAP_SEGMENTS, 1.5)) * rng.uniform(0.5, 1.0)
+    knots_x = np.linspace(0.0, 1.0, _REMAP_SEGMENTS + 1)
+    knots_y = np.concatenate(([0.0], np.cumsum(rises)))
+    remapped = dict(sample)
+    for key in ("ref", "tgt"):
+        image = sample[key].copy()
+        image[1] = np.round(np.interp(np.clip(image[1], 0.0, 1.0), knots_x, knots_y) * 100.0) / 100.0
+        remapped[key] = image
+    return remapped
+
+
+def fade_reflectance_with_range(sample: Sample, rng: np.random.Generator) -> Sample:
+    """Each scan's reflectance times a factor that falls linearly from 1 at a random range in [15, 45] m to
+    0 a random [5, 30] m further, by each cell's own range (so a point's brightness changes between the
+    scans as its range does)."""
+    near = rng.uniform(15.0, 45.0)
+    far = near + rng.uniform(5.0, 30.0)
+    faded = dict(sample)
+    for key in ("ref", "tgt"):
+        image = sample[key].copy()
+        image[1] = image[1] * np.clip((far - image[0]) / (far - near), 0.0, 1.0)
+        faded[key] = image
+    return faded
+
+
+def zero_reflectance_cells(sample: Sample, largest_share: float, rng: np.random.Generator) -> Sample:
+    """Each scan loses the reflectance (not the range) of a share in [0, largest_share] of its cells, drawn
+    apart in the two scans; the ground truth is unchanged."""
+    zeroed = dict(sample)
+    for key in ("ref", "tgt"):
+        image = sample[key].copy()
+        image[1] = np.where(rng.random(image[1].shape) < rng.uniform(0.0, largest_share), 0.0, image[1])
         zeroed[key] = image
     return zeroed
 

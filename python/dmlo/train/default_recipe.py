@@ -2,7 +2,7 @@
 
     python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR]
         [--finetune | --range-only | --range-only-pose | --sensor-variety | --sensor-variety-pose | --scenes
-         | --scenes-pose]
+         | --scenes-pose | --reflectance-robust] [--device auto|cpu|cuda]
 
 simulates the drives (skipping those already written; deterministic per seed) and then trains, resuming
 from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. `--finetune` runs
@@ -44,12 +44,22 @@ on the recipe's validation drives and a highway and a jam of its own. Sized like
 `--scenes`, from that stage's weights (`RUN_DIR/scenes/best.pt`, or `--init CKPT`), into
 `RUN_DIR/scenes_pose`: the crop stage loses what the whole-image stage taught. One epoch; on 2 CPU cores it
 spans sessions (`--resume` continues it), on one GPU it is a single run.
+
+`--reflectance-robust` fine-tunes the final weights (or `--init CKPT`) on pairs whose reflectance looks
+like a real sensor's in the ways the simulator's does not: per-laser gains, a random monotone calibration
+curve rounded to KITTI's 0.01 steps, a fade with range, cells of zero reflectance, and a quarter of the
+pairs without it (`REFLECTANCE_ROBUST_AUGMENTATION`), into `RUN_DIR/reflectance_robust`: frame-to-frame
+DMLO's pitch bias on real drives comes through what the matcher learned from the simulator's reflectance,
+and the range-only model, which never reads it, has none on most real sets. Flow loss on 448-column crops
+at the range-only stage's learning rate, two epochs: sized like the range-only stage (one GPU run of a few
+minutes; on 2 CPU cores it spans sessions, the same command resuming it).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 
 # (name, KITTI ground-truth trajectory the drive follows, seed, first pose of that trajectory, frames)
@@ -122,6 +132,15 @@ SCENES_POSE_ARGUMENTS = (
     "--pose-loss-weight 0.2 --optimizer adam --lr 1e-4 --lr-step 1 --epochs 1 --batch-size 2 --crop-width 0 "
     "--val-max-pairs 48 --val-width 0 --checkpoint-every 25 --resume --mirror"
 ).split()
+# The reflectance-robust stage: the range-only stage's crops and learning rate, with the reflectance kept but
+# made untrustworthy in the ways a real sensor's differs from the simulator's.
+REFLECTANCE_ROBUST_ARGUMENTS = (
+    "--laser-gain-spread 0.6 --reflectance-dropout 0.25 --optimizer adam --lr 5e-4 --lr-step 1 --epochs 2 "
+    "--batch-size 4 --crop-width 448 --val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume --mirror"
+).split()
+# Its augmentations beyond `dmlo train`'s options (`TrainConfig` fields): most pairs remapped, half faded with
+# range, up to a sixth of the cells dark, as the shared real scans' reflectance is.
+REFLECTANCE_ROBUST_AUGMENTATION = {"reflectance_remap": 0.75, "reflectance_falloff": 0.5, "reflectance_zeros": 0.15}
 BUNDLED_FINAL = Path(__file__).resolve().parents[1] / "models" / "default" / "training" / "finetune" / "best.pt"
 BUNDLED_RANGE_ONLY = BUNDLED_FINAL.parents[1] / "range_only" / "best.pt"
 
@@ -169,6 +188,57 @@ def simulate_listed_drives(
     return train, val
 
 
+def train_with_options(argv: list[str], options: Mapping[str, float]) -> int:
+    """`dmlo train` with `argv`, and `options` (`TrainConfig` fields the command line does not take) set in
+    its settings: recorded in `train.json` and given to the training pairs' `Augmentation`."""
+    import dataclasses
+
+    from dmlo.commands.train import add_arguments, model_config_from_args
+    from dmlo.train import PairDataset, TrainConfig, Trainer
+    from dmlo.train.dataset import Augmentation
+    from dmlo.train.distributed import init_distributed, resolve_device
+
+    parser = argparse.ArgumentParser(prog="python -m dmlo.train.default_recipe")
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    for path in [*args.data, *args.val]:
+        if not Path(path).is_dir():
+            parser.error(f"sequence folder not found: {path}")
+    if args.init and not Path(args.init).is_file():
+        parser.error(f"--init checkpoint not found: {args.init}")
+    config = TrainConfig(
+        data=[str(p) for p in args.data], val=[str(p) for p in args.val], out=str(args.out),
+        epochs=args.epochs, batch_size=args.batch_size, optimizer=args.optimizer, lr=args.lr, momentum=args.momentum,
+        weight_decay=args.weight_decay, lr_step_epochs=args.lr_step, lr_gamma=args.lr_gamma,
+        crop_height=args.crop_height or None, crop_width=args.crop_width or None, yaw_roll=not args.no_yaw_roll,
+        mirror=args.mirror, laser_gain_spread=args.laser_gain_spread, row_dropout=args.row_dropout,
+        reflectance_dropout=args.reflectance_dropout, max_gap=args.max_gap, val_max_pairs=args.val_max_pairs,
+        val_width=args.val_width or None, seed=args.seed, workers=args.workers, device=args.device,
+        checkpoint_every=args.checkpoint_every, max_steps=args.max_steps, pose_loss_weight=args.pose_loss_weight,
+        confidence_loss_weight=args.confidence_loss_weight, init=str(args.init) if args.init else None,
+        no_reflectance=args.no_reflectance,
+    )
+    config = dataclasses.replace(config, **options)  # type: ignore[arg-type]
+    pose_jacobian = config.pose_loss_weight > 0
+    train_set = PairDataset.from_paths(config.data, augmentation=config.augmentation(), max_gap=config.max_gap,
+                                       seed=config.seed, pose_jacobian=pose_jacobian)
+    val_set = None
+    if config.val:
+        val_set = PairDataset.from_paths(
+            config.val, augmentation=Augmentation(None, config.val_width, yaw_roll=False, random=False), max_gap=1,
+            pose_jacobian=pose_jacobian,
+        )
+    context = init_distributed(resolve_device(config.device))
+    trainer = Trainer(model_config_from_args(args), config, train_set, val_set, context, resume=args.resume,
+                      progress=not args.no_progress)
+    trainer.run()
+    if context.enabled:
+        import torch.distributed as dist
+
+        dist.destroy_process_group()
+    return 0
+
+
 def recipe_parser(description: str) -> argparse.ArgumentParser:
     """The arguments every recipe takes: where its drives go, where the run goes, which KITTI poses to follow."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -199,16 +269,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes-pose", action="store_true",
                         help="the whole-image pose-loss stage on the --scenes drives, from OUT/scenes/best.pt (or --init), "
                         "into OUT/scenes_pose")
+    parser.add_argument("--reflectance-robust", action="store_true",
+                        help="fine-tune --init on pairs with a real sensor's reflectance (gains, a monotone calibration "
+                        "curve, a fade with range, dark cells, some pairs without it) into OUT/reflectance_robust")
+    parser.add_argument("--device", default=None,
+                        help="the training device for the chosen stage (auto: CUDA when available; cpu, cuda, cuda:N)")
     parser.add_argument("--init", type=Path, default=None,
-                        help="with --range-only(-pose), --sensor-variety(-pose) or --scenes(-pose): the weights to start "
+                        help="with --range-only(-pose), --sensor-variety(-pose), --scenes(-pose) or --reflectance-robust: "
+                        "the weights to start "
                         "from (default: the bundled model's final ones; with --range-only-pose the bundled range-only "
                         "ones, with --scenes-pose OUT/scenes/best.pt)")
     args = parser.parse_args(argv)
     chosen = (args.finetune, args.range_only, args.range_only_pose, args.sensor_variety, args.sensor_variety_pose,
-              args.scenes, args.scenes_pose)
+              args.scenes, args.scenes_pose, args.reflectance_robust)
     if sum(chosen) > 1:
-        parser.error("--finetune, --range-only, --range-only-pose, --sensor-variety, --sensor-variety-pose, --scenes "
-                     "and --scenes-pose are separate stages: choose one")
+        parser.error("--finetune, --range-only, --range-only-pose, --sensor-variety, --sensor-variety-pose, --scenes, "
+                     "--scenes-pose and --reflectance-robust are separate stages: choose one")
     poses = args.poses if args.poses.is_dir() else None
     train, val = simulate_drives(args.data, poses)
     if args.scenes or args.scenes_pose:
@@ -221,7 +297,8 @@ def main(argv: list[str] | None = None) -> int:
     stages = {"range_only": RANGE_ONLY_ARGUMENTS, "range_only_pose": RANGE_ONLY_POSE_ARGUMENTS,
               "sensor_variety": SENSOR_VARIETY_ARGUMENTS,
               "sensor_variety_pose": SENSOR_VARIETY_POSE_ARGUMENTS, "scenes": SCENES_ARGUMENTS,
-              "scenes_pose": SCENES_POSE_ARGUMENTS}
+              "scenes_pose": SCENES_POSE_ARGUMENTS, "reflectance_robust": REFLECTANCE_ROBUST_ARGUMENTS}
+    device = ["--device", args.device] if args.device else []
     stage = next((name for name in stages if getattr(args, name)), None)
     if stage is not None:
         arguments = stages[stage]
@@ -229,13 +306,17 @@ def main(argv: list[str] | None = None) -> int:
         init = args.init or default_init.get(stage, BUNDLED_FINAL)
         if not init.is_file():
             parser.error(f"--{stage.replace('_', '-')} starts from {init}, which does not exist")
-        return train_main([*data, "--out", str(args.out / stage), "--init", str(init), *arguments])
+        argv = [*data, "--out", str(args.out / stage), "--init", str(init), *arguments, *device]
+        if stage == "reflectance_robust":
+            return train_with_options(argv, REFLECTANCE_ROBUST_AUGMENTATION)
+        return train_main(argv)
     if args.finetune:
         start = args.out / "best.pt"
         if not start.is_file():
             parser.error(f"--finetune starts from {start}, which does not exist: run the first stage first")
-        return train_main([*data, "--out", str(args.out / "finetune"), "--init", str(start), *FINETUNE_ARGUMENTS])
-    return train_main([*data, "--out", str(args.out), *TRAIN_ARGUMENTS])
+        return train_main([*data, "--out", str(args.out / "finetune"), "--init", str(start), *FINETUNE_ARGUMENTS,
+                           *device])
+    return train_main([*data, "--out", str(args.out), *TRAIN_ARGUMENTS, *device])
 
 
 if __name__ == "__main__":
