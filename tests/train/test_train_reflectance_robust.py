@@ -148,3 +148,23 @@ def test_committed_reflectance_robust_state_was_made_by_the_recipe() -> None:
     assert config.lr == float(arguments[arguments.index("--lr") + 1])
     assert config.init is not None and config.init.endswith("finetune/best.pt")
     assert not config.no_reflectance
+
+
+def test_the_pose_stage_trains_whole_images_from_the_crop_stage_with_the_same_augmentations(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    calls: list[tuple[list[str], dict[str, object]]] = []
+    monkeypatch.setattr(default_recipe, "simulate_drives", lambda data, poses: ([tmp_path / "t"], [tmp_path / "v"]))
+    monkeypatch.setattr(default_recipe, "train_with_options", lambda argv, options: calls.append((argv, options)) or 0)
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit):  # the crop stage has not run
+        default_recipe.main(["--data", str(tmp_path), "--out", str(out), "--reflectance-robust-pose"])
+    (out / "reflectance_robust").mkdir(parents=True)
+    (out / "reflectance_robust" / "best.pt").write_bytes(b"")
+    assert default_recipe.main(["--data", str(tmp_path), "--out", str(out), "--reflectance-robust-pose"]) == 0
+    ((argv, options),) = calls
+    assert argv[argv.index("--out") + 1] == str(out / "reflectance_robust_pose")
+    assert argv[argv.index("--init") + 1] == str(out / "reflectance_robust" / "best.pt")
+    assert argv[argv.index("--crop-width") + 1] == "0" and float(argv[argv.index("--pose-loss-weight") + 1]) > 0
+    assert "--resume" in argv and "--device" not in argv
+    assert options == default_recipe.REFLECTANCE_ROBUST_AUGMENTATION

@@ -2,7 +2,7 @@
 
     python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR]
         [--finetune | --range-only | --range-only-pose | --sensor-variety | --sensor-variety-pose | --scenes
-         | --scenes-pose | --reflectance-robust] [--device auto|cpu|cuda]
+         | --scenes-pose | --reflectance-robust | --reflectance-robust-pose] [--device auto|cpu|cuda]
 
 simulates the drives (skipping those already written; deterministic per seed) and then trains, resuming
 from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. `--finetune` runs
@@ -53,6 +53,11 @@ DMLO's pitch bias on real drives comes through what the matcher learned from the
 and the range-only model, which never reads it, has none on most real sets. Flow loss on 448-column crops
 at the range-only stage's learning rate, two epochs: sized like the range-only stage (one GPU run of a few
 minutes; on 2 CPU cores it spans sessions, the same command resuming it).
+
+`--reflectance-robust-pose` is the bundled model's last stage (whole images, the pose loss) with the same
+reflectance augmentations, from that stage's weights (`RUN_DIR/reflectance_robust/best.pt`, or `--init
+CKPT`), into `RUN_DIR/reflectance_robust_pose`: the crop stage loses what the whole-image stage taught. One
+epoch; on 2 CPU cores it spans sessions, on one GPU it is a single run.
 """
 
 from __future__ import annotations
@@ -138,7 +143,13 @@ REFLECTANCE_ROBUST_ARGUMENTS = (
     "--laser-gain-spread 0.6 --reflectance-dropout 0.25 --optimizer adam --lr 5e-4 --lr-step 1 --epochs 2 "
     "--batch-size 4 --crop-width 448 --val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume --mirror"
 ).split()
-# Its augmentations beyond `dmlo train`'s options (`TrainConfig` fields): most pairs remapped, half faded with
+# The reflectance-robust pose stage: the second stage's whole images and pose loss, with the same reflectance.
+REFLECTANCE_ROBUST_POSE_ARGUMENTS = (
+    "--laser-gain-spread 0.6 --reflectance-dropout 0.25 --pose-loss-weight 0.2 --optimizer adam --lr 1e-4 "
+    "--lr-step 1 --epochs 1 --batch-size 2 --crop-width 0 --val-max-pairs 32 --val-width 0 --checkpoint-every 25 "
+    "--resume --mirror"
+).split()
+# Their augmentations beyond `dmlo train`'s options (`TrainConfig` fields): most pairs remapped, half faded with
 # range, up to a sixth of the cells dark, as the shared real scans' reflectance is.
 REFLECTANCE_ROBUST_AUGMENTATION = {"reflectance_remap": 0.75, "reflectance_falloff": 0.5, "reflectance_zeros": 0.15}
 BUNDLED_FINAL = Path(__file__).resolve().parents[1] / "models" / "default" / "training" / "finetune" / "best.pt"
@@ -272,19 +283,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reflectance-robust", action="store_true",
                         help="fine-tune --init on pairs with a real sensor's reflectance (gains, a monotone calibration "
                         "curve, a fade with range, dark cells, some pairs without it) into OUT/reflectance_robust")
+    parser.add_argument("--reflectance-robust-pose", action="store_true",
+                        help="the whole-image pose-loss stage with the same reflectance augmentations, from "
+                        "OUT/reflectance_robust/best.pt (or --init), into OUT/reflectance_robust_pose")
     parser.add_argument("--device", default=None,
                         help="the training device for the chosen stage (auto: CUDA when available; cpu, cuda, cuda:N)")
     parser.add_argument("--init", type=Path, default=None,
-                        help="with --range-only(-pose), --sensor-variety(-pose), --scenes(-pose) or --reflectance-robust: "
-                        "the weights to start "
+                        help="with --range-only(-pose), --sensor-variety(-pose), --scenes(-pose) or "
+                        "--reflectance-robust(-pose): the weights to start "
                         "from (default: the bundled model's final ones; with --range-only-pose the bundled range-only "
-                        "ones, with --scenes-pose OUT/scenes/best.pt)")
+                        "ones, with --scenes-pose OUT/scenes/best.pt, with --reflectance-robust-pose "
+                        "OUT/reflectance_robust/best.pt)")
     args = parser.parse_args(argv)
     chosen = (args.finetune, args.range_only, args.range_only_pose, args.sensor_variety, args.sensor_variety_pose,
-              args.scenes, args.scenes_pose, args.reflectance_robust)
+              args.scenes, args.scenes_pose, args.reflectance_robust, args.reflectance_robust_pose)
     if sum(chosen) > 1:
         parser.error("--finetune, --range-only, --range-only-pose, --sensor-variety, --sensor-variety-pose, --scenes, "
-                     "--scenes-pose and --reflectance-robust are separate stages: choose one")
+                     "--scenes-pose, --reflectance-robust and --reflectance-robust-pose are separate stages: choose one")
     poses = args.poses if args.poses.is_dir() else None
     train, val = simulate_drives(args.data, poses)
     if args.scenes or args.scenes_pose:
@@ -297,17 +312,19 @@ def main(argv: list[str] | None = None) -> int:
     stages = {"range_only": RANGE_ONLY_ARGUMENTS, "range_only_pose": RANGE_ONLY_POSE_ARGUMENTS,
               "sensor_variety": SENSOR_VARIETY_ARGUMENTS,
               "sensor_variety_pose": SENSOR_VARIETY_POSE_ARGUMENTS, "scenes": SCENES_ARGUMENTS,
-              "scenes_pose": SCENES_POSE_ARGUMENTS, "reflectance_robust": REFLECTANCE_ROBUST_ARGUMENTS}
+              "scenes_pose": SCENES_POSE_ARGUMENTS, "reflectance_robust": REFLECTANCE_ROBUST_ARGUMENTS,
+              "reflectance_robust_pose": REFLECTANCE_ROBUST_POSE_ARGUMENTS}
     device = ["--device", args.device] if args.device else []
     stage = next((name for name in stages if getattr(args, name)), None)
     if stage is not None:
         arguments = stages[stage]
-        default_init = {"range_only_pose": BUNDLED_RANGE_ONLY, "scenes_pose": args.out / "scenes" / "best.pt"}
+        default_init = {"range_only_pose": BUNDLED_RANGE_ONLY, "scenes_pose": args.out / "scenes" / "best.pt",
+                        "reflectance_robust_pose": args.out / "reflectance_robust" / "best.pt"}
         init = args.init or default_init.get(stage, BUNDLED_FINAL)
         if not init.is_file():
             parser.error(f"--{stage.replace('_', '-')} starts from {init}, which does not exist")
         argv = [*data, "--out", str(args.out / stage), "--init", str(init), *arguments, *device]
-        if stage == "reflectance_robust":
+        if stage in ("reflectance_robust", "reflectance_robust_pose"):
             return train_with_options(argv, REFLECTANCE_ROBUST_AUGMENTATION)
         return train_main(argv)
     if args.finetune:
