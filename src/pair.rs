@@ -31,8 +31,7 @@ use crate::coherence::{coherent_confidence, CoherenceConfig};
 use crate::error::{Error, Result};
 use crate::matches::{select_matches, DecodeConfig};
 use crate::projection::CylinderConfig;
-use crate::ransac::{ransac_rigid_voted, RansacConfig, Refit};
-use crate::ray_noise::RayNoise;
+use crate::ransac::{ransac_rigid_voted, RansacConfig};
 use crate::surface::horizontal_votes;
 
 /// The settings of [`match_pair`]; `Default` is `dmlo.Odometry`'s default configuration (its
@@ -62,28 +61,9 @@ pub struct PairConfig {
 }
 
 impl Default for PairConfig {
+    /// The odometry config's defaults (`odometry::config`, where every setting is declared).
     fn default() -> Self {
-        PairConfig {
-            min_confidence: 0.0,
-            nms_radius: 1,
-            max_matches: 1000,
-            coherence: Some(CoherenceConfig {
-                radius: 2,
-                scale_px: 0.5,
-            }),
-            ransac: RansacConfig {
-                refit: Refit::RayNoise {
-                    noise: RayNoise {
-                        range_ratio: 4.0,
-                        ..Default::default()
-                    },
-                    bearing_threshold_deg: 0.2,
-                },
-                ..Default::default()
-            },
-            tilt_vote_floor: Some(0.05),
-            vote_voxel: Some(2.0),
-        }
+        crate::odometry::config::OdometryConfig::default().pair_config()
     }
 }
 

@@ -3,13 +3,16 @@
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["RegistrationError", "__version__"]
+__all__ = ["ConfigError", "RegistrationError", "__version__"]
 
 __version__: str
 
 class RegistrationError(ValueError):
     """Valid arguments whose data admit no solution (too few pairs or correspondences, degenerate
     points); wrong arguments raise plain ValueError."""
+
+class ConfigError(ValueError):
+    """A config that does not fit the odometry's schema: one message naming every bad key."""
 
 # ---- core (issue 2): projection, ground truth, matches, NMS, rigid solve, RANSAC ----------------------
 
@@ -589,12 +592,16 @@ def match_pair(
     the square root of its `vote_voxel` cube's crowding (None: not), and RANSAC as `ransac_rigid`. Matches
     that give no motion: the identity with no inliers."""
 
-__all__ += ["FrameClock", "MotionModel", "odometry_config_json"]
+__all__ += ["FrameClock", "MotionModel", "odometry_config_json", "odometry_config_schema"]
 
 def odometry_config_json(text: str | None = None) -> str:
     """The odometry's config as the crate reads it: `text` (a config file's JSON, Python's `Infinity`
     included) parsed and checked by the crate and written back with every key; None: the crate's defaults.
-    ValueError names a bad key."""
+    ConfigError names every bad key."""
+
+def odometry_config_schema() -> str:
+    """The schema of the odometry's config as JSON: every section and setting with its type, rule, default
+    and doc, from the crate's one declaration of each."""
 
 @_final
 class FrameClock:

@@ -70,23 +70,9 @@ pub struct MappingConfig {
 }
 
 impl Default for MappingConfig {
+    /// The odometry config's defaults (`odometry::config`, where every setting is declared).
     fn default() -> Self {
-        MappingConfig {
-            voxel_size: 1.0,
-            max_scans: 10,
-            keyframe_distance: 2.0,
-            keyframe_angle_deg: 5.0,
-            ring_lock_distance: 0.5,
-            motion_model_start_distance: 0.3,
-            motion_model_start_angle_deg: 1.5,
-            downsample: 0.75,
-            downsample_far: 0.4,
-            far_range: 15.0,
-            level_without_far_upright: true,
-            max_iterations: 30,
-            degeneracy_threshold: 0.05,
-            rotation_degeneracy_threshold: 0.01,
-        }
+        crate::odometry::config::OdometryConfig::default().mapping_config()
     }
 }
 

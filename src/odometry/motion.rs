@@ -39,17 +39,12 @@ pub struct MotionLimits {
 }
 
 impl Default for MotionLimits {
-    /// `dmlo.Odometry`'s defaults, the refit point-to-point.
+    /// The odometry config's defaults (`odometry::config`, where every setting is declared), with the
+    /// refit point-to-point.
     fn default() -> Self {
         MotionLimits {
-            min_inliers: 10,
-            min_inlier_votes: 5.0,
-            max_deviation: 0.3,
-            max_deviation_deg: 3.0,
-            guided_fraction: 0.5,
-            prediction_horizon: 20,
-            threshold: 0.1,
             refit: Refit::PointToPoint,
+            ..crate::odometry::config::OdometryConfig::default().motion_limits()
         }
     }
 }

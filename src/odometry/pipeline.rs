@@ -86,6 +86,7 @@ use nalgebra::Matrix4;
 use crate::dense_match::DenseFlow;
 use crate::error::{Error, Result};
 use crate::odometry::clock::FrameClock;
+use crate::odometry::config::schema::Named;
 use crate::odometry::config::{MatchingStage, OdometryConfig, ReflectanceScale};
 use crate::odometry::mapping::LocalMap;
 use crate::odometry::motion::{nearest_rigid, rigid_inverse, MotionModel};
@@ -267,8 +268,8 @@ impl<M: FrameMatcher> Odometry<M> {
         config.validate()?;
         if !matcher.runs_matching_stage(config.matching_stage) {
             return Err(Error::Config(format!(
-                "matching_stage: {}: not how this matcher matches (dmlo.Odometry in Python runs the graph stage)",
-                serde_json::to_string(&config.matching_stage).unwrap_or_default()
+                "matching_stage: \"{}\": not how this matcher matches",
+                config.matching_stage.name()
             )));
         }
         let cylinder = *matcher.cylinder();

@@ -37,12 +37,21 @@ pyo3::create_exception!(
      data-dependent failures apart from wrong arguments (plain ValueError) and fall back."
 );
 
+pyo3::create_exception!(
+    dmlo_rs,
+    ConfigError,
+    PyValueError,
+    "A config that does not fit the odometry's schema: one message naming every bad key. A subclass of \
+     ValueError."
+);
+
 impl From<Error> for PyErr {
     fn from(err: Error) -> PyErr {
         match err {
-            Error::InvalidArgument { .. } | Error::Model(_) | Error::Config(_) => {
+            Error::InvalidArgument { .. } | Error::Model(_) => {
                 PyValueError::new_err(err.to_string())
             }
+            Error::Config(_) => ConfigError::new_err(err.to_string()),
             Error::TooFewPoints { .. } | Error::Degenerate(_) => {
                 RegistrationError::new_err(err.to_string())
             }
@@ -55,6 +64,7 @@ impl From<Error> for PyErr {
 fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("RegistrationError", m.py().get_type::<RegistrationError>())?;
+    m.add("ConfigError", m.py().get_type::<ConfigError>())?;
     projection::register(m)?;
     registration::register(m)?;
     matches::register(m)?;

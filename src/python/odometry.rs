@@ -16,12 +16,13 @@ pub(super) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyFrameClock>()?;
     m.add_class::<PyMotionModel>()?;
     m.add_function(wrap_pyfunction!(odometry_config_json, m)?)?;
+    m.add_function(wrap_pyfunction!(odometry_config_schema, m)?)?;
     Ok(())
 }
 
 /// The odometry's config as the crate reads it (`odometry::config::OdometryConfig`): `text` (a config
 /// file's JSON, Python's `Infinity` included) parsed and checked by the crate and written back, every key
-/// with its value; None: the crate's defaults. ValueError names a bad key.
+/// with its value; None: the crate's defaults. ConfigError names every bad key.
 #[pyfunction]
 #[pyo3(signature = (text = None))]
 fn odometry_config_json(text: Option<&str>) -> PyResult<String> {
@@ -30,6 +31,13 @@ fn odometry_config_json(text: Option<&str>) -> PyResult<String> {
         None => OdometryConfig::default(),
     };
     Ok(config.to_json())
+}
+
+/// The schema of the odometry's config as JSON (`OdometryConfig::schema_json`): every section and setting
+/// with its type, rule, default and doc, from the crate's one declaration of each.
+#[pyfunction]
+fn odometry_config_schema() -> String {
+    OdometryConfig::schema_json()
 }
 
 /// Frame numbers from scan timestamps: one per scan, or as many sensor periods as a scan's timestamp

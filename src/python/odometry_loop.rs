@@ -14,6 +14,7 @@ use pyo3::prelude::*;
 
 use crate::dense_match::DenseFlow;
 use crate::error::{Error, Result};
+use crate::odometry::config::schema::Named;
 use crate::odometry::config::{MatchingStage, OdometryConfig};
 use crate::odometry::pipeline::{FrameDiagnostics, FrameMatcher, Odometry, Scan};
 use crate::projection::CylinderConfig;
@@ -401,9 +402,7 @@ impl PyOdometry {
     #[getter]
     fn reflectance_scale(&self) -> Option<String> {
         let scale = self.inner.reflectance_scale()?;
-        serde_json::to_value(scale)
-            .ok()
-            .and_then(|name| name.as_str().map(str::to_string))
+        Some(scale.name().to_string())
     }
 
     /// The config it runs with, as JSON (`dmlo run`'s `config.json` format).

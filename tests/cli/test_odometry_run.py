@@ -128,7 +128,7 @@ def test_a_config_with_an_unknown_matching_stage_is_one_line(drive: Path, tmp_pa
     config.write_text(json.dumps({"matching_stage": "gpu"}))
     result = dmlo("run", str(drive), "--out", str(tmp_path / "out"), "--config", str(config))
     assert result.returncode == 2
-    assert f"cannot read config {config}: matching_stage: must be one of auto, crate, graph, got 'gpu'" in result.stderr
+    assert f"cannot read config {config}: matching_stage: must be one of auto, crate, graph, got \"gpu\"" in result.stderr
     assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
 

@@ -191,7 +191,7 @@ def test_the_odometry_solves_its_pairs_as_configured(pair_scans: list[np.ndarray
 
 @pytest.mark.parametrize(
     ("refit", "ratio", "message"),
-    [("ray", 3.0, r"ransac.refit: must be one of point_to_point, ray_noise, got 'ray'"),
+    [("ray", 3.0, r"ransac.refit: must be one of point_to_point, ray_noise, got \"ray\""),
      ("ray_noise", 0.0, r"ransac.ray_range_ratio: must be a number > 0"),
      ("ray_noise", "3", r"ransac.ray_range_ratio: must be a number > 0")],
 )

@@ -1,8 +1,11 @@
-"""The odometry config: defaults are the paper's, files round-trip, and one schema refuses every bad value
-by name when the config is loaded — before the first scan, in the API and on the command line."""
+"""The odometry config: defaults are the paper's, files round-trip, and the crate's one schema refuses every
+bad value by name when the config is loaded — before the first scan, in the API and on the command line. The
+rules and their messages are the crate's (`cargo test`, `odometry::config`); these tests show them reaching
+Python intact, and that Python declares no setting of its own."""
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import json
 import re
@@ -11,9 +14,11 @@ from pathlib import Path
 
 import pytest
 
+import dmlo
+import dmlo_rs
 from dmlo.cli import main as dmlo_main
 from dmlo.odometry import reflectance
-from dmlo.odometry.config import ConfigError, OdometryConfig, Reflectance
+from dmlo.odometry.config import SCHEMA, ConfigError, OdometryConfig, stub_text
 
 
 def test_defaults_are_the_papers() -> None:
@@ -48,7 +53,7 @@ def test_an_integer_is_a_number() -> None:
 def test_a_limit_may_be_infinite_but_not_nan() -> None:
     config = OdometryConfig.from_dict({"motion_model": {"max_deviation": float("inf")}})  # never gated
     assert config.motion_model.max_deviation == float("inf")
-    with pytest.raises(ConfigError, match=r"^motion_model\.max_deviation: must be a number >= 0, got nan$"):
+    with pytest.raises(ConfigError, match=r"^motion_model\.max_deviation: must be a number >= 0 or Infinity \(no limit\), got NaN$"):
         OdometryConfig.from_dict({"motion_model": {"max_deviation": float("nan")}})
 
 
@@ -71,40 +76,40 @@ def test_the_whole_config_must_be_a_mapping(data: object) -> None:
         OdometryConfig.from_dict(data)
 
 
-# Each value of issue 25, item 3, with the message that names it.
+# Python values as they reach the crate, with the message that names them.
 BAD = [
-    ({"ransac": {"threshold": "abc"}}, "ransac.threshold: must be a number > 0, got 'abc'"),
+    ({"ransac": {"threshold": "abc"}}, "ransac.threshold: must be a number > 0, got \"abc\""),
     ({"ransac": {"threshold": 0}}, "ransac.threshold: must be a number > 0, got 0"),
     ({"ransac": {"threshold": None}}, "ransac.threshold: must be a number > 0, got null"),
-    ({"ransac": {"threshold": float("inf")}}, "ransac.threshold: must be a finite number > 0, got inf"),
+    ({"ransac": {"threshold": float("inf")}}, "ransac.threshold: must be a finite number > 0, got Infinity"),
     ({"ransac": {"confidence": 1.0}}, "ransac.confidence: must be a number > 0 and < 1, got 1.0"),
-    ({"ransac": {"confidence": "0.99"}}, "ransac.confidence: must be a number > 0 and < 1, got '0.99'"),
+    ({"ransac": {"confidence": "0.99"}}, "ransac.confidence: must be a number > 0 and < 1, got \"0.99\""),
     ({"ransac": {"max_iterations": 0}}, "ransac.max_iterations: must be an integer from 1 to 1000000, got 0"),
     ({"ransac": {"max_iterations": 10.5}}, "ransac.max_iterations: must be an integer from 1 to 1000000, got 10.5"),
     # A scene without a consensus runs every hypothesis, in the crate, where Ctrl-C cannot stop them.
     ({"ransac": {"max_iterations": 2**63}}, "ransac.max_iterations: must be an integer from 1 to 1000000, got 9223372036854775808"),
     ({"ransac": {"seed": -1}}, "ransac.seed: must be an integer >= 0, got -1"),
     ({"ransac": {"seed": 2**64}}, "ransac.seed: must be an integer from 0 to 2^64 - 1, got 18446744073709551616"),
-    ({"ransac": {"seed": "7"}}, "ransac.seed: must be an integer >= 0, got '7'"),
+    ({"ransac": {"seed": "7"}}, "ransac.seed: must be an integer >= 0, got \"7\""),
     ({"matching": {"max_matches": 0}}, "matching.max_matches: must be an integer >= 3, got 0"),
     ({"matching": {"max_matches": None}}, "matching.max_matches: must be an integer >= 3, got null"),
     ({"matching": {"nms_radius": -1}}, "matching.nms_radius: must be an integer >= 0, got -1"),
     ({"matching": {"nms_radius": 1.5}}, "matching.nms_radius: must be an integer >= 0, got 1.5"),
-    ({"matching": {"min_confidence": float("nan")}}, "matching.min_confidence: must be a finite number >= 0 and <= 1, got nan"),
+    ({"matching": {"min_confidence": float("nan")}}, "matching.min_confidence: must be a finite number >= 0 and <= 1, got NaN"),
     ({"matching": {"min_confidence": 2}}, "matching.min_confidence: must be a number >= 0 and <= 1, got 2"),
     ({"matching": {"coherence_radius": 99}}, "matching.coherence_radius: must be an integer from 0 to 15, got 99"),
-    ({"matching": {"consistency_px": "1"}}, "matching.consistency_px: must be a number >= 0 or null, got '1'"),
+    ({"matching": {"consistency_px": "1"}}, "matching.consistency_px: must be a number >= 0 or Infinity (no limit) or null, got \"1\""),
     ({"motion_model": {"min_inliers": -1}}, "motion_model.min_inliers: must be an integer >= 3, got -1"),
     ({"min_points": -5}, "min_points: must be an integer >= 0, got -5"),
     ({"threads": -1}, "threads: must be an integer >= 0, got -1"),
-    ({"threads": "4"}, "threads: must be an integer >= 0, got '4'"),
-    ({"mapping": {"enabled": "false"}}, "mapping.enabled: must be true or false, got 'false'"),
+    ({"threads": "4"}, "threads: must be an integer >= 0, got \"4\""),
+    ({"mapping": {"enabled": "false"}}, "mapping.enabled: must be true or false, got \"false\""),
     ({"mapping": {"enabled": 0}}, "mapping.enabled: must be true or false, got 0"),
-    ({"matching": {"symmetric": "true"}}, "matching.symmetric: must be true or false, got 'true'"),
+    ({"matching": {"symmetric": "true"}}, "matching.symmetric: must be true or false, got \"true\""),
     ({"deskew": {"enabled": None}}, "deskew.enabled: must be true or false, got null"),
-    ({"matching_stage": "gpu"}, "matching_stage: must be one of auto, crate, graph, got 'gpu'"),
+    ({"matching_stage": "gpu"}, "matching_stage: must be one of auto, crate, graph, got \"gpu\""),
     ({"large_motion": {"search_ahead_m": []}}, "large_motion.search_ahead_m: must be a non-empty list of finite numbers, got []"),
-    ({"large_motion": {"search_yaw_deg": [0, "90"]}}, "large_motion.search_yaw_deg: must be a non-empty list of finite numbers, got [0, '90']"),
+    ({"large_motion": {"search_yaw_deg": [0, "90"]}}, "large_motion.search_yaw_deg: must be a non-empty list of finite numbers, got [0, \"90\"]"),
 ]
 
 
@@ -125,7 +130,7 @@ def test_every_bad_key_is_named_in_one_line() -> None:
         OdometryConfig.from_dict({"ransac": {"threshold": -1, "confidence": 2}, "threads": "4"})
     assert str(refused.value) == (
         "ransac.threshold: must be a number > 0, got -1; ransac.confidence: must be a number > 0 and < 1, got 2; "
-        "threads: must be an integer >= 0, got '4'"
+        'threads: must be an integer >= 0, got "4"'
     )
 
 
@@ -184,12 +189,45 @@ def test_a_string_is_refused_where_a_number_belongs(section: str, name: str) -> 
     default = OdometryConfig.from_dict({}).to_dict()
     value = default[section][name] if section else default[name]
     text = json.dumps(list(value) if isinstance(value, tuple) else value)  # the default, written as a string
-    with pytest.raises(ConfigError, match=rf"^{_key(section, name)}: must be .*, got '"):
+    with pytest.raises(ConfigError, match=rf'^{_key(section, name)}: must be .*, got "'):
         OdometryConfig.from_dict(_with(section, name, text))
 
 
 def test_the_schema_lists_the_reflectance_settings_the_odometry_knows() -> None:
-    assert typing.get_args(Reflectance) == reflectance.MODES
+    (setting,) = [s for s in SCHEMA["settings"] if s["key"] == "reflectance"]
+    assert tuple(setting["choices"]) == reflectance.MODES
+
+
+def test_the_classes_are_the_crates_schema() -> None:
+    crate = json.loads(dmlo_rs.odometry_config_json())  # every key with the crate's default
+    assert OdometryConfig().to_dict() == {
+        key: {k: tuple(v) if isinstance(v, list) else v for k, v in value.items()} if isinstance(value, dict) else value
+        for key, value in crate.items()
+    }
+    assert [s[:2] for s in SETTINGS] == [
+        (section["key"], setting["key"]) for section in SCHEMA["sections"] for setting in section["settings"]
+    ] + [("", setting["key"]) for setting in SCHEMA["settings"]]
+
+
+def test_the_type_stub_is_written_from_the_schema() -> None:
+    stub = Path(dmlo.__file__).parent / "odometry" / "config.pyi"
+    assert stub.read_text() == stub_text(), "run `python -m dmlo.odometry.config` to write it again"
+
+
+def test_no_class_of_the_package_declares_a_second_copy_of_a_section() -> None:
+    # A class with several of a section's settings as its own fields would be a second declaration of
+    # them: every setting is declared in the crate, and Python's classes are made from that.
+    sections = [{s["key"] for s in section["settings"]} for section in SCHEMA["sections"]]
+    sections.append({s["key"] for s in SCHEMA["settings"]})
+    package = Path(dmlo.__file__).parent
+    for path in package.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.ClassDef):
+                continue
+            fields = {item.target.id for item in node.body if isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name)}
+            for settings in sections:
+                shared = fields & settings
+                assert len(shared) < 3, f"{path}: class {node.name} declares {sorted(shared)} again"
 
 
 # -- the Python API: the config as it is when the odometry is built ------------------------------------------
@@ -198,8 +236,8 @@ def test_the_schema_lists_the_reflectance_settings_the_odometry_knows() -> None:
 @pytest.mark.parametrize(
     ("section", "name", "value", "message"),
     [
-        ("ransac", "threshold", "abc", "ransac.threshold: must be a number > 0, got 'abc'"),
-        ("mapping", "enabled", "false", "mapping.enabled: must be true or false, got 'false'"),
+        ("ransac", "threshold", "abc", 'ransac.threshold: must be a number > 0, got "abc"'),
+        ("mapping", "enabled", "false", 'mapping.enabled: must be true or false, got "false"'),
         ("motion_model", "min_inliers", -1, "motion_model.min_inliers: must be an integer >= 3, got -1"),
         ("", "threads", -2, "threads: must be an integer >= 0, got -2"),
         ("", "min_points", None, "min_points: must be an integer >= 0, got null"),
@@ -230,7 +268,7 @@ def test_a_section_replaced_by_a_mapping_is_refused() -> None:
 
 @pytest.mark.parametrize(
     ("data", "message"),
-    [case for case in BAD if case[1].endswith(("threshold: must be a number > 0, got 'abc'", "got 'false'", "min_inliers: must be an integer >= 3, got -1"))],
+    [case for case in BAD if case[1].endswith(('threshold: must be a number > 0, got "abc"', 'got "false"', "min_inliers: must be an integer >= 3, got -1"))],
 )
 @pytest.mark.parametrize("command", ["run", "register"])
 def test_the_cli_refuses_a_bad_config_in_one_line_before_the_first_scan(

@@ -1,22 +1,25 @@
-//! Python's JSON as `dmlo run` writes it: the bare `Infinity` of an unlimited setting read and written, and
-//! serde's errors turned into ones that name the key.
+//! The config's JSON as Python's `json` writes it: the bare `Infinity` of an unlimited setting (and
+//! `-Infinity`, `NaN`), which JSON itself has no words for, read and written.
+//!
+//! serde_json holds no non-finite number, so before the text is parsed each such token becomes a marked
+//! string that no setting takes as text (a control character no config holds), and the settings' rules
+//! read the marks as the numbers they stand for.
 
-use serde::{Deserialize, Deserializer};
+use serde_json::Value;
 
-use super::OdometryConfig;
-use crate::error::Error;
-
-/// What Python's non-finite tokens become before serde reads the text: a string no finite setting accepts
-/// (a control character no config holds; written in the JSON text by its escape).
 const INFINITY_MARK: &str = "\u{1}Infinity";
 const NEGATIVE_INFINITY_MARK: &str = "\u{1}-Infinity";
 const NAN_MARK: &str = "\u{1}NaN";
-pub(super) const INFINITY_JSON: &str = "\\u0001Infinity";
-const NEGATIVE_INFINITY_JSON: &str = "\\u0001-Infinity";
-const NAN_JSON: &str = "\\u0001NaN";
 
-/// The text with Python's bare `Infinity`, `-Infinity` and `NaN` (outside strings) turned into marked strings,
-/// which [`limit`] reads and every other setting refuses.
+/// Python's tokens and their marks, `-Infinity` before `Infinity` so that the longer token is found first.
+const TOKENS: [(&str, &str); 3] = [
+    ("-Infinity", NEGATIVE_INFINITY_MARK),
+    ("Infinity", INFINITY_MARK),
+    ("NaN", NAN_MARK),
+];
+
+/// The text with Python's bare `Infinity`, `-Infinity` and `NaN` (outside strings) turned into marked
+/// strings.
 pub(super) fn quote_non_finite_tokens(text: &str) -> String {
     let mut out = String::with_capacity(text.len());
     let mut rest = text;
@@ -35,21 +38,11 @@ pub(super) fn quote_non_finite_tokens(text: &str) -> String {
             }
         } else if c == '"' {
             in_string = true;
-        } else {
-            let token = [
-                ("-Infinity", NEGATIVE_INFINITY_JSON),
-                ("Infinity", INFINITY_JSON),
-                ("NaN", NAN_JSON),
-            ]
-            .into_iter()
-            .find(|(token, _)| rest.starts_with(token));
-            if let Some((token, mark)) = token {
-                out.push('"');
-                out.push_str(mark);
-                out.push('"');
-                rest = &rest[token.len()..];
-                continue;
-            }
+        } else if let Some((token, mark)) = TOKENS.iter().find(|(token, _)| rest.starts_with(token))
+        {
+            out.push_str(&Value::String((*mark).into()).to_string());
+            rest = &rest[token.len()..];
+            continue;
         }
         out.push(c);
         rest = &rest[c.len_utf8()..];
@@ -57,134 +50,83 @@ pub(super) fn quote_non_finite_tokens(text: &str) -> String {
     out
 }
 
-/// A number or the marked `Infinity`; `-Infinity` and `NaN` are refused here, with their names.
-pub(super) fn limit<'de, D: Deserializer<'de>>(
-    deserializer: D,
-) -> std::result::Result<f64, D::Error> {
-    struct LimitVisitor;
-    impl serde::de::Visitor<'_> for LimitVisitor {
-        type Value = f64;
-        fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-            f.write_str("a number >= 0 (or Infinity: no limit)")
+/// The JSON text of a value holding marks, each mark written back as Python's bare token.
+pub(super) fn with_tokens(text: String) -> String {
+    TOKENS.iter().fold(text, |text, (token, mark)| {
+        text.replace(&Value::String((*mark).into()).to_string(), token)
+    })
+}
+
+/// A number as the config's JSON holds it: finite, or one of the marked non-finite tokens.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) enum FiniteOrMarked {
+    Finite(f64),
+    Infinity,
+    NegativeInfinity,
+    NaN,
+}
+
+impl FiniteOrMarked {
+    /// The number a JSON value holds (`None`: not a number).
+    pub(super) fn of(value: &Value) -> Option<Self> {
+        match value {
+            Value::Number(n) => n.as_f64().map(FiniteOrMarked::Finite),
+            Value::String(s) => match s.as_str() {
+                INFINITY_MARK => Some(FiniteOrMarked::Infinity),
+                NEGATIVE_INFINITY_MARK => Some(FiniteOrMarked::NegativeInfinity),
+                NAN_MARK => Some(FiniteOrMarked::NaN),
+                _ => None,
+            },
+            _ => None,
         }
-        fn visit_f64<E: serde::de::Error>(self, v: f64) -> std::result::Result<f64, E> {
-            Ok(v)
+    }
+
+    pub(super) fn from_f64(value: f64) -> Self {
+        match value {
+            v if v.is_nan() => FiniteOrMarked::NaN,
+            f64::INFINITY => FiniteOrMarked::Infinity,
+            f64::NEG_INFINITY => FiniteOrMarked::NegativeInfinity,
+            v => FiniteOrMarked::Finite(v),
         }
-        fn visit_u64<E: serde::de::Error>(self, v: u64) -> std::result::Result<f64, E> {
-            Ok(v as f64)
+    }
+
+    pub(super) fn to_f64(self) -> f64 {
+        match self {
+            FiniteOrMarked::Finite(v) => v,
+            FiniteOrMarked::Infinity => f64::INFINITY,
+            FiniteOrMarked::NegativeInfinity => f64::NEG_INFINITY,
+            FiniteOrMarked::NaN => f64::NAN,
         }
-        fn visit_i64<E: serde::de::Error>(self, v: i64) -> std::result::Result<f64, E> {
-            Ok(v as f64)
-        }
-        fn visit_str<E: serde::de::Error>(self, v: &str) -> std::result::Result<f64, E> {
-            if v == INFINITY_MARK {
-                return Ok(f64::INFINITY);
+    }
+
+    pub(super) fn to_value(self) -> Value {
+        let mark = match self {
+            FiniteOrMarked::Finite(v) => {
+                return serde_json::Number::from_f64(v).map_or(Value::Null, Value::Number)
             }
-            Err(E::custom(format!(
-                "must be a number >= 0 (or Infinity: no limit), got {}",
-                shown_mark(v)
-            )))
+            FiniteOrMarked::Infinity => INFINITY_MARK,
+            FiniteOrMarked::NegativeInfinity => NEGATIVE_INFINITY_MARK,
+            FiniteOrMarked::NaN => NAN_MARK,
+        };
+        Value::String(mark.into())
+    }
+}
+
+/// A number as written: Python's token for a non-finite one, every digit of an integer too large for
+/// the crate's integers (which JSON's parser reads as a float).
+pub(super) fn shown_number(value: &Value) -> String {
+    match FiniteOrMarked::of(value) {
+        Some(FiniteOrMarked::Finite(v))
+            if !value.is_u64()
+                && !value.is_i64()
+                && v.abs() >= 2f64.powi(63)
+                && v.fract() == 0.0 =>
+        {
+            format!("{v:.0}")
         }
-    }
-    deserializer.deserialize_any(LimitVisitor)
-}
-
-pub(super) fn optional_limit<'de, D: Deserializer<'de>>(
-    deserializer: D,
-) -> std::result::Result<Option<f64>, D::Error> {
-    #[derive(Deserialize)]
-    struct Wrapped(#[serde(deserialize_with = "limit")] f64);
-    Ok(Option::<Wrapped>::deserialize(deserializer)?.map(|Wrapped(v)| v))
-}
-
-fn shown_mark(mark: &str) -> String {
-    match mark {
-        INFINITY_MARK => "Infinity".into(),
-        NEGATIVE_INFINITY_MARK => "-Infinity".into(),
-        NAN_MARK => "NaN".into(),
-        other => format!("{other:?}"),
-    }
-}
-
-/// The error of a key, serde's words with Python's non-finite tokens named as written.
-pub(super) fn config_error(path: String, error: &serde_json::Error) -> Error {
-    let mut message = error.to_string();
-    for mark in [NEGATIVE_INFINITY_MARK, INFINITY_MARK, NAN_MARK] {
-        message = message.replace(
-            &format!("string {mark:?}"),
-            &format!("{} (not finite)", shown_mark(mark)),
-        );
-        message = message.replace(&format!("\"{mark}\""), &shown_mark(mark));
-    }
-    for (serde_word, ours) in [
-        ("expected f64", "expected a number"),
-        ("expected u64", "expected an integer >= 0"),
-    ] {
-        message = message.replace(serde_word, ours);
-    }
-    let key = if path == "." || path.is_empty() {
-        "config".to_string()
-    } else {
-        path
-    };
-    Error::Config(format!("{key}: {message}"))
-}
-
-/// The unlimited settings of `config` written back as the mark that [`OdometryConfig::to_json`] turns into
-/// `Infinity` (serde_json writes a non-finite number as `null`, which would read back as "no setting").
-pub(super) fn restore_infinities(value: &mut serde_json::Value, config: &OdometryConfig) {
-    let limits: [(&str, &str, f64); 11] = [
-        (
-            "motion_model",
-            "max_deviation",
-            config.motion_model.max_deviation,
-        ),
-        (
-            "motion_model",
-            "max_deviation_deg",
-            config.motion_model.max_deviation_deg,
-        ),
-        (
-            "mapping",
-            "keyframe_distance",
-            config.mapping.keyframe_distance,
-        ),
-        (
-            "mapping",
-            "keyframe_angle_deg",
-            config.mapping.keyframe_angle_deg,
-        ),
-        (
-            "mapping",
-            "ring_lock_distance",
-            config.mapping.ring_lock_distance,
-        ),
-        (
-            "mapping",
-            "motion_model_start_distance",
-            config.mapping.motion_model_start_distance,
-        ),
-        (
-            "mapping",
-            "motion_model_start_angle_deg",
-            config.mapping.motion_model_start_angle_deg,
-        ),
-        ("mapping", "far_range", config.mapping.far_range),
-        ("large_motion", "min_step", config.large_motion.min_step),
-        (
-            "large_motion",
-            "min_step_deg",
-            config.large_motion.min_step_deg,
-        ),
-        (
-            "matching",
-            "consistency_px",
-            config.matching.consistency_px.unwrap_or(0.0),
-        ),
-    ];
-    for (section, key, setting) in limits {
-        if setting == f64::INFINITY {
-            value[section][key] = serde_json::Value::String(INFINITY_MARK.into());
-        }
+        Some(FiniteOrMarked::Infinity) => "Infinity".into(),
+        Some(FiniteOrMarked::NegativeInfinity) => "-Infinity".into(),
+        Some(FiniteOrMarked::NaN) => "NaN".into(),
+        _ => value.to_string(),
     }
 }

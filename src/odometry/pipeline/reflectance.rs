@@ -107,8 +107,8 @@ pub(super) fn detect_reflectance(values: &[f32]) -> (ReflectanceScale, String) {
     }
     for (scale, divisor, name) in [
         (ReflectanceScale::Unit, 1.0, "[0, 1]"),
-        (ReflectanceScale::Byte, 255.0, "0–255"),
-        (ReflectanceScale::Word, 65535.0, "0–65535"),
+        (ReflectanceScale::ZeroTo255, 255.0, "0–255"),
+        (ReflectanceScale::ZeroTo65535, 65535.0, "0–65535"),
     ] {
         if high <= divisor {
             return (scale, format!("values up to {high} look like {name}"));
@@ -124,8 +124,8 @@ pub(super) fn detect_reflectance(values: &[f32]) -> (ReflectanceScale, String) {
 pub(super) fn normalised(mut cloud: Vec<[f32; 4]>, scale: ReflectanceScale) -> Vec<[f32; 4]> {
     let divisor: f32 = match scale {
         ReflectanceScale::Auto | ReflectanceScale::Unit => 1.0,
-        ReflectanceScale::Byte => 255.0,
-        ReflectanceScale::Word => 65535.0,
+        ReflectanceScale::ZeroTo255 => 255.0,
+        ReflectanceScale::ZeroTo65535 => 65535.0,
         ReflectanceScale::Ignored => {
             cloud.iter_mut().for_each(|p| p[3] = 0.0);
             return cloud;

@@ -340,7 +340,10 @@ fn reflectance_on_another_scale_is_brought_to_the_models() {
         .map(|&[x, y, z, r]| [x, y, z, r * 255.0])
         .collect();
     odometry.register(Scan::new(&bright)).unwrap();
-    assert_eq!(odometry.reflectance_scale(), Some(ReflectanceScale::Byte));
+    assert_eq!(
+        odometry.reflectance_scale(),
+        Some(ReflectanceScale::ZeroTo255)
+    );
     let first = OdometryConfig {
         reflectance: ReflectanceScale::Ignored,
         ..config(false)
@@ -483,8 +486,14 @@ fn deskewing_a_sweep_taken_at_one_moment_changes_nothing() {
 #[test]
 fn reflectance_detection_follows_python() {
     assert_eq!(detect_reflectance(&[0.1, 0.9]).0, ReflectanceScale::Unit);
-    assert_eq!(detect_reflectance(&[0.0, 200.0]).0, ReflectanceScale::Byte);
-    assert_eq!(detect_reflectance(&[0.0, 4000.0]).0, ReflectanceScale::Word);
+    assert_eq!(
+        detect_reflectance(&[0.0, 200.0]).0,
+        ReflectanceScale::ZeroTo255
+    );
+    assert_eq!(
+        detect_reflectance(&[0.0, 4000.0]).0,
+        ReflectanceScale::ZeroTo65535
+    );
     assert_eq!(
         detect_reflectance(&[0.0, 70000.0]).0,
         ReflectanceScale::Ignored
@@ -497,7 +506,7 @@ fn reflectance_detection_follows_python() {
     assert_eq!(detect_reflectance(&[]).0, ReflectanceScale::Ignored);
     let cloud = normalised(
         vec![[0.0, 0.0, 0.0, 300.0], [0.0, 0.0, 0.0, 51.0]],
-        ReflectanceScale::Byte,
+        ReflectanceScale::ZeroTo255,
     );
     assert_eq!((cloud[0][3], cloud[1][3]), (1.0, 0.2));
 }
