@@ -34,6 +34,7 @@ use dmlo_rs::inference::{
     graph_metadata, Encoder, LearnedMatcher, TractEncoder, TractMovingObjects,
 };
 use dmlo_rs::odometry::config::OdometryConfig;
+use dmlo_rs::odometry::motion::Fallback;
 use dmlo_rs::odometry::moving::MovingObjectNetwork;
 use dmlo_rs::odometry::pipeline::{EncodeAhead, Odometry, Scan};
 use dmlo_rs::scan_file::{kitti_scan_files, read_kitti_scan};
@@ -219,7 +220,7 @@ where
             }
             Err(error) => {
                 eprintln!("skipped: {error}");
-                odometry.predict_skipped("unreadable_scan")?
+                odometry.predict_skipped(Fallback::UnreadableScan)?
             }
         };
         writeln!(poses, "{}", kitti_row(&pose))?;
@@ -247,7 +248,7 @@ where
     if diagnostics.iter().any(|d| d.ambiguous_start == Some(true)) {
         let taken = if diagnostics
             .iter()
-            .any(|d| d.fallback.as_deref() == Some("forward_start"))
+            .any(|d| d.fallback == Some(Fallback::ForwardStart))
         {
             "the start driving forward was taken over the pair's reversing motion \
              (motion_model.start_max_reverse_m); "

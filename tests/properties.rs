@@ -445,6 +445,7 @@ proptest! {
             let before = odometry.poses().len();
             let scan = Scan {
                 points: &points,
+                has_reflectance: i % 5 != 4,
                 // With a network, the scans come without a mask for it to flag.
                 moving: network.is_none().then_some(&moving[..]),
                 timestamp: Some(timestamps[i % 4] + i as f64),

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from dmlo.metrics import registration_errors
 
 if TYPE_CHECKING:
-    from dmlo.odometry import OdometryConfig
+    from dmlo.odometry import Odometry, OdometryConfig
 
 FloatArray = npt.NDArray[np.float64]
 REPO = Path(__file__).resolve().parent.parent  # the repository; `../shared/data` lies beside it
@@ -98,3 +98,15 @@ def rust_example(name: str) -> Path:
         pytest.skip(f"{example} is older than the crate's sources: rebuild it with cargo test --release "
                     "--features inference,onnxruntime")
     return example
+
+
+def projected(odometry: Odometry, cloud: npt.NDArray[np.float32]) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The network input `[2, H, W]`, the range image `[H, W]` and the point image `[H, W, 3]` (each cell's kept
+    point, NaN where empty) of a scan of finite points, as the odometry projects it."""
+    import dmlo_rs
+
+    image, ranges = odometry.project(cloud)
+    index = dmlo_rs.project(np.ascontiguousarray(cloud, dtype=np.float32), odometry.cylinder).index
+    points = np.take(cloud[:, :3], np.maximum(index, 0), axis=0)
+    points[index < 0] = np.nan
+    return image, ranges, points

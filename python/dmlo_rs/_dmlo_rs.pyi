@@ -766,9 +766,12 @@ class Odometry:
     reference cells marked in `cells`, bool [H, W]: those that hold a point; other cells' values are not read)
     and `wide_match(reference, target, target_image)` — as `dmlo.odometry.matcher.CrateMatcher`. An exception
     the matcher raises comes through unchanged. `config_json`: `dmlo run`'s config.json text (None: the
-    defaults; a bad setting raises ValueError naming it); `range_only`: the range-only model's matcher, run
+    defaults; a bad setting raises ConfigError naming it); `range_only`: the range-only model's matcher, run
     from the first scan without usable reflectance on; `allow_zero_reflectance`: without a range-only model,
-    such scans run the model on zero reflectance (its poses then cannot be trusted) instead of raising."""
+    such scans run the model on zero reflectance (its poses then cannot be trusted) instead of raising;
+    `moving_objects`: a moving-object network, an object with `cylinder` and `probability(range, height)` →
+    [H, W] float32 (both images [H, W] float32), whose flagged points are left out of scans given without a
+    mask. Each frame's diagnostics carry the notices said at it (`notices`: kind and message)."""
 
     def __new__(
         cls,
@@ -777,17 +780,19 @@ class Odometry:
         num_threads: int | None = None,
         range_only: object | None = None,
         allow_zero_reflectance: bool = False,
+        moving_objects: object | None = None,
     ) -> Odometry: ...
     def register(
         self,
         points: npt.NDArray[np.floating],
         moving: npt.NDArray[np.bool_] | None = None,
-        timestamp: float | None = None,
+        timestamp: object | None = None,
         point_times: npt.NDArray[np.floating] | None = None,
     ) -> npt.NDArray[np.float64]:
-        """Adds the next scan (N×4: x, y, z, reflectance) and returns its pose `T_world_lidar` (4×4);
-        `moving`: one flag per point, left out; `timestamp`: the scan's time, dropped scans counted from it;
-        `point_times`: with `deskew.enabled`, each point's time in sensor periods (None: from its azimuth)."""
+        """Adds the next scan (N×4: x, y, z, reflectance, or N×3 without it) and returns its pose
+        `T_world_lidar` (4×4); `moving`: one flag per point, left out; `timestamp`: the scan's time (a finite
+        number), dropped scans counted from it; `point_times`: with `deskew.enabled`, each point's time in
+        sensor periods (None: from its azimuth)."""
     def register_pair(
         self,
         reference: npt.NDArray[np.floating],
@@ -795,9 +800,10 @@ class Odometry:
         large_motion: bool = False,
         reference_moving: npt.NDArray[np.bool_] | None = None,
         target_moving: npt.NDArray[np.bool_] | None = None,
-    ) -> tuple[npt.NDArray[np.float64], PairMotion, bool | None, int]:
-        """The motion between two scans (N×4 each) with no motion model or initial guess: `(T_tgt_ref (4×4),
-        the matches, whether NDT against the reference refined it (None: not tried), matching rounds)`;
+    ) -> tuple[npt.NDArray[np.float64], PairMotion, bool | None, int, list[tuple[str, str]]]:
+        """The motion between two scans (N×4 each, or N×3) with no motion model or initial guess: `(T_tgt_ref
+        (4×4), the matches, whether NDT against the reference refined it (None: not tried), matching rounds,
+        the notices said (kind, message))`;
         `large_motion`: the wide window from the configured search starts, then rounds of the model's own;
         `*_moving`: one flag per point, left out. The drive's poses are untouched."""
     def predict_skipped(self, reason: str = "unreadable_scan") -> npt.NDArray[np.float64]:
@@ -817,4 +823,12 @@ class Odometry:
     @property
     def config_json(self) -> str:
         """The config it runs with, as `dmlo run`'s config.json."""
+    @property
+    def runs_range_only(self) -> bool:
+        """Whether the range-only model runs in place of the model."""
+    def network_image(
+        self, points: npt.NDArray[np.floating]
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """The network's input [2, H, W] (range, reflectance on the scale chosen) and the range image [H, W]
+        of a scan's finite points; nothing is decided by it."""
     def __len__(self) -> int: ...

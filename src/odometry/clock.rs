@@ -19,12 +19,14 @@ pub struct FrameClock {
 }
 
 /// The frame a scan was given.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Tick {
     /// Its frame number (the first scan's is 0).
     pub frame: u64,
     /// Its timestamp was not after the previous timestamped scan's: it was taken for the next frame.
     pub out_of_order: bool,
+    /// The previous timestamped scan's timestamp, if any.
+    pub previous: Option<f64>,
 }
 
 impl FrameClock {
@@ -65,6 +67,7 @@ impl FrameClock {
             }
         }
         let mut out_of_order = false;
+        let previous = self.last.map(|(time, _)| time);
         let frames = match (timestamp, self.last) {
             (Some(time), Some(last)) => {
                 let (frames, backwards) = self.frames_since_last(time, last);
@@ -83,6 +86,7 @@ impl FrameClock {
         Ok(Tick {
             frame,
             out_of_order,
+            previous,
         })
     }
 

@@ -93,7 +93,8 @@ impl MotionLimits {
     }
 }
 
-/// Why a frame's motion is not its pair's own (`FrameDiagnostics.fallback` in Python).
+/// Why a frame's motion is not its pair's own (the frame diagnostics' `fallback`). The motion model's
+/// judgement of a pair ([`MotionModel::judge`]) gives the first four; the odometry's loop the others.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Fallback {
     /// Too few inliers: the prediction was taken (the paper's motion model).
@@ -104,17 +105,55 @@ pub enum Fallback {
     GuidedConsensus,
     /// The motion was implausible and too few matches agreed with the prediction: the prediction.
     ImplausibleMotion,
+    /// An ambiguous first pair drove backwards; a start's forward motion was taken.
+    ForwardStart,
+    /// The pair matched again from the prediction gave the motion.
+    RematchedFromPrediction,
+    /// The scan had too few points to match: the prediction.
+    TooFewPoints,
+    /// The scan could not be read: the prediction.
+    UnreadableScan,
 }
 
 impl Fallback {
-    /// The name `dmlo.Odometry`'s diagnostics give it.
+    /// Every fallback, with the name the diagnostics give it.
+    pub const NAMES: [(Fallback, &'static str); 8] = [
+        (Fallback::ConstantVelocity, "constant_velocity"),
+        (Fallback::DegenerateScene, "degenerate_scene"),
+        (Fallback::GuidedConsensus, "guided_consensus"),
+        (Fallback::ImplausibleMotion, "implausible_motion"),
+        (Fallback::ForwardStart, "forward_start"),
+        (
+            Fallback::RematchedFromPrediction,
+            "rematched_from_prediction",
+        ),
+        (Fallback::TooFewPoints, "too_few_points"),
+        (Fallback::UnreadableScan, "unreadable_scan"),
+    ];
+
+    /// The name the diagnostics give it.
     pub fn name(self) -> &'static str {
-        match self {
-            Fallback::ConstantVelocity => "constant_velocity",
-            Fallback::DegenerateScene => "degenerate_scene",
-            Fallback::GuidedConsensus => "guided_consensus",
-            Fallback::ImplausibleMotion => "implausible_motion",
-        }
+        Self::NAMES
+            .iter()
+            .find(|(fallback, _)| *fallback == self)
+            .map_or("", |(_, name)| name)
+    }
+
+    /// The fallback of a name, if any.
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::NAMES
+            .iter()
+            .find(|(_, n)| *n == name)
+            .map(|(fallback, _)| *fallback)
+    }
+}
+
+impl serde::Serialize for Fallback {
+    fn serialize<S: serde::Serializer>(
+        &self,
+        serializer: S,
+    ) -> std::result::Result<S::Ok, S::Error> {
+        serializer.serialize_str(self.name())
     }
 }
 

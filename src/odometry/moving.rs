@@ -48,14 +48,28 @@ pub fn moving_points<N: MovingObjectNetwork + ?Sized>(
     points: &[[f32; 4]],
     threshold: f64,
 ) -> Result<Vec<bool>> {
+    moving_points_and_fill(network, points, threshold).map(|(flags, _)| flags)
+}
+
+/// [`moving_points`], and the fraction of the image's cells that the whole scan fills (0 for an empty
+/// scan): its range image is made for the network anyway.
+pub fn moving_points_and_fill<N: MovingObjectNetwork + ?Sized>(
+    network: &N,
+    points: &[[f32; 4]],
+    threshold: f64,
+) -> Result<(Vec<bool>, f64)> {
     if points.is_empty() {
-        return Ok(Vec::new());
+        return Ok((Vec::new(), 0.0));
     }
     let cylinder = network.cylinder();
     let points = points.as_flattened();
     let (range, height) = network_images(points, 4, cylinder)?;
+    let filled = range.iter().filter(|&&r| r > 0.0).count() as f64 / range.len() as f64;
     let probability = network.probability(&range, &height)?;
-    flagged_points(points, 4, &probability, cylinder, threshold)
+    Ok((
+        flagged_points(points, 4, &probability, cylinder, threshold)?,
+        filled,
+    ))
 }
 
 /// The points of a flat `N × channels` scan (3 or 4 values a point) in cells whose `probability` (`H × W`,

@@ -89,8 +89,8 @@ use crate::odometry::clock::FrameClock;
 use crate::odometry::config::schema::Named;
 use crate::odometry::config::{MatchingStage, OdometryConfig, ReflectanceScale};
 use crate::odometry::mapping::LocalMap;
-use crate::odometry::motion::{nearest_rigid, rigid_inverse, MotionModel};
-use crate::odometry::moving::{moving_points, MovingObjectNetwork};
+use crate::odometry::motion::{nearest_rigid, rigid_inverse, Fallback, MotionModel};
+use crate::odometry::moving::{moving_points_and_fill, MovingObjectNetwork};
 use crate::pair::{PairConfig, PairMotion};
 use crate::projection::{project, CylinderConfig, Projection};
 
@@ -177,6 +177,9 @@ pub trait FrameMatcher {
 pub struct Scan<'a> {
     /// `x, y, z, reflectance` in the sensor frame; non-finite points are left out.
     pub points: &'a [[f32; 4]],
+    /// Whether the points carry a reflectance (false: the sensor or file gave none, and the fourth value
+    /// of every point is a placeholder): such scans run the range-only model.
+    pub has_reflectance: bool,
     /// Points on moving objects (one per point), left out of matching and of the map.
     pub moving: Option<&'a [bool]>,
     /// The scan's time (any increasing unit): scans the sensor dropped are counted from it.
@@ -191,6 +194,7 @@ impl<'a> Scan<'a> {
     pub fn new(points: &'a [[f32; 4]]) -> Self {
         Scan {
             points,
+            has_reflectance: true,
             moving: None,
             timestamp: None,
             point_times: None,
@@ -252,8 +256,16 @@ pub struct Odometry<M: FrameMatcher> {
     poses: Vec<Matrix4<f64>>,
     diagnostics: Vec<FrameDiagnostics>,
     reflectance: Option<ReflectanceScale>,
+    /// Why that scale (the values seen, or the config), for the notices that name it.
+    reflectance_reason: String,
     /// The range-only model, run from the first scan without usable reflectance on.
     range_only: Option<M>,
+    /// The range-only model runs in place of the model.
+    runs_range_only: bool,
+    /// Notices not yet given to a frame's (or a pair's) diagnostics.
+    notices: Vec<Notice>,
+    /// The notices said once per odometry that were said.
+    said: Said,
     /// Scans without usable reflectance and no range-only model run the model on zeros (not refused).
     zero_reflectance_allowed: bool,
     /// Flags the points on moving objects of scans given without a mask (shared with [`EncodeAhead`]'s
@@ -293,7 +305,11 @@ impl<M: FrameMatcher> Odometry<M> {
             poses: Vec::new(),
             diagnostics: Vec::new(),
             reflectance: None,
+            reflectance_reason: String::new(),
             range_only: None,
+            runs_range_only: false,
+            notices: Vec::new(),
+            said: Said::default(),
             zero_reflectance_allowed: false,
             moving_objects: None,
         })
@@ -373,6 +389,12 @@ impl<M: FrameMatcher> Odometry<M> {
         self.reflectance
     }
 
+    /// Whether the range-only model runs in place of the model (from the first scan without usable
+    /// reflectance on; [`Odometry::with_range_only`]).
+    pub fn runs_range_only(&self) -> bool {
+        self.runs_range_only
+    }
+
     /// Adds the next scan and returns its pose `T_world_lidar`. A scan with fewer than `min_points`
     /// finite points (after the moving ones) is not matched: its pose comes from the motion model and its
     /// diagnostics say so. Errors name a bad argument (a mask of the wrong length, a non-finite timestamp,
@@ -380,8 +402,12 @@ impl<M: FrameMatcher> Odometry<M> {
     /// the clock of a scan whose error came from the matcher.
     pub fn register(&mut self, scan: Scan<'_>) -> Result<Matrix4<f64>> {
         let detecting = Instant::now();
-        let detected = self.detect_moving(&scan)?;
+        let detected = self.detect_moving(&scan, true)?;
         let detecting = detecting.elapsed().as_secs_f64() * 1e3;
+        let (detected, scan_fill) = match detected {
+            Some((moving, fill)) => (Some(moving), fill),
+            None => (None, None),
+        };
         let scan = match &detected {
             Some(moving) => Scan {
                 moving: Some(moving),
@@ -397,10 +423,23 @@ impl<M: FrameMatcher> Odometry<M> {
         check_one_per_point(scan.point_times, "point_times", "time", scan.points.len())?;
         let times = scan.point_times.map(|times| kept_rows(times, &keep));
         let min_points = self.config.min_points as usize;
-        let scale = self.reflectance_for(&finite_reflectance, min_points)?;
+        let index = self.poses.len();
+        let values = scan.has_reflectance.then_some(&finite_reflectance[..]);
+        let scale = self.reflectance_for(values, finite_reflectance.len(), min_points, index)?;
         let tick = self.clock.advance(scan.timestamp)?;
+        if let (true, Some(timestamp), Some(previous)) =
+            (tick.out_of_order, scan.timestamp, tick.previous)
+        {
+            self.say_once(
+                |said| &mut said.timestamp,
+                Notice::TimestampNotAfter {
+                    timestamp,
+                    previous,
+                },
+            );
+        }
         let mut diagnostics = FrameDiagnostics {
-            index: self.poses.len(),
+            index,
             num_points: scan.points.len(),
             ..Default::default()
         };
@@ -411,7 +450,7 @@ impl<M: FrameMatcher> Odometry<M> {
                 .insert("moving_objects".into(), detecting);
         }
         if kept.len() < min_points {
-            return Ok(self.skip(diagnostics, "too_few_points"));
+            return Ok(self.skip(diagnostics, Fallback::TooFewPoints));
         }
         let mut cloud = normalised(kept, scale.unwrap_or(ReflectanceScale::Unit));
         let deskewed = self.config.deskew.enabled && self.motion.is_measured();
@@ -426,7 +465,9 @@ impl<M: FrameMatcher> Odometry<M> {
         let mut watch = Stopwatch::new();
         let projected = self.project(&cloud)?;
         let filled = projected.range.iter().filter(|&&r| r > 0.0).count();
-        diagnostics.image_fill = Some(filled as f64 / projected.range.len() as f64);
+        let image_fill = filled as f64 / projected.range.len() as f64;
+        diagnostics.image_fill = Some(image_fill);
+        self.check_sensor(scan_fill.unwrap_or(image_fill));
         let features = self.matcher.encode_scan(&projected.image)?;
         watch.lap("network", &mut diagnostics);
         let previous = self.reference.take();
@@ -466,18 +507,69 @@ impl<M: FrameMatcher> Odometry<M> {
         Ok(self.record(pose, tick.frame, diagnostics))
     }
 
+    /// The network's `(2, H, W)` input of a scan's finite points and its range image (Eq. 1), its
+    /// reflectance on the scale chosen (before the first deciding scan: the one this scan would choose);
+    /// nothing is decided or said.
+    pub fn network_image(&self, scan: Scan<'_>) -> Result<(Vec<f32>, Vec<f32>)> {
+        let KeptPoints {
+            kept,
+            finite_reflectance,
+            ..
+        } = kept_points(&scan)?;
+        let scale = self.reflectance.unwrap_or_else(|| {
+            let values = scan.has_reflectance.then_some(&finite_reflectance[..]);
+            let (detected, why) = reflectance::detect_reflectance(values);
+            self.first_choice(detected, why).0
+        });
+        let projected = self.project(&normalised(kept, scale))?;
+        Ok((projected.image, projected.range))
+    }
+
     /// The points of `scan` the moving-object network flags, when it is to run on it: the odometry has one,
-    /// the config asks for it and the caller gave no mask.
-    fn detect_moving(&self, scan: &Scan<'_>) -> Result<Option<Vec<bool>>> {
+    /// the config asks for it and the caller gave no mask; with the fraction of the image's cells the whole
+    /// scan fills (the sensor check's figure, which the scan left without them would understate), when the
+    /// network's images were made here.
+    /// `from_ahead`: flags the matcher computed ahead for a scan given to [`Odometry::register`] are taken.
+    fn detect_moving(
+        &self,
+        scan: &Scan<'_>,
+        from_ahead: bool,
+    ) -> Result<Option<(Vec<bool>, Option<f64>)>> {
         match &self.moving_objects {
             Some(network) if scan.moving.is_none() && self.config.moving_objects.detect => {
-                if let Some(flags) = self.matcher.moving_ahead(scan.points) {
-                    return Ok(Some(flags));
+                if from_ahead {
+                    if let Some(flags) = self.matcher.moving_ahead(scan.points) {
+                        return Ok(Some((flags, None)));
+                    }
                 }
                 let threshold = self.config.moving_objects.threshold;
-                moving_points(network.as_ref(), scan.points, threshold).map(Some)
+                let (flags, fill) =
+                    moving_points_and_fill(network.as_ref(), scan.points, threshold)?;
+                Ok(Some((flags, Some(fill))))
             }
             _ => Ok(None),
+        }
+    }
+
+    /// The sensor notice, once, for a scan that fills less than [`LOW_IMAGE_FILL`] of the image.
+    fn check_sensor(&mut self, image_fill: f64) {
+        if image_fill < LOW_IMAGE_FILL {
+            let (height, width) = (self.cylinder.height, self.cylinder.width);
+            let notice = Notice::SensorMismatch {
+                image_fill,
+                height,
+                width,
+            };
+            self.say_once(|said| &mut said.sensor, notice);
+        }
+    }
+
+    /// `notice`, unless the flag `which` picks says it was said; the flag set.
+    fn say_once(&mut self, which: impl FnOnce(&mut Said) -> &mut bool, notice: Notice) {
+        let said = which(&mut self.said);
+        if !*said {
+            *said = true;
+            self.notices.push(notice);
         }
     }
 
@@ -511,8 +603,8 @@ impl<M: FrameMatcher> Odometry<M> {
     }
 
     /// Records a scan that could not be read: its pose comes from the motion model (`reason` in its
-    /// diagnostics, e.g. "unreadable_scan").
-    pub fn predict_skipped(&mut self, reason: &str) -> Result<Matrix4<f64>> {
+    /// diagnostics, e.g. [`Fallback::UnreadableScan`]).
+    pub fn predict_skipped(&mut self, reason: Fallback) -> Result<Matrix4<f64>> {
         self.clock.advance(None)?;
         let diagnostics = FrameDiagnostics {
             index: self.poses.len(),
@@ -521,9 +613,9 @@ impl<M: FrameMatcher> Odometry<M> {
         Ok(self.skip(diagnostics, reason))
     }
 
-    fn skip(&mut self, mut diagnostics: FrameDiagnostics, reason: &str) -> Matrix4<f64> {
+    fn skip(&mut self, mut diagnostics: FrameDiagnostics, reason: Fallback) -> Matrix4<f64> {
         let frame = self.clock.frame().unwrap_or(0);
-        diagnostics.fallback = Some(reason.to_string());
+        diagnostics.fallback = Some(reason);
         let pose = self.predict(frame);
         self.record(pose, frame, diagnostics)
     }
@@ -532,8 +624,9 @@ impl<M: FrameMatcher> Odometry<M> {
         &mut self,
         pose: Matrix4<f64>,
         frame: u64,
-        diagnostics: FrameDiagnostics,
+        mut diagnostics: FrameDiagnostics,
     ) -> Matrix4<f64> {
+        diagnostics.notices = std::mem::take(&mut self.notices);
         self.pose_frame = Some(frame);
         self.poses.push(pose);
         self.diagnostics.push(diagnostics);
@@ -591,6 +684,14 @@ impl<M: FrameMatcher> Odometry<M> {
     }
 }
 
+/// The notices said once per odometry, and whether each was.
+#[derive(Debug, Clone, Copy, Default)]
+struct Said {
+    clipping: bool,
+    timestamp: bool,
+    sensor: bool,
+}
+
 /// The network's `(2, H, W)` input of a projected scan: its range image, then its reflectance image.
 fn network_input(projection: &Projection) -> Vec<f32> {
     [&projection.range[..], &projection.reflectance].concat()
@@ -600,6 +701,7 @@ mod deskewing;
 mod diagnostics;
 mod encode_ahead;
 mod matching;
+mod notices;
 mod reflectance;
 mod rematching;
 mod scan_points;
@@ -607,6 +709,7 @@ mod two_scans;
 
 pub use diagnostics::FrameDiagnostics;
 pub use encode_ahead::EncodeAhead;
+pub use notices::{Notice, LOW_IMAGE_FILL};
 pub use two_scans::RegisteredPair;
 
 use diagnostics::Stopwatch;

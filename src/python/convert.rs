@@ -266,10 +266,18 @@ pub(super) fn points3(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Vec<Point3
 
 /// An `N×4` or `N×3` scan (x, y, z[, reflectance]) of float32 or float64, and its column count.
 pub(super) fn scan_points<'py>(obj: &Bound<'py, PyAny>) -> PyResult<(Floats<'py>, usize)> {
-    let array = floats("points", obj)?;
+    named_scan_points("points", obj)
+}
+
+/// [`scan_points`] of the argument `name`.
+pub(super) fn named_scan_points<'py>(
+    name: &str,
+    obj: &Bound<'py, PyAny>,
+) -> PyResult<(Floats<'py>, usize)> {
+    let array = floats(name, obj)?;
     let shape = array.shape().to_vec();
     if shape.len() != 2 || !(shape[1] == 3 || shape[1] == 4) {
-        return Err(shape_error("points", "(N, 4) or (N, 3)", &shape));
+        return Err(shape_error(name, "(N, 4) or (N, 3)", &shape));
     }
     Ok((array, shape[1]))
 }

@@ -3,7 +3,8 @@
 //! optionally `match_cells(reference, target, cells)` (the flow of the marked reference cells only) and
 //! `wide_match(reference, target, target_image)` (the wide window), as
 //! `dmlo.odometry.matcher.OnnxMatcher` gives them, so the loop runs in the crate while the network runs
-//! wherever the caller runs it (onnxruntime in `dmlo`).
+//! wherever the caller runs it (onnxruntime in `dmlo`). A moving-object network written in Python is any
+//! object with `cylinder` and `probability(range, height)`.
 
 use std::sync::{Arc, Mutex};
 
@@ -16,10 +17,12 @@ use crate::dense_match::DenseFlow;
 use crate::error::{Error, Result};
 use crate::odometry::config::schema::Named;
 use crate::odometry::config::{MatchingStage, OdometryConfig};
+use crate::odometry::motion::Fallback;
+use crate::odometry::moving::MovingObjectNetwork;
 use crate::odometry::pipeline::{FrameDiagnostics, FrameMatcher, Odometry, Scan};
 use crate::projection::CylinderConfig;
 
-use super::convert::{matrix4_to_numpy, scan_points, shape_error, vector_f64};
+use super::convert::{matrix4_to_numpy, named_scan_points, shape_error, vector_f64};
 use super::pair::PyPairMotion;
 use super::pool::run;
 use super::projection::PyCylinderConfig;
@@ -226,6 +229,75 @@ impl PythonMatcher {
     }
 }
 
+/// A scan's network input `[2, H, W]` and its range image `[H, W]`.
+type NetworkImage<'py> = (Bound<'py, PyArray3<f32>>, Bound<'py, numpy::PyArray2<f32>>);
+
+/// A Python moving-object network behind the crate's [`MovingObjectNetwork`]: its `probability(range,
+/// height)` takes the two `[H, W]` float32 images and returns the `[H, W]` probabilities. An exception it
+/// raises is kept and raised again unchanged by the binding.
+struct PythonMovingObjects {
+    object: Py<PyAny>,
+    cylinder: CylinderConfig,
+    raised: Raised,
+}
+
+impl PythonMovingObjects {
+    fn new(object: &Bound<'_, PyAny>, raised: &Raised) -> PyResult<Self> {
+        let cylinder = object
+            .getattr_opt("cylinder")?
+            .and_then(|c| c.extract::<PyCylinderConfig>().ok())
+            .ok_or_else(|| {
+                PyValueError::new_err(
+                    "moving_objects: expected a `cylinder` attribute of type CylinderConfig",
+                )
+            })?;
+        if !object
+            .getattr_opt("probability")?
+            .is_some_and(|m| m.is_callable())
+        {
+            return Err(PyValueError::new_err(
+                "moving_objects: expected a method `probability`",
+            ));
+        }
+        Ok(PythonMovingObjects {
+            object: object.clone().unbind(),
+            cylinder: cylinder.inner,
+            raised: raised.clone(),
+        })
+    }
+}
+
+impl MovingObjectNetwork for PythonMovingObjects {
+    fn cylinder(&self) -> &CylinderConfig {
+        &self.cylinder
+    }
+
+    fn probability(&self, range: &[f32], height: &[f32]) -> Result<Vec<f32>> {
+        let (rows, columns) = (self.cylinder.height, self.cylinder.width);
+        Python::attach(|py| -> PyResult<Vec<f32>> {
+            let range = PyArray1::from_slice(py, range).reshape([rows, columns])?;
+            let height = PyArray1::from_slice(py, height).reshape([rows, columns])?;
+            let output = self
+                .object
+                .call_method1(py, "probability", (range, height))?;
+            let probability: PyReadonlyArray2<'_, f32> = output.extract(py)?;
+            if probability.shape() != [rows, columns] {
+                return Err(shape_error(
+                    "probability",
+                    &format!("({rows}, {columns}) float32"),
+                    probability.shape(),
+                ));
+            }
+            Ok(probability.as_array().iter().copied().collect())
+        })
+        .map_err(|err| {
+            let message = format!("the moving-object network's probability raised {err}");
+            *self.raised.lock().unwrap_or_else(|p| p.into_inner()) = Some(err);
+            Error::Model(message)
+        })
+    }
+}
+
 /// DMLO odometry run by the crate, the network by `matcher` (see the stub for the protocol).
 #[pyclass(name = "Odometry", module = "dmlo_rs._dmlo_rs")]
 pub struct PyOdometry {
@@ -245,13 +317,14 @@ impl PyOdometry {
 #[pymethods]
 impl PyOdometry {
     #[new]
-    #[pyo3(signature = (matcher, config_json = None, num_threads = None, range_only = None, allow_zero_reflectance = false))]
+    #[pyo3(signature = (matcher, config_json = None, num_threads = None, range_only = None, allow_zero_reflectance = false, moving_objects = None))]
     fn new(
         matcher: &Bound<'_, PyAny>,
         config_json: Option<&str>,
         num_threads: Option<super::convert::Int>,
         range_only: Option<&Bound<'_, PyAny>>,
         allow_zero_reflectance: bool,
+        moving_objects: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         let config = match config_json {
             Some(text) => OdometryConfig::from_json(text)?,
@@ -266,6 +339,9 @@ impl PyOdometry {
         if allow_zero_reflectance {
             odometry = odometry.allowing_zero_reflectance();
         }
+        if let Some(network) = moving_objects {
+            odometry = odometry.with_moving_objects(PythonMovingObjects::new(network, &raised)?)?;
+        }
         Ok(PyOdometry {
             inner: odometry,
             raised,
@@ -273,20 +349,22 @@ impl PyOdometry {
         })
     }
 
-    /// Adds the next scan (`N×4` x, y, z, reflectance, float32 or float64; non-finite rows left out) and
-    /// returns its pose `T_world_lidar` (4×4 float64). `moving`: one flag per point, left out of matching
-    /// and the map; `timestamp`: the scan's time, from which dropped scans are counted; `point_times`: with
-    /// `deskew.enabled`, each point's time in sensor periods (None: from its azimuth).
+    /// Adds the next scan (`N×4` x, y, z, reflectance or `N×3` without it, float32 or float64;
+    /// non-finite rows left out) and returns its pose `T_world_lidar` (4×4 float64). `moving`: one flag per
+    /// point, left out of matching and the map; `timestamp`: the scan's time (a finite number), from which
+    /// dropped scans are counted; `point_times`: with `deskew.enabled`, each point's time in sensor periods
+    /// (None: from its azimuth).
     #[pyo3(signature = (points, moving = None, timestamp = None, point_times = None))]
     fn register<'py>(
         &mut self,
         py: Python<'py>,
         points: &Bound<'py, PyAny>,
         moving: Option<numpy::PyReadonlyArray1<'py, bool>>,
-        timestamp: Option<f64>,
+        timestamp: Option<&Bound<'py, PyAny>>,
         point_times: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, numpy::PyArray2<f64>>> {
-        let cloud = scan_cloud("points", points)?;
+        let (cloud, has_reflectance) = scan_cloud("points", points)?;
+        let timestamp = timestamp.map(seconds).transpose()?;
         let times = point_times
             .map(|t| vector_f64("point_times", t))
             .transpose()?;
@@ -298,6 +376,7 @@ impl PyOdometry {
         let result = run(py, threads, || {
             inner.register(Scan {
                 points: &cloud,
+                has_reflectance,
                 moving: mask.as_deref(),
                 timestamp,
                 point_times: times.as_deref(),
@@ -307,9 +386,10 @@ impl PyOdometry {
         Ok(matrix4_to_numpy(py, &pose))
     }
 
-    /// The motion between two scans (N×4 each) with no motion model or initial guess
-    /// (`Odometry::register_pair`): `(T_tgt_ref 4×4, matches PairMotion, map_refined bool | None, rounds)`;
-    /// `*_moving`: one flag per point, left out.
+    /// The motion between two scans (N×4 each, or N×3 without reflectance) with no motion model or
+    /// initial guess (`Odometry::register_pair`): `(T_tgt_ref 4×4, matches PairMotion, map_refined bool |
+    /// None, rounds, notices)`, each notice a `(kind, message)` pair; `*_moving`: one flag per point, left
+    /// out.
     #[pyo3(signature = (reference, target, large_motion = false, reference_moving = None, target_moving = None))]
     #[allow(clippy::type_complexity)]
     fn register_pair<'py>(
@@ -325,8 +405,9 @@ impl PyOdometry {
         PyPairMotion,
         Option<bool>,
         usize,
+        Vec<(&'static str, String)>,
     )> {
-        let (reference, target) = (
+        let ((reference, reference_reflectance), (target, target_reflectance)) = (
             scan_cloud("reference", reference)?,
             scan_cloud("target", target)?,
         );
@@ -340,10 +421,12 @@ impl PyOdometry {
             inner.register_pair(
                 Scan {
                     moving: reference_moving.as_deref(),
+                    has_reflectance: reference_reflectance,
                     ..Scan::new(&reference)
                 },
                 Scan {
                     moving: target_moving.as_deref(),
+                    has_reflectance: target_reflectance,
                     ..Scan::new(&target)
                 },
                 large_motion,
@@ -355,6 +438,10 @@ impl PyOdometry {
             PyPairMotion::new(py, pair.matches),
             pair.map_refined,
             pair.rounds,
+            pair.notices
+                .iter()
+                .map(|n| (n.kind(), n.message()))
+                .collect(),
         ))
     }
 
@@ -365,6 +452,13 @@ impl PyOdometry {
         py: Python<'py>,
         reason: &str,
     ) -> PyResult<Bound<'py, numpy::PyArray2<f64>>> {
+        let reason = Fallback::from_name(reason).ok_or_else(|| {
+            let names: Vec<&str> = Fallback::NAMES.iter().map(|(_, name)| *name).collect();
+            PyValueError::new_err(format!(
+                "reason: expected one of {}, got {reason:?}",
+                names.join(", ")
+            ))
+        })?;
         let pose = self.inner.predict_skipped(reason)?;
         Ok(matrix4_to_numpy(py, &pose))
     }
@@ -405,6 +499,37 @@ impl PyOdometry {
         Some(scale.name().to_string())
     }
 
+    /// The network's input `[2, H, W]` (range, reflectance) of a scan (N×4, or N×3 without reflectance) and
+    /// its range image `[H, W]` (Eq. 1), the reflectance on the scale the odometry chose (before the first
+    /// scan, the one it would choose); nothing is decided by it.
+    fn network_image<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+    ) -> PyResult<NetworkImage<'py>> {
+        let (cloud, has_reflectance) = scan_cloud("points", points)?;
+        let inner = &self.inner;
+        let (image, range) = run(py, self.threads, || {
+            inner.network_image(Scan {
+                has_reflectance,
+                ..Scan::new(&cloud)
+            })
+        })?;
+        let cylinder = inner.matcher().cylinder();
+        let (height, width) = (cylinder.height, cylinder.width);
+        Ok((
+            PyArray1::from_vec(py, image).reshape([2, height, width])?,
+            PyArray1::from_vec(py, range).reshape([height, width])?,
+        ))
+    }
+
+    /// Whether the range-only model runs in place of the model (from the first scan without usable
+    /// reflectance on).
+    #[getter]
+    fn runs_range_only(&self) -> bool {
+        self.inner.runs_range_only()
+    }
+
     /// The config it runs with, as JSON (`dmlo run`'s `config.json` format).
     #[getter]
     fn config_json(&self) -> String {
@@ -430,19 +555,37 @@ fn diagnostics_dict<'py>(
     py.import("json")?.getattr("loads")?.call1((text,))
 }
 
-/// A scan `name` given as N×4 (x, y, z, reflectance) float32 or float64, as the crate reads it.
-fn scan_cloud(name: &str, points: &Bound<'_, PyAny>) -> PyResult<Vec<[f32; 4]>> {
-    let (array, columns) = scan_points(points)?;
-    if columns != 4 {
-        return Err(shape_error(
-            name,
-            "(N, 4): x, y, z, reflectance",
-            array.shape(),
-        ));
+/// A scan `name` given as N×4 (x, y, z, reflectance) or N×3 (no reflectance) float32 or float64, as the
+/// crate reads it (N×3 with a placeholder reflectance), and whether it has a reflectance.
+fn scan_cloud(name: &str, points: &Bound<'_, PyAny>) -> PyResult<(Vec<[f32; 4]>, bool)> {
+    let (array, columns) = named_scan_points(name, points)?;
+    let data = array.f32_data();
+    let cloud = data
+        .chunks_exact(columns)
+        .map(|p| [p[0], p[1], p[2], if columns == 4 { p[3] } else { 0.0 }])
+        .collect();
+    Ok((cloud, columns == 4))
+}
+
+/// A scan's timestamp: a finite number (not a boolean, not a string).
+fn seconds(timestamp: &Bound<'_, PyAny>) -> PyResult<f64> {
+    let refused = || {
+        PyValueError::new_err(format!(
+            "timestamp: expected a finite number (seconds), got {}",
+            timestamp
+                .repr()
+                .map_or_else(|_| "?".into(), |r| r.to_string())
+        ))
+    };
+    if timestamp.is_instance_of::<pyo3::types::PyBool>()
+        || timestamp.is_instance_of::<pyo3::types::PyString>()
+    {
+        return Err(refused());
     }
-    Ok(array
-        .f32_data()
-        .chunks_exact(4)
-        .map(|p| [p[0], p[1], p[2], p[3]])
-        .collect())
+    let value: f64 = timestamp.extract().map_err(|_| refused())?;
+    if value.is_finite() {
+        Ok(value)
+    } else {
+        Err(refused())
+    }
 }

@@ -13,6 +13,7 @@ import pytest
 import dmlo_rs
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry
+from support import projected
 
 
 def composed_chain(ref_range, tgt_range, flow, confidence, cylinder, *, ref_points, leave_out, tilt_votes,
@@ -47,8 +48,8 @@ def real_pair(shared_data: Path):
     sequence = open_sequence(shared_data / "kitti_real" / "odometry_03")
     odometry = Odometry.from_default()
     reference, target = sequence[3].points, sequence[4].points
-    ref_image, ref_range, ref_points = odometry._project(reference)
-    tgt_image, tgt_range, _ = odometry._project(target)
+    ref_image, ref_range, ref_points = projected(odometry, reference)
+    tgt_image, tgt_range, _ = projected(odometry, target)
     output = odometry.matcher.frame(tgt_image, odometry.matcher.encode(ref_image))
     return odometry.cylinder, ref_range, tgt_range, output.flow, output.confidence, ref_points
 

@@ -20,7 +20,7 @@ import pytest
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
 from dmlo.odometry.matcher import CrateMatcher, OnnxMatcher, default_model_path
-from dmlo.odometry.reflectance import ReflectanceNotice
+from dmlo.odometry import ReflectanceNotice
 
 GRAPHS = ("encoder.onnx", "frame.onnx", "match.onnx")
 
@@ -216,7 +216,10 @@ def test_bad_matchers_configs_and_scans_are_named(onnx_matcher: Any, real_pair: 
     with pytest.raises(ValueError, match=r"ransac\.treshold"):
         dmlo_rs.Odometry(onnx_matcher, json.dumps({"ransac": {"treshold": 0.2}}))
     crate = dmlo_rs.Odometry(onnx_matcher)
-    with pytest.raises(ValueError, match=r"points: expected shape \(N, 4\)"):
+    with pytest.raises(ValueError, match=r"points: expected shape \(N, 4\) or \(N, 3\)"):
+        crate.register(np.zeros((10, 5), np.float32))
+    # N×3 is a scan without reflectance: the crate alone refuses to run a reflectance model on it.
+    with pytest.raises(ValueError, match=r"points: the scans have no reflectance \(N×3 points\).*range-only"):
         crate.register(real_pair[0][:, :3])
     with pytest.raises(TypeError, match="points"):
         crate.register(real_pair[0].astype(np.int32))

@@ -227,21 +227,32 @@ def test_the_recipe_simulates_its_drives_once_and_trains_on_them(tmp_path: Path,
     assert [p.name for p in train] == ["a"] and [p.name for p in val] == ["c"]
 
 
-def test_the_sensor_check_counts_the_whole_scan_not_what_is_left_after_the_moving_objects(jam: Path) -> None:
+def test_the_sensor_check_counts_the_whole_scan_not_what_is_left_after_the_moving_objects(
+    jam: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Cars all around fill much of the image; left out, they leave it emptier than any sensor mismatch would."""
     import warnings
 
     from dmlo.odometry import SensorMismatchWarning
 
+    class MostlyMoving:
+        """A network that puts three columns in four on moving objects."""
+
+        def __init__(self, cylinder: object) -> None:
+            self.cylinder = cylinder
+
+        def probability(self, ranges: np.ndarray, height: np.ndarray) -> np.ndarray:
+            probability = np.ones_like(ranges)
+            probability[:, ::4] = 0.0
+            return probability
+
+    monkeypatch.setattr(Odometry, "_open_moving_objects", lambda self: MostlyMoving(self._matcher.cylinder))
     points = open_sequence(jam)[0].points
     odometry = Odometry(default_model_path(), frame_to_frame())
-    assert odometry._moving_objects is not None
-    most = np.arange(len(points)) % 4 != 0
-    odometry._moving_objects.detect = lambda cloud: (most, 0.8)  # type: ignore[method-assign]
     with warnings.catch_warnings():
         warnings.simplefilter("error", SensorMismatchWarning)
         odometry.register(points)
-    assert odometry.diagnostics[0].num_moving_predicted == most.sum()
+    assert odometry.diagnostics[0].num_moving_predicted > 0.6 * len(points)
     assert odometry.diagnostics[0].image_fill < 0.35
 
 

@@ -317,7 +317,7 @@ def test_large_motion_pair_uses_the_wide_window_graph(scans: list[np.ndarray]) -
     odometry = Odometry.from_default(frame_to_frame())
     result = odometry.register_pair(scans[0], scans[4], large_motion=True)
     assert result.T_tgt_ref.shape == (4, 4)
-    wide = odometry._pair_matcher._wide  # opened by the crate's first wide-window match
+    wide = odometry._loop_matcher._wide  # opened by the crate's first wide-window match
     assert wide is not None
     assert wide.model_config["coarse_window"] > odometry.matcher.model_config["coarse_window"]
 

@@ -14,12 +14,12 @@ import pytest
 from dmlo.datasets import open_sequence
 from dmlo.model import Matcher, MatcherConfig
 from dmlo.odometry import Odometry, OdometryConfig, ReflectanceNotice
-from dmlo.odometry import reflectance
-from dmlo.odometry.matcher import default_model_path
+from dmlo.odometry.matcher import RANGE_ONLY_DIR, default_model_path
 from dmlo.simulator import simulate_sequence
 from support import frame_to_frame
 
-RANGE_ONLY = default_model_path() / reflectance.RANGE_ONLY_DIR
+RANGE_ONLY = default_model_path() / RANGE_ONLY_DIR
+MODES = ("auto", "unit", "0-255", "0-65535", "none")
 VARIANTS = ("unit", "x255", "zeros", "absent")
 
 
@@ -66,52 +66,6 @@ def largest_pair_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]
     return float(np.linalg.norm(difference[:, :3, 3], axis=1).max()), float(np.degrees(np.arccos(cosines)).max())
 
 
-# -- the scale ----------------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize(
-    ("values", "mode"),
-    [
-        (None, "none"),
-        (np.zeros(100, np.float32), "none"),
-        (np.full(100, 0.4, np.float32), "none"),
-        (np.linspace(0, 0.99, 100, dtype=np.float32), "unit"),
-        (np.linspace(0, 1, 100, dtype=np.float32), "unit"),
-        (np.linspace(0, 200, 100, dtype=np.float32), "0-255"),
-        (np.linspace(0, 1.5, 100, dtype=np.float32), "0-255"),
-        (np.linspace(0, 4000, 100, dtype=np.float32), "0-65535"),
-        (np.linspace(0, 1e6, 100, dtype=np.float32), "none"),
-        (np.linspace(-1, 1, 100, dtype=np.float32), "none"),
-        (np.array([np.nan, 0.2, 0.7], np.float32), "unit"),
-        (np.array([np.nan, np.inf], np.float32), "none"),
-    ],
-)
-def test_the_scale_is_read_from_the_values(values: np.ndarray | None, mode: str) -> None:
-    choice = reflectance.detect(values)
-    assert choice.mode == mode and choice.reason
-
-
-def test_normalise_divides_clips_and_leaves_unit_scans_alone() -> None:
-    cloud = np.array([[1, 2, 3, 0.5], [4, 5, 6, 1.0]], np.float32)
-    same, largest = reflectance.normalise(cloud, "unit")
-    assert same is cloud and largest == 1.0
-    scaled, _ = reflectance.normalise(cloud * np.float32([1, 1, 1, 255]), "0-255")
-    np.testing.assert_allclose(scaled, cloud, rtol=1e-7)
-    clipped, largest = reflectance.normalise(cloud * np.float32([1, 1, 1, 4]), "unit")
-    assert largest == 4.0 and clipped[:, 3].tolist() == [1.0, 1.0]
-    zeroed, _ = reflectance.normalise(cloud, "none")
-    assert zeroed is not cloud and not zeroed[:, 3].any() and cloud[:, 3].all()
-
-
-@pytest.mark.parametrize("mode", ["unit", "0-255", "none"])
-def test_normalise_keeps_non_finite_reflectance_non_finite(mode: str) -> None:
-    # The odometry leaves out points with any non-finite value; the scale must not make them finite.
-    cloud = np.array([[1, 2, 3, np.nan], [4, 5, 6, np.inf], [7, 8, 9, -np.inf], [1, 1, 1, 0.5]], np.float32)
-    out, largest = reflectance.normalise(cloud, mode)
-    assert not np.isfinite(out[:3, 3]).any() and np.isfinite(out[3]).all()
-    assert largest == {"unit": 0.5, "0-255": np.float32(0.5) / np.float32(255), "none": 0.0}[mode]
-
-
 # -- the setting --------------------------------------------------------------------------------------------
 
 
@@ -128,7 +82,7 @@ def test_a_reflectance_setting_changed_after_loading_is_refused_by_the_odometry(
         Odometry.from_default(config)
 
 
-@pytest.mark.parametrize("value", reflectance.MODES)
+@pytest.mark.parametrize("value", MODES)
 def test_every_reflectance_setting_loads_and_saves(value: str, tmp_path: Path) -> None:
     config = OdometryConfig.from_dict({"reflectance": value})
     config.save(tmp_path / "config.json")
@@ -141,7 +95,7 @@ def test_every_reflectance_setting_loads_and_saves(value: str, tmp_path: Path) -
 def test_scans_in_unit_range_go_on_silently(scans: list[np.ndarray]) -> None:
     _, notices, odometry = register_all(scans[:2])
     assert notices == []
-    assert odometry.reflectance_choice is not None and odometry.reflectance_choice.mode == "unit"
+    assert odometry.reflectance_scale == "unit"
     assert odometry.matcher.path.parent == default_model_path()
 
 
@@ -172,14 +126,14 @@ def test_the_config_overrides_the_guess(scans: list[np.ndarray], setting: str, s
 def test_the_unit_setting_clips_a_larger_scale_and_says_so(scans: list[np.ndarray]) -> None:
     _, notices, odometry = register_all([variant(points, "x255") for points in scans[:3]], frame_to_frame(reflectance="unit"))
     assert len(notices) == 1 and "clipped" in notices[0] and "scan 0" in notices[0]
-    assert odometry.reflectance_choice == reflectance.Choice("unit", "the config says reflectance unit")
+    assert odometry.reflectance_scale == "unit" and "(the config says reflectance unit)" in notices[0]
 
 
 def test_a_later_scan_without_reflectance_moves_to_the_range_only_model(scans: list[np.ndarray]) -> None:
     mixed = [scans[0], scans[1], variant(scans[2], "absent"), scans[3]]
     poses, notices, odometry = register_all(mixed)
     assert len(notices) == 1 and notices[0].startswith("reflectance: scan 2: the scans have no reflectance")
-    assert odometry.matcher.path.parent == RANGE_ONLY and odometry.reflectance_choice.mode == "none"
+    assert odometry.matcher.path.parent == RANGE_ONLY and odometry.reflectance_scale == "none"
     # From the switch on, the pairs are those of a drive without reflectance from the start (the reference
     # scan encoded again by the range-only model).
     absent, _, _ = register_all([variant(points, "absent") for points in scans[:4]])
@@ -191,7 +145,7 @@ def test_scans_too_poor_to_match_decide_nothing(scans: list[np.ndarray]) -> None
     nan_scan = np.full((5000, 4), np.nan, np.float32)
     ten = np.ones((10, 4), np.float32)
     _, notices, odometry = register_all([nan_scan, scans[0], ten, np.zeros((0, 4), np.float32), scans[1], scans[2]])
-    assert notices == [] and odometry.reflectance_choice.mode == "unit"
+    assert notices == [] and odometry.reflectance_scale == "unit"
     assert odometry.matcher.path.parent == default_model_path()
     assert [d.fallback for d in odometry.diagnostics[:4]] == ["too_few_points", None, "too_few_points", "too_few_points"]
 

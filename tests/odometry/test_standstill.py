@@ -16,7 +16,7 @@ import dmlo_rs
 from dmlo.datasets import open_sequence
 from dmlo.metrics.trajectory import pose_difference
 from dmlo.odometry import Odometry, OdometryConfig
-from support import rigid
+from support import projected, rigid
 
 
 # The reference: the same steps in numpy.
@@ -136,7 +136,7 @@ def test_a_standing_car_comes_out_within_millimetres(shared_data: Path) -> None:
     # The crate against the numpy reference on the first real pair, from DMLO's estimate.
     odometry = Odometry.from_default(matches_only)
     finite = [np.ascontiguousarray(scan[np.isfinite(scan).all(axis=1)], dtype=np.float32) for scan in scans[:2]]
-    images = [odometry._project(cloud)[2] for cloud in finite]
+    images = [projected(odometry, cloud)[2] for cloud in finite]
     start = odometry.register_pair(scans[0], scans[1]).T_tgt_ref
     np.testing.assert_allclose(
         dmlo_rs.point_to_plane(*images, start, odometry.cylinder),

@@ -68,8 +68,6 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--mapping refines consecutive scans; --large-motion and --loop match the pair again in rounds instead")
     reference, target = _read(args.reference, "reference"), _read(args.target, "target")
     odometry = build_odometry(args)
-    if args.loop:
-        odometry.config.large_motion.search_yaw_deg = tuple(float(yaw) for yaw in range(0, 360, 30))
     start = time.perf_counter()
     try:
         result = odometry.register_pair(reference, target, large_motion=args.large_motion or args.loop)

@@ -106,6 +106,8 @@ def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # ty
         config.deskew.enabled = True
     if args.keep_moving:
         config.moving_objects.detect = False
+    if getattr(args, "loop", False):  # `dmlo register --loop`: yaw starts all round
+        config.large_motion.search_yaw_deg = tuple(float(yaw) for yaw in range(0, 360, 30))
     model = args.model or default_model_path()
     try:
         return Odometry(model, config)

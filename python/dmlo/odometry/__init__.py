@@ -1,6 +1,5 @@
 """The DMLO odometry pipeline: `Odometry` registers scans one by one; `run_sequence` runs a dataset."""
 
-from dmlo.odometry.clock import TimestampWarning
 from dmlo.odometry.config import (
     DeskewConfig,
     LargeMotionConfig,
@@ -12,8 +11,8 @@ from dmlo.odometry.config import (
     RansacConfig,
 )
 from dmlo.odometry.pair import PairResult
-from dmlo.odometry.pipeline import FrameDiagnostics, Odometry, SensorMismatchWarning
-from dmlo.odometry.reflectance import ReflectanceNotice
+from dmlo.odometry.notices import ReflectanceNotice, SensorMismatchWarning, TimestampWarning
+from dmlo.odometry.pipeline import FrameDiagnostics, Odometry
 
 __all__ = [
     "DeskewConfig",

@@ -37,6 +37,7 @@ FRAME_GRAPH = "frame.onnx"
 WIDE_FRAME_GRAPH = "frame_wide.onnx"  # the same weights with the wide coarse window of §IV-D
 MATCH_GRAPH = "match.onnx"  # any pair of cached features, e.g. the new scan back against the previous one
 ENCODER_GRAPH = "encoder.onnx"  # a scan's features alone (frame.onnx would also match it against zeros)
+RANGE_ONLY_DIR = "range_only"  # the range-only model's folder inside a model's folder
 INTERFACE_VERSION = "1"
 MATCHING_STAGES = ("auto", "crate", "graph")
 REFINE_OFFSETS = ("window", "peak_centroid")  # `dmlo.model.MatcherConfig.refine_offset`

@@ -39,7 +39,9 @@ def moving_objects_graph(model_graph: Path) -> Path | None:
 
 
 class MovingObjectDetector:
-    """`mask(cloud)`: True for the points of an N×3/N×4 scan that the network puts on moving objects."""
+    """The network in onnxruntime: `probability(range, height)` is what the crate's odometry calls (it
+    flags the points itself, `odometry::moving`); `mask(cloud)`: True for the points of an N×4 scan that the
+    network puts on moving objects."""
 
     def __init__(self, graph: Path, threshold: float = 0.5, threads: int = 0) -> None:
         from dmlo.odometry.matcher import (
@@ -56,17 +58,15 @@ class MovingObjectDetector:
         self.path = graph
         self.threshold = threshold
 
-    def detect(self, cloud: npt.NDArray[np.float32]) -> tuple[npt.NDArray[np.bool_], float]:
-        """The points on moving objects, and the fraction of the image's cells the whole scan fills (the
-        sensor check's figure, which the scan left after removing them would understate)."""
-        if len(cloud) == 0:
-            return np.zeros(0, bool), 0.0
-        ranges, height = range_and_height(cloud, self.cylinder)
+    def probability(self, ranges: npt.NDArray[np.float32], height: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        """Each cell's probability of a moving object `[H, W]` from the network's two images."""
         (probability,) = self._session.run(None, {"range": ranges[None], "height": height[None]})
-        # The crate's rule (`odometry::moving::flagged_points`), as its own odometry applies it.
-        moving = dmlo_rs.flagged_points(cloud, probability[0], self.cylinder, self.threshold)
-        return np.asarray(moving), float(np.count_nonzero(ranges) / ranges.size)
+        return np.ascontiguousarray(probability[0], dtype=np.float32)
 
     def mask(self, cloud: npt.NDArray[np.float32]) -> npt.NDArray[np.bool_]:
-        """True for the points on moving objects."""
-        return self.detect(cloud)[0]
+        """True for the points of an N×4 scan on moving objects, by the crate's rule
+        (`odometry::moving::flagged_points`), as its odometry applies it."""
+        if len(cloud) == 0:
+            return np.zeros(0, bool)
+        probability = self.probability(*range_and_height(cloud, self.cylinder))
+        return np.asarray(dmlo_rs.flagged_points(cloud, probability, self.cylinder, self.threshold))

@@ -1,15 +1,15 @@
 """DMLO odometry (§III): project → encode → match → decode, NMS, RANSAC, SVD → pose.
 
 `Odometry.register` runs the crate's per-frame loop (`dmlo_rs.Odometry`, `odometry::pipeline` in Rust,
-which Rust users run without Python) over the network in onnxruntime; this module adds what belongs to
-Python: checking the scans handed to it, the reflectance and sensor notices, the moving-object network.
+which Rust users run without Python) over the networks in onnxruntime: the scan's checks, the reflectance
+scale, the moving-object step, the motion model, the local map and the notices are the crate's; this module
+opens the model's graphs, hands numpy arrays over and turns the crate's notices into Python warnings.
 `register_pair`, `project` and `pose_from_flow` give the paper's steps one at a time.
 """
 
 from __future__ import annotations
 
 import json
-import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,14 +19,13 @@ import numpy as np
 import numpy.typing as npt
 
 import dmlo_rs
-from dmlo.odometry.clock import TimestampCheck
 from dmlo.odometry.config import OdometryConfig
+from dmlo.odometry.notices import warn
 from dmlo.odometry.pair import PairResult
-from dmlo.odometry import reflectance
-from dmlo.odometry.reflectance import ReflectanceNotice
 from dmlo.odometry.matcher import (
     ENCODER_GRAPH,
     MATCH_GRAPH,
+    RANGE_ONLY_DIR,
     CrateMatcher,
     Matcher,
     ModelError,
@@ -38,15 +37,6 @@ from dmlo.odometry.matcher import (
 from dmlo.odometry.moving import MovingObjectDetector, moving_objects_graph
 
 Matrix4 = npt.NDArray[np.float64]
-
-# HDL-64E scans fill 75–82 % of KITTI's 64×1792 cylinder image (real and simulated), Argoverse's two
-# VLP-32C 13 %. A network only knows the images it was trained on, so far emptier images mean a sensor
-# the model was not made for, and poses that cannot be trusted.
-LOW_IMAGE_FILL = 0.35
-
-
-class SensorMismatchWarning(UserWarning):
-    """The scans fill far less of the model's cylinder image than the sensor it was trained for."""
 
 
 @dataclass
@@ -101,6 +91,8 @@ class FrameDiagnostics:
     # stage, when it ran there), "pair" (the crate's back end of the pair: coherence, decoding with NMS,
     # votes, RANSAC), and the optional ones' own stages
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # what the odometry said about the scans at this frame, each a {"kind", "message"} (`dmlo.odometry.notices`)
+    notices: list[dict[str, str]] = field(default_factory=list)
 
     def count_matches(self, pair: PairResult) -> None:
         """The matches and RANSAC inliers of the pair whose motion the frame took."""
@@ -129,6 +121,7 @@ class FrameDiagnostics:
             "image_fill": None if self.image_fill is None else round(self.image_fill, 4),
             "deskewed": self.deskewed,
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
+            **({"notices": self.notices} if self.notices else {}),
         }
 
 
@@ -139,6 +132,8 @@ class Odometry:
     >>> odometry = Odometry.from_default()
     >>> for points in scans:               # N×4 float32: x, y, z, reflectance
     ...     T_world_lidar = odometry.register(points)
+
+    The config is read when the odometry is built (and checked whole then): set it before.
     """
 
     def __init__(self, model_path: str | Path, config: OdometryConfig | None = None) -> None:
@@ -152,22 +147,18 @@ class Odometry:
         )
         self.poses: list[Matrix4] = []
         self.diagnostics: list[FrameDiagnostics] = []
-        self._timestamps = TimestampCheck()
-        self._pair_matcher: CrateMatcher | None = None  # `register_pair`'s, made on the first
-        self._warned_sensor = False
-        self._warned_clipping = False
-        # Reflectance (`dmlo.odometry.reflectance`): the scale chosen on the first scan, and the range-only model
-        # beside this one (run from the first scan without usable reflectance on), unless this one is range-only.
-        # It opens now, so that a broken range-only model fails before the first scan, not mid-drive.
-        self._reflectance: reflectance.Choice | None = None
-        self._model_is_range_only = not matcher.uses_reflectance
-        graph = None if self._model_is_range_only else reflectance.range_only_model(matcher.path)
-        self._range_only = None if graph is None else self._open_range_only(graph, matcher)
+        # The range-only model beside this one (run by the crate from the first scan without usable reflectance
+        # on), unless this one is range-only. It opens now, so that a broken one fails before the first scan.
+        folder = matcher.path.parent / RANGE_ONLY_DIR
+        beside = matcher.uses_reflectance and (folder / "frame.onnx").is_file()
+        self._range_only = self._open_range_only(folder, matcher) if beside else None
         self._use_matcher(matcher)
 
     @property
     def matcher(self) -> Matcher:
         """The network the odometry runs (the range-only model from the first scan without reflectance on)."""
+        if self._range_only is not None and self._loop.runs_range_only:
+            return self._range_only
         return self._matcher
 
     @matcher.setter
@@ -181,7 +172,6 @@ class Odometry:
         """`matcher` run by the crate's per-frame loop (`dmlo_rs.Odometry`), made again over it."""
         self._matcher = matcher
         self.cylinder = matcher.cylinder
-        self._moving_objects = self._open_moving_objects()
         settings = self.config.to_dict()
         if self._available_rematch_gap() is None:  # the graphs it needs are missing (warned)
             settings["motion_model"].update(rematch_gap=None, match_from_prediction_m=None, start_check_m=None)
@@ -189,19 +179,17 @@ class Odometry:
         range_only = None if self._range_only is None else CrateMatcher(
             self._range_only, self._beside_threads(), self.config.matching_stage
         )
-        # Scans without reflectance and no range-only model run on zeros, with the notice of
-        # `_use_reflectance_choice` (the crate alone would refuse them).
+        # Scans without reflectance and no range-only model run on zeros, with the crate's notice that their
+        # poses cannot be trusted (the crate alone would refuse them).
         self._loop = dmlo_rs.Odometry(
-            self._loop_matcher, json.dumps(settings), range_only=range_only, allow_zero_reflectance=True
+            self._loop_matcher, json.dumps(settings), range_only=range_only, allow_zero_reflectance=True,
+            moving_objects=self._open_moving_objects(),
         )
 
     def _open_moving_objects(self) -> MovingObjectDetector | None:
         """The moving-object network beside the model, when `moving_objects.detect` asks for it and it is there."""
-        settings = self.config.moving_objects
-        graph = moving_objects_graph(self._matcher.path) if settings.detect else None
-        if graph is None:
-            return None
-        return MovingObjectDetector(graph, settings.threshold, self._beside_threads())
+        graph = moving_objects_graph(self._matcher.path) if self.config.moving_objects.detect else None
+        return None if graph is None else MovingObjectDetector(graph, threads=self._beside_threads())
 
     def _beside_threads(self) -> int:
         """`threads` for the graphs opened beside the model, bounded to the cores without a second warning
@@ -224,6 +212,16 @@ class Odometry:
             return None
         return motion.rematch_gap
 
+    def _open_range_only(self, folder: Path, model: OnnxMatcher) -> OnnxMatcher:
+        """The range-only model beside `model`, checked like it."""
+        matcher = OnnxMatcher(
+            folder, threads=self._beside_threads(), match_graph=self.config.matching.symmetric,
+            matching_stage=self.config.matching_stage,
+        )
+        if (matcher.cylinder.height, matcher.cylinder.width) != (model.cylinder.height, model.cylinder.width):
+            raise ModelError(f"{matcher.path}: its cylinder image differs from {model.path}'s")
+        return matcher
+
     @classmethod
     def from_default(cls, config: OdometryConfig | None = None) -> Odometry:
         """The bundled model, trained on simulated HDL-64E drives."""
@@ -240,73 +238,46 @@ class Odometry:
     ) -> Matrix4:
         """Adds the next scan and returns its pose `T_world_lidar` (the first scan is the world).
 
-        `moving` is an optional per-point boolean mask of points on moving objects (§III-D-c); they
-        are left out of matching. `timestamp` (seconds, or any increasing unit) lets the motion model see
-        scans the sensor or the log dropped: a scan two median sensor periods after the previous one comes
-        after one missing scan. With `config.deskew.enabled`, `point_times` (one per point, in sensor
-        periods, 0 at the moment the pose refers to, e.g. −0.5…0.5 over a sweep centred on it) says when
-        each point was measured; without it the time comes from the point's azimuth. A scan with fewer
-        than `min_points` finite points is not matched: its pose comes from the motion model and the
-        diagnostics say so.
+        `points`: N×4 (x, y, z, reflectance) or N×3 floating-point. `moving` is an optional per-point
+        boolean mask of points on moving objects (§III-D-c); they are left out of matching. Without it,
+        the moving-object network beside the model flags them (`moving_objects`). `timestamp` (seconds,
+        or any increasing unit) lets the motion model see scans the sensor or the log dropped: a scan two
+        median sensor periods after the previous one comes after one missing scan. With
+        `config.deskew.enabled`, `point_times` (one per point, in sensor periods, 0 at the moment the pose
+        refers to, e.g. −0.5…0.5 over a sweep centred on it) says when each point was measured; without it
+        the time comes from the point's azimuth. A scan with fewer than `min_points` finite points is not
+        matched: its pose comes from the motion model and the diagnostics say so.
 
-        The frame's steps run in the crate (`dmlo_rs.Odometry`, `odometry::pipeline` in Rust: projection,
-        the matching stage, the pair's back end, the motion model, re-matching, the local map), the network
-        in onnxruntime; here the scan is checked, its reflectance scale chosen with a notice, and the points on
-        moving objects found when the model has the network for them.
+        Every step runs in the crate (`dmlo_rs.Odometry`, `odometry::pipeline` in Rust), the networks in
+        onnxruntime; what the crate says about the scans (the reflectance scale, a sensor the model was not
+        made for, timestamps going back) comes as warnings (`dmlo.odometry.notices`).
         """
         cloud = _as_scan(points, "points")
         times = None if point_times is None else _as_point_times(point_times, len(cloud))
         mask = None if moving is None else _as_mask(moving, len(cloud))
-        timestamp = self._timestamps.check(timestamp)
-        scaled = self._scaled(cloud, has_reflectance=np.shape(points)[1] == 4)
-        timings: dict[str, float] = {}
-        num_moving = scan_fill = None
-        if mask is None and self._moving_objects is not None:
-            start = time.perf_counter()
-            mask, scan_fill = self._moving_objects.detect(scaled)
-            num_moving = int(np.count_nonzero(mask))
-            timings["moving_objects"] = (time.perf_counter() - start) * 1e3
-        # The crate takes the scan's own reflectance: it chooses the same scale (config.reflectance), so that
-        # the choice is made once, where the frames run.
         pose = self._loop.register(cloud, moving=mask, timestamp=timestamp, point_times=times)
-        diagnostics = self._newest_diagnostics(timings)
-        diagnostics.num_moving_predicted = num_moving
-        if diagnostics.image_fill is not None:
-            self._check_sensor(diagnostics.image_fill if scan_fill is None else scan_fill)
-        return self._record(pose, diagnostics)
+        return self._record(pose, self._newest_diagnostics())
 
     def predict_skipped(self, reason: str = "unreadable_scan") -> Matrix4:
         """Records a scan that could not be read: its pose comes from the motion model."""
-        pose = self._loop.predict_skipped(reason)
-        return self._record(pose, self._newest_diagnostics({}))
+        return self._record(self._loop.predict_skipped(reason), self._newest_diagnostics())
 
-    def _newest_diagnostics(self, timings: dict[str, float]) -> FrameDiagnostics:
-        """The crate's diagnostics of the newest frame, after the stages timed here (`timings`). Where the frame
-        graph encodes a scan while matching it (`matching_stage` "graph"), the two cannot be timed apart: the
+    def _newest_diagnostics(self) -> FrameDiagnostics:
+        """The crate's diagnostics of the newest frame, its notices said as warnings. Where the frame graph
+        encodes a scan while matching it (`matching_stage` "graph"), the two cannot be timed apart: the
         matching counts as the network."""
         fields: dict[str, Any] = self._loop.last_diagnostics  # type: ignore[assignment]
-        timings.update(fields.pop("timings_ms"))
+        timings = fields.pop("timings_ms")
         if self._loop_matcher.defers_encoding and "matching" in timings:
             timings["network"] = timings.get("network", 0.0) + timings.pop("matching")
-        return FrameDiagnostics(**fields, timings_ms=timings)
+        diagnostics = FrameDiagnostics(**fields, timings_ms=timings)
+        warn([(notice["kind"], notice["message"]) for notice in diagnostics.notices], stacklevel=4)
+        return diagnostics
 
     def _record(self, pose: Matrix4, diagnostics: FrameDiagnostics) -> Matrix4:
         self.poses.append(pose)
         self.diagnostics.append(diagnostics)
         return pose.copy()
-
-    def _check_sensor(self, image_fill: float) -> None:
-        if image_fill < LOW_IMAGE_FILL and not self._warned_sensor:
-            self._warned_sensor = True
-            height, width = self.cylinder.height, self.cylinder.width
-            warnings.warn(
-                f"the scans fill only {100 * image_fill:.0f} % of the model's {height}×{width} cylinder image "
-                f"(the HDL-64E scans it was trained on fill 75–82 %): it was not made for this sensor, so its "
-                f"poses cannot be trusted; train a model on drives of this sensor (dmlo train, "
-                f"dmlo simulate --sensor)",
-                SensorMismatchWarning,
-                stacklevel=3,
-            )
 
     def register_pair(
         self, reference: npt.ArrayLike, target: npt.ArrayLike, large_motion: bool = False
@@ -327,20 +298,16 @@ class Odometry:
         large-motion one. The result's points are in the frames of the scans given. A scan with fewer than
         `config.min_points` finite points is refused (ValueError): with no motion model to fall back on,
         the identity would be a silent wrong answer. The pair runs in the crate (`Odometry::register_pair` in
-        Rust), the network in onnxruntime; here the scans are checked, the reflectance scale chosen with a
-        notice, and the points on moving objects found.
+        Rust), the network in onnxruntime; the drive's poses are untouched, and the reflectance scale is
+        chosen on the pair when no scan chose it before.
         """
-        # Far apart (a loop closure), the cars of one scan are gone or parked elsewhere in the other: they
-        # cannot agree on a motion, and the parked ones the network would flag are good matches.
-        leave_out = not large_motion
-        reference_cloud, reference_moving = self._pair_scan(reference, "reference", leave_out)
-        target_cloud, target_moving = self._pair_scan(target, "target", leave_out)
+        reference_cloud, target_cloud = _as_scan(reference, "reference"), _as_scan(target, "target")
         if large_motion and isinstance(self.matcher, OnnxMatcher):
             wide_graph_path(self.matcher.path)  # a model without the wide-window graph: ModelError saying so
-        transform, matches, map_refined, rounds = self._pair_odometry().register_pair(
-            reference_cloud, target_cloud, large_motion=large_motion, reference_moving=reference_moving,
-            target_moving=target_moving,
+        transform, matches, map_refined, rounds, notices = self._loop.register_pair(
+            reference_cloud, target_cloud, large_motion=large_motion
         )
+        warn(notices, stacklevel=3)
         return PairResult(
             T_tgt_ref=transform,
             num_matches=len(matches.source),
@@ -353,123 +320,17 @@ class Odometry:
             map_refined=map_refined,
         )
 
-    def _pair_scan(
-        self, points: npt.ArrayLike, name: str, leave_out_moving: bool
-    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_] | None]:
-        """A pair's scan as the crate takes it (its own reflectance, which the crate scales as `_scaled` chooses
-        here), and its points on moving objects when the network is there to say and `leave_out_moving`."""
-        cloud = _as_scan(points, name)
-        scaled = self._scaled(cloud, np.shape(points)[1] == 4)
-        if not leave_out_moving or self._moving_objects is None:
-            return cloud, None
-        return cloud, self._moving_objects.mask(scaled)
-
-    def _pair_odometry(self) -> dmlo_rs.Odometry:
-        """The crate's odometry that registers pairs (`Odometry::register_pair`), over the matcher run now and
-        the config as it is now (`dmlo register` widens the large-motion search after opening)."""
-        if self._pair_matcher is None or self._pair_matcher.matcher is not self.matcher:
-            self._pair_matcher = CrateMatcher(self.matcher, self.config.threads, self.config.matching_stage)
-        return dmlo_rs.Odometry(self._pair_matcher, json.dumps(self.config.to_dict()), allow_zero_reflectance=True)
-
     @property
-    def reflectance_choice(self) -> reflectance.Choice | None:
-        """What is done with the scans' reflectance (`config.reflectance`): the scale, or "none" (the range-only
-        model, when there is one), and why; None before the first scan."""
-        return self._reflectance
-
-    def _scan_in(self, points: npt.ArrayLike, name: str, decide: bool = True) -> npt.NDArray[np.float32]:
-        """A scan as the model takes it: N×4 float32 with the reflectance on its [0, 1] scale (`_scaled`)."""
-        return self._scaled(_as_scan(points, name), np.shape(points)[1] == 4, decide)
-
-    def _scaled(self, cloud: npt.NDArray[np.float32], has_reflectance: bool, decide: bool = True) -> npt.NDArray[np.float32]:
-        """`cloud` (N×4, `_as_scan`) with the reflectance on the model's [0, 1] scale. The first scan decides the
-        scale (`config.reflectance`) or the range-only model, with a `ReflectanceNotice`; a later scan without
-        usable reflectance moves to the range-only model. Only scans with `min_points` finite points decide
-        (the others are not matched); `decide=False`: none does. The crate's loop makes the same choice from
-        the same values (`odometry::pipeline`); this one says it, and serves the pairs and the moving-object
-        network."""
-        given = cloud[:, 3] if has_reflectance else None  # N×3: no reflectance at all
-        keep = _finite_rows(cloud)
-        if keep is not None:
-            decide = decide and int(np.count_nonzero(keep)) >= self.config.min_points
-            given = None if given is None else given[keep]
-        else:
-            decide = decide and len(cloud) >= self.config.min_points
-        choice = self._reflectance
-        if choice is None:
-            choice = self._choose_reflectance(given)
-            if decide:
-                self._reflectance = choice
-                self._use_reflectance_choice(choice, f"reflectance: {choice.reason}")
-        elif decide and choice.mode != reflectance.NONE and not reflectance.usable(given):
-            self._reflectance = choice = reflectance.Choice(reflectance.NONE, reflectance.detect(given).reason)
-            self._use_reflectance_choice(choice, f"reflectance: scan {len(self.poses)}: {choice.reason}")
-        cloud, largest = reflectance.normalise(cloud, choice.mode)
-        if decide and largest > 1 and not self._warned_clipping:
-            self._warned_clipping = True
-            warnings.warn(
-                f"reflectance: scan {len(self.poses)} reaches {largest:g}× the top of the {choice.mode} scale chosen "
-                f"({choice.reason}): clipped to it; the config's reflectance ({', '.join(reflectance.MODES[1:])}) "
-                "sets the scale",
-                ReflectanceNotice,
-                stacklevel=3,
-            )
-        return cloud
-
-    def _choose_reflectance(self, given: npt.NDArray[np.float32] | None) -> reflectance.Choice:
-        if self._model_is_range_only:
-            return reflectance.Choice(reflectance.NONE, "the model is range-only")
-        setting = self.config.reflectance
-        detected = reflectance.detect(given)
-        if setting == "auto" or detected.mode == reflectance.NONE:  # no scale makes absent values usable
-            return detected
-        if setting == reflectance.NONE:
-            return reflectance.Choice(reflectance.NONE, "the config says reflectance none")
-        return reflectance.Choice(setting, f"the config says reflectance {setting}")
-
-    def _use_reflectance_choice(self, choice: reflectance.Choice, why: str) -> None:
-        """Runs the model the choice needs from now on (the range-only one, opened here, for no reflectance;
-        the reference scan encoded again by it) and says so, once; reflectance already in [0, 1], as the
-        model takes it, goes on silently (`reflectance_choice` tells)."""
-        if choice.mode == "unit":
-            return
-        if choice.mode != reflectance.NONE:
-            message = f"{why}: divided by {reflectance.SCALES[choice.mode]:g} for the model's [0, 1] scale"
-        elif self._model_is_range_only:
-            message = f"{why}: the scans' reflectance is not used"
-        elif self._range_only is None:
-            message = (
-                f"{why}, and {self.matcher.path.parent} has no range-only model beside it ({reflectance.RANGE_ONLY_DIR}/): "
-                "it runs on zero reflectance, so these poses cannot be trusted. Set reflectance in the config if the "
-                "scans have one on another scale, or train and export a range-only model (dmlo train --no-reflectance; "
-                f"dmlo export RUN --out MODEL/{reflectance.RANGE_ONLY_DIR})"
-            )
-        else:
-            message = f"{why}: the range-only model runs ({self._range_only.path.parent})"
-            self._switch_to_range_only(self._range_only)
-        warnings.warn(message, ReflectanceNotice, stacklevel=4)
-
-    def _open_range_only(self, graph: Path, model: OnnxMatcher) -> OnnxMatcher:
-        """The range-only model beside `model`, checked like it."""
-        matcher = OnnxMatcher(
-            graph, threads=self._beside_threads(), match_graph=self.config.matching.symmetric,
-            matching_stage=self.config.matching_stage,
-        )
-        if (matcher.cylinder.height, matcher.cylinder.width) != (model.cylinder.height, model.cylinder.width):
-            raise ModelError(f"{graph}: its cylinder image differs from {model.path}'s")
-        return matcher
-
-    def _switch_to_range_only(self, matcher: OnnxMatcher) -> None:
-        """The pairs run the range-only model from now on, as the crate's loop does from this scan on."""
-        self._matcher, self._range_only = matcher, None
-        self._model_is_range_only = True
+    def reflectance_scale(self) -> str | None:
+        """The reflectance scale the crate chose on the first matched scan ("unit", "0-255", "0-65535", or
+        "none": not used, the range-only model running when there is one); None before it."""
+        return self._loop.reflectance_scale
 
     # -- the paper's steps ----------------------------------------------------------------------
 
     def project(self, points: npt.ArrayLike) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """The network input `[2, H, W]` (range, reflectance) of a scan and its range image `[H, W]` (Eq. 1)."""
-        image, ranges, _ = self._project(self._scan_in(points, "points", decide=False))
-        return image, ranges
+        return self._loop.network_image(_as_scan(points, "points"))
 
     def pose_from_flow(
         self,
@@ -490,17 +351,6 @@ class Odometry:
 
         return self._match(as_f32(ref_range), as_f32(tgt_range), as_f32(flow), as_f32(confidence))
 
-    def _project(
-        self, cloud: npt.NDArray[np.float32]
-    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
-        """The network input `[2, H, W]`, the range image `[H, W]` and the point image `[H, W, 3]` (each
-        cell's kept point, NaN where empty) of a scan."""
-        projection = dmlo_rs.project(cloud, self.cylinder)
-        index = projection.index
-        points = np.take(cloud[:, :3], np.maximum(index, 0), axis=0)
-        points[index < 0] = np.nan
-        return np.stack([projection.range, projection.reflectance]), projection.range, points
-
     def _match(
         self,
         ref_range: npt.NDArray[np.float32],
@@ -511,7 +361,7 @@ class Odometry:
         ref_points: npt.NDArray[np.float32] | None = None,
         tilt_votes: bool = True,
     ) -> PairResult:
-        """The pair's motion from a flow (§III-D); `ref_points` is the reference's point image (`_project`),
+        """The pair's motion from a flow (§III-D); `ref_points` is the reference's point image (H×W×3, NaN where empty),
         None: the virtual points of `ref_range`'s cells. `tilt_votes`: RANSAC weighs matches by the tilt of their
         surface as `ransac.vote_by_tilt` says; False: one vote each."""
         m, r = self.config.matching, self.config.ransac
@@ -546,32 +396,7 @@ def _as_scan(points: npt.ArrayLike, name: str) -> npt.NDArray[np.float32]:
         raise ValueError(f"{name}: expected an N×4 (or N×3) array of x, y, z[, reflectance], got shape {cloud.shape}")
     if not np.issubdtype(cloud.dtype, np.floating):
         raise TypeError(f"{name}: expected floating-point points, got dtype {cloud.dtype}")
-    if cloud.shape[1] == 3:
-        cloud = np.concatenate([cloud, np.zeros((len(cloud), 1), cloud.dtype)], axis=1)
     return np.ascontiguousarray(cloud, dtype=np.float32)
-
-
-def _finite_rows(cloud: npt.NDArray[np.float32]) -> npt.NDArray[np.bool_] | None:
-    """Which points have only finite values, or None when all of them do. One `isfinite(...).all()` first:
-    numpy's `all(axis=1)` over 4 values a row is far slower, and most scans need no mask at all."""
-    finite = np.isfinite(cloud)
-    if finite.all():
-        return None
-    keep = finite[:, 0].copy()
-    for column in finite.T[1:]:
-        keep &= column
-    return keep
-
-
-def _without(keep: npt.NDArray[np.bool_] | None, left_out: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
-    """The rows `keep` marks (all with None) less those `left_out` marks."""
-    return ~left_out if keep is None else keep & ~left_out
-
-
-def _rows(values: npt.NDArray[Any], keep: npt.NDArray[np.bool_] | None) -> npt.NDArray[Any]:
-    """A copy of the rows `keep` marks (all with None): `np.compress` gathers them ~10× faster than boolean
-    indexing does for an N×4 scan."""
-    return values.copy() if keep is None else np.compress(keep, values, axis=0)
 
 
 def _as_point_times(times: npt.ArrayLike, count: int) -> npt.NDArray[np.float64]:

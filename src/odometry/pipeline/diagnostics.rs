@@ -5,7 +5,8 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use super::Matched;
+use super::{Matched, Notice};
+use crate::odometry::motion::Fallback;
 
 /// What happened to one scan, as `dmlo.Odometry`'s `FrameDiagnostics` (the same keys in
 /// `diagnostics.jsonl`).
@@ -27,9 +28,8 @@ pub struct FrameDiagnostics {
     /// With tilt votes: the inliers' votes above the floor.
     #[serde(serialize_with = "rounded_option::<2, _>")]
     pub inlier_votes: Option<f64>,
-    /// The fallback taken (`constant_velocity`, `degenerate_scene`, `forward_start`, `guided_consensus`,
-    /// `implausible_motion`, `rematched_from_prediction`, `too_few_points`, `unreadable_scan`).
-    pub fallback: Option<String>,
+    /// The fallback taken, if any.
+    pub fallback: Option<Fallback>,
     /// Rounds of matching from the prediction whose motion was taken (0: tried, none kept).
     pub rematch_rounds: Option<usize>,
     /// Matched from the prediction with the coarse windows placed by it: whether that pair held (false:
@@ -64,6 +64,10 @@ pub struct FrameDiagnostics {
     /// Milliseconds per stage.
     #[serde(serialize_with = "rounded_map::<3, _>")]
     pub timings_ms: BTreeMap<String, f64>,
+    /// What the odometry said about the scans at this frame (each once per odometry; the reflectance
+    /// notices again when the choice changes).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub notices: Vec<Notice>,
 }
 
 /// `value` to `DIGITS` decimals, as `dmlo.Odometry`'s diagnostics write it.

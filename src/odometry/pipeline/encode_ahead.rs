@@ -296,7 +296,8 @@ where
             return None;
         }
         let switches = scale != ReflectanceScale::Ignored
-            && detect_reflectance(&finite_reflectance).0 == ReflectanceScale::Ignored;
+            && detect_reflectance(next.has_reflectance.then_some(&finite_reflectance[..])).0
+                == ReflectanceScale::Ignored;
         if switches {
             return None;
         }

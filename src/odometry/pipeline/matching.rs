@@ -6,7 +6,7 @@ use nalgebra::{Matrix4, Point3};
 use super::{FrameDiagnostics, FrameMatcher, Matched, Odometry, Projected, Reference, Stopwatch};
 use crate::dense_match::DenseFlow;
 use crate::error::Result;
-use crate::odometry::motion::{midpoint_motion, rigid_inverse, PairEvidence};
+use crate::odometry::motion::{midpoint_motion, rigid_inverse, Fallback, PairEvidence};
 use crate::pair::{match_pair, PairImages, PairMotion};
 
 impl<M: FrameMatcher> Odometry<M> {
@@ -150,7 +150,7 @@ impl<M: FrameMatcher> Odometry<M> {
         );
         let judged = self.motion.judge(&evidence, &predicted, gap);
         if let Some(fallback) = judged.fallback {
-            diagnostics.fallback = Some(fallback.name().to_string());
+            diagnostics.fallback = Some(fallback);
         }
         let mut motion = judged.motion;
         if let (false, Some(ahead)) = (
@@ -160,7 +160,7 @@ impl<M: FrameMatcher> Odometry<M> {
             let others = self.other_starts(previous, target, features, &motion, ahead)?;
             diagnostics.ambiguous_start = Some(!others.is_empty());
             if let Some(forward) = self.forward_start(&motion, others) {
-                diagnostics.fallback = Some("forward_start".into());
+                diagnostics.fallback = Some(Fallback::ForwardStart);
                 diagnostics.count_matches(&forward);
                 diagnostics.inlier_votes = forward.motion.inlier_votes;
                 motion = forward.transform;

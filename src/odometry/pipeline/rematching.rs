@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use super::matching::occupied;
 use super::{FrameDiagnostics, FrameMatcher, Matched, Odometry, Projected, Reference};
 use crate::error::{Error, Result};
-use crate::odometry::motion::{pose_difference, rigid_inverse};
+use crate::odometry::motion::{pose_difference, rigid_inverse, Fallback};
 use crate::pair::PairMotion;
 use crate::projection::CylinderConfig;
 
@@ -182,7 +182,7 @@ impl<M: FrameMatcher> Odometry<M> {
             return Ok(pair);
         }
         diagnostics.rematch_rounds = Some(again.rounds);
-        diagnostics.fallback = Some("rematched_from_prediction".into());
+        diagnostics.fallback = Some(Fallback::RematchedFromPrediction);
         diagnostics.count_matches(&again);
         Ok(again)
     }

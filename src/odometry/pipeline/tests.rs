@@ -245,7 +245,7 @@ fn scans_without_enough_points_and_unreadable_ones_are_bridged_by_the_motion_mod
     let sparse = &scan(3)[..500];
     let pose = register(&mut odometry, sparse, 2, 3);
     assert_eq!(
-        odometry.diagnostics()[3].fallback.as_deref(),
+        odometry.diagnostics()[3].fallback.map(Fallback::name),
         Some("too_few_points")
     );
     let (moved, _) = error_to_truth(&pose, 3);
@@ -253,9 +253,9 @@ fn scans_without_enough_points_and_unreadable_ones_are_bridged_by_the_motion_mod
         moved < 0.05,
         "the constant-velocity prediction, {moved} m off"
     );
-    let pose = odometry.predict_skipped("unreadable_scan").unwrap();
+    let pose = odometry.predict_skipped(Fallback::UnreadableScan).unwrap();
     assert_eq!(
-        odometry.diagnostics()[4].fallback.as_deref(),
+        odometry.diagnostics()[4].fallback.map(Fallback::name),
         Some("unreadable_scan")
     );
     assert!(error_to_truth(&pose, 4).0 < 0.05);
@@ -296,7 +296,7 @@ fn moving_points_are_left_out() {
     };
     odometry.register(scan).unwrap();
     assert_eq!(
-        odometry.diagnostics()[0].fallback.as_deref(),
+        odometry.diagnostics()[0].fallback.map(Fallback::name),
         Some("too_few_points")
     );
 }
@@ -485,25 +485,31 @@ fn deskewing_a_sweep_taken_at_one_moment_changes_nothing() {
 
 #[test]
 fn reflectance_detection_follows_python() {
-    assert_eq!(detect_reflectance(&[0.1, 0.9]).0, ReflectanceScale::Unit);
     assert_eq!(
-        detect_reflectance(&[0.0, 200.0]).0,
+        detect_reflectance(Some(&[0.1, 0.9])).0,
+        ReflectanceScale::Unit
+    );
+    assert_eq!(
+        detect_reflectance(Some(&[0.0, 200.0])).0,
         ReflectanceScale::ZeroTo255
     );
     assert_eq!(
-        detect_reflectance(&[0.0, 4000.0]).0,
+        detect_reflectance(Some(&[0.0, 4000.0])).0,
         ReflectanceScale::ZeroTo65535
     );
     assert_eq!(
-        detect_reflectance(&[0.0, 70000.0]).0,
+        detect_reflectance(Some(&[0.0, 70000.0])).0,
         ReflectanceScale::Ignored
     );
-    assert_eq!(detect_reflectance(&[3.0, 3.0]).0, ReflectanceScale::Ignored);
     assert_eq!(
-        detect_reflectance(&[-1.0, 3.0]).0,
+        detect_reflectance(Some(&[3.0, 3.0])).0,
         ReflectanceScale::Ignored
     );
-    assert_eq!(detect_reflectance(&[]).0, ReflectanceScale::Ignored);
+    assert_eq!(
+        detect_reflectance(Some(&[-1.0, 3.0])).0,
+        ReflectanceScale::Ignored
+    );
+    assert_eq!(detect_reflectance(Some(&[])).0, ReflectanceScale::Ignored);
     let cloud = normalised(
         vec![[0.0, 0.0, 0.0, 300.0], [0.0, 0.0, 0.0, 51.0]],
         ReflectanceScale::ZeroTo255,
@@ -550,6 +556,157 @@ fn scans_without_reflectance_switch_to_the_range_only_model() {
     let dark: Vec<[f32; 4]> = scan(0).iter().map(|&[x, y, z, _]| [x, y, z, 0.0]).collect();
     alone.register(Scan::new(&dark)).unwrap();
     assert_eq!(alone.reflectance_scale(), Some(ReflectanceScale::Ignored));
+}
+
+/// The kinds of the notices of every frame so far, frame by frame.
+fn notice_kinds<M: FrameMatcher>(odometry: &Odometry<M>) -> Vec<Vec<&'static str>> {
+    odometry
+        .diagnostics()
+        .iter()
+        .map(|d| d.notices.iter().map(Notice::kind).collect())
+        .collect()
+}
+
+#[test]
+fn each_notice_is_said_once_at_the_frame_it_arose_in() {
+    let range_only = OracleMatcher {
+        reads_reflectance: false,
+        ..OracleMatcher::new()
+    };
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(false))
+        .unwrap()
+        .with_range_only(range_only)
+        .unwrap();
+    let bright = |i: usize| -> Vec<[f32; 4]> {
+        scan(i)
+            .iter()
+            .map(|&[x, y, z, r]| [x, y, z, r * 255.0])
+            .collect()
+    };
+    // Frame 0: the scale; 1: a timestamp going back; 2: beyond the scale; 3: no reflectance (N×3).
+    let first = bright(0);
+    odometry
+        .register(Scan {
+            timestamp: Some(1.0),
+            ..Scan::new(&first)
+        })
+        .unwrap();
+    let second = bright(1);
+    odometry
+        .register(Scan {
+            timestamp: Some(0.5),
+            ..Scan::new(&second)
+        })
+        .unwrap();
+    let third: Vec<[f32; 4]> = bright(2)
+        .iter()
+        .map(|&[x, y, z, r]| [x, y, z, r * 4.0])
+        .collect();
+    odometry
+        .register(Scan {
+            timestamp: Some(0.4),
+            ..Scan::new(&third)
+        })
+        .unwrap();
+    let fourth = scan(3);
+    odometry
+        .register(Scan {
+            has_reflectance: false,
+            ..Scan::new(&fourth)
+        })
+        .unwrap();
+    let fifth: Vec<[f32; 4]> = scan(4)
+        .iter()
+        .map(|&[x, y, z, r]| [x, y, z, r * 1000.0])
+        .collect();
+    odometry.register(Scan::new(&fifth)).unwrap();
+    assert_eq!(
+        notice_kinds(&odometry),
+        [
+            vec!["reflectance_scaled"],
+            vec!["timestamp_not_after"],
+            vec!["reflectance_clipped"],
+            vec!["range_only_model"],
+            vec![],
+        ]
+    );
+    let said: Vec<String> = odometry
+        .diagnostics()
+        .iter()
+        .flat_map(|d| d.notices.iter().map(Notice::message))
+        .collect();
+    assert!(
+        said[0].starts_with("reflectance: values up to")
+            && said[0].contains("look like 0–255: divided by 255"),
+        "{}",
+        said[0]
+    );
+    assert_eq!(
+        said[1],
+        "scan timestamp 0.5 is not after the previous scan's 1.0: taken for the next frame"
+    );
+    assert!(
+        said[2].starts_with("reflectance: scan 2 reaches") && said[2].contains("clipped"),
+        "{}",
+        said[2]
+    );
+    assert_eq!(said[3], "reflectance: scan 3: the scans have no reflectance (N×3 points): the range-only model runs");
+    let json = serde_json::to_value(&odometry.diagnostics()[1]).unwrap();
+    assert_eq!(json["notices"][0]["kind"], "timestamp_not_after");
+    assert!(serde_json::to_value(&odometry.diagnostics()[4])
+        .unwrap()
+        .get("notices")
+        .is_none());
+}
+
+#[test]
+fn a_scan_far_emptier_than_the_models_sensor_is_said_once() {
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(false)).unwrap();
+    // Every other ring of the yard dropped: still plenty of points, but far less of the image.
+    let sparse = |i: usize| -> Vec<[f32; 4]> { scan(i).into_iter().step_by(4).collect() };
+    for i in 0..3 {
+        odometry.register(Scan::new(&sparse(i))).unwrap();
+    }
+    let fill = odometry.diagnostics()[0].image_fill.unwrap();
+    if fill < LOW_IMAGE_FILL {
+        assert_eq!(
+            notice_kinds(&odometry),
+            [vec!["sensor_mismatch"], vec![], vec![]]
+        );
+        let message = odometry.diagnostics()[0].notices[0].message();
+        assert!(message.contains("cannot be trusted"), "{message}");
+    } else {
+        panic!("the sparse yard fills {fill}: not a test of the sensor check");
+    }
+    let mut full = Odometry::new(OracleMatcher::new(), config(false)).unwrap();
+    full.register(Scan::new(&scan(0))).unwrap();
+    assert!(full.diagnostics()[0].image_fill.unwrap() >= LOW_IMAGE_FILL);
+    assert_eq!(notice_kinds(&full), [Vec::<&str>::new()]);
+}
+
+#[test]
+fn a_model_without_reflectance_and_no_range_only_model_says_its_poses_cannot_be_trusted() {
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(false))
+        .unwrap()
+        .allowing_zero_reflectance();
+    let points = scan(0);
+    odometry
+        .register(Scan {
+            has_reflectance: false,
+            ..Scan::new(&points)
+        })
+        .unwrap();
+    let notices = &odometry.diagnostics()[0].notices;
+    assert_eq!(notices.len(), 1);
+    assert_eq!(notices[0].kind(), "zero_reflectance");
+    assert!(notices[0].message().contains("cannot be trusted"));
+    let range_only = OracleMatcher {
+        reads_reflectance: false,
+        ..OracleMatcher::new()
+    };
+    let mut alone = Odometry::new(range_only, config(false)).unwrap();
+    alone.register(Scan::new(&points)).unwrap();
+    assert_eq!(notice_kinds(&alone), [vec!["reflectance_unused"]]);
 }
 
 /// `register_pair` of yard scans `from` and `to` with the oracle told their true motion.
@@ -900,7 +1057,10 @@ fn pairs_beyond_the_window_are_matched_with_windows_the_prediction_places() {
     }
     for d in &diagnostics[2..] {
         assert_eq!(d.guided_windows, Some(true), "{d:?}");
-        assert_eq!((d.rematch_rounds, d.fallback.as_deref()), (None, None));
+        assert_eq!(
+            (d.rematch_rounds, d.fallback.map(Fallback::name)),
+            (None, None)
+        );
         assert!(d.timings_ms.contains_key("rematch"));
     }
     // Each scan encoded once: nothing moved and encoded again.
@@ -1050,7 +1210,7 @@ fn a_first_pair_that_another_start_explains_as_well_is_flagged_and_a_reversing_o
     let (odometry, pose) = first_pair(&config, vec![reversing, from_start(0), from_start(1)]);
     let d = &odometry.diagnostics()[1];
     assert_eq!(d.ambiguous_start, Some(true), "{d:?}");
-    assert_eq!(d.fallback.as_deref(), Some("forward_start"));
+    assert_eq!(d.fallback.map(Fallback::name), Some("forward_start"));
     assert!(d.num_inliers >= 10, "{d:?}");
     assert!(error_to_truth(&pose, 1).0 < 0.02, "{pose}");
     assert_eq!(odometry.matcher.encoded.get(), 3 + 2);
@@ -1060,7 +1220,7 @@ fn a_first_pair_that_another_start_explains_as_well_is_flagged_and_a_reversing_o
         let (odometry, pose) = first_pair(&config, vec![reversing, from_start(0), from_start(1)]);
         let d = &odometry.diagnostics()[1];
         assert_eq!(
-            (d.ambiguous_start, d.fallback.as_deref()),
+            (d.ambiguous_start, d.fallback.map(Fallback::name)),
             (Some(true), None)
         );
         assert!(error_to_truth(&pose, 1).0 > 0.7, "{pose}");

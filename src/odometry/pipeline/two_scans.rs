@@ -6,7 +6,7 @@ use super::matching::symmetric;
 use super::rematching::search_starts;
 use super::{
     as_points, kept_points, normalised, FrameDiagnostics, FrameMatcher, KeptPoints, Matched,
-    Odometry, Scan, Stopwatch,
+    Notice, Odometry, Scan, Stopwatch,
 };
 use crate::error::{Error, Result};
 use crate::odometry::config::ReflectanceScale;
@@ -28,6 +28,9 @@ pub struct RegisteredPair {
     /// Matching rounds: 1 for a consecutive pair; for a large motion the wide window's, then the
     /// model's own.
     pub rounds: usize,
+    /// What the odometry said about the scans (the reflectance scale chosen on them, a switch to the
+    /// range-only model).
+    pub notices: Vec<Notice>,
 }
 
 impl<M: FrameMatcher> Odometry<M> {
@@ -38,12 +41,23 @@ impl<M: FrameMatcher> Odometry<M> {
     /// frames or metres) are matched with the wide window (the matcher's
     /// [`FrameMatcher::has_wide_window`], the paper's D = 40 at inference, §IV-D) from the configured
     /// search starts and then again with the reference moved by the estimate (`large_motion`
-    /// settings), one way only and without tilt votes. Points flagged in [`Scan::moving`] are left out;
-    /// timestamps and sweep times are not read. A scan with fewer than `min_points` finite points is an
+    /// settings), one way only and without tilt votes. Points flagged in [`Scan::moving`] are left out,
+    /// and of a consecutive pair given without flags those the moving-object network flags; timestamps and sweep times are not read. A scan with fewer than `min_points` finite points is an
     /// error naming it: with no motion model to fall back on, the identity would be a silent wrong
     /// answer. The drive's poses and diagnostics are untouched; the reflectance scale is chosen here if
     /// no scan chose it before, as [`Odometry::register`] chooses it.
     pub fn register_pair(
+        &mut self,
+        reference: Scan<'_>,
+        target: Scan<'_>,
+        large_motion: bool,
+    ) -> Result<RegisteredPair> {
+        let mut pair = self.registered_pair(reference, target, large_motion)?;
+        pair.notices = std::mem::take(&mut self.notices);
+        Ok(pair)
+    }
+
+    fn registered_pair(
         &mut self,
         reference: Scan<'_>,
         target: Scan<'_>,
@@ -54,8 +68,11 @@ impl<M: FrameMatcher> Odometry<M> {
                 "large_motion: the matcher has no wide window (the model's frame_wide.onnx)".into(),
             ));
         }
-        let reference_cloud = self.pair_cloud(reference, "reference")?;
-        let target_cloud = self.pair_cloud(target, "target")?;
+        // Far apart (a loop closure), the cars of one scan are gone or parked elsewhere in the other: they
+        // cannot agree on a motion, and the parked ones the network would flag are good matches.
+        let detect_moving = !large_motion;
+        let reference_cloud = self.pair_cloud(reference, "reference", detect_moving)?;
+        let target_cloud = self.pair_cloud(target, "target", detect_moving)?;
         if large_motion {
             let target = self.project(&target_cloud)?;
             let features = self.matcher.encode(&target.image)?;
@@ -116,14 +133,33 @@ impl<M: FrameMatcher> Odometry<M> {
         Ok(result)
     }
 
-    /// A pair's scan (`name`): its finite points not flagged moving, reflectance brought to the model's
-    /// scale; at least `min_points` of them.
-    fn pair_cloud(&mut self, scan: Scan<'_>, name: &'static str) -> Result<Vec<[f32; 4]>> {
+    /// A pair's scan (`name`): its finite points not flagged moving (by the caller, or with
+    /// `detect_moving` by the moving-object network), reflectance brought to the model's scale; at least
+    /// `min_points` of them.
+    fn pair_cloud(
+        &mut self,
+        scan: Scan<'_>,
+        name: &'static str,
+        detect_moving: bool,
+    ) -> Result<Vec<[f32; 4]>> {
+        let detected = if detect_moving {
+            self.detect_moving(&scan, false)?.map(|(flags, _)| flags)
+        } else {
+            None
+        };
+        let scan = match &detected {
+            Some(moving) => Scan {
+                moving: Some(moving),
+                ..scan
+            },
+            None => scan,
+        };
         let KeptPoints {
             kept,
             finite_reflectance,
             ..
         } = kept_points(&scan)?;
+        let values = scan.has_reflectance.then_some(&finite_reflectance[..]);
         let min_points = self.config.min_points as usize;
         if kept.len() < min_points {
             return Err(Error::invalid(
@@ -135,7 +171,8 @@ impl<M: FrameMatcher> Odometry<M> {
                 ),
             ));
         }
-        let scale = self.reflectance_for(&finite_reflectance, min_points)?;
+        let index = self.poses.len();
+        let scale = self.reflectance_for(values, finite_reflectance.len(), min_points, index)?;
         Ok(normalised(kept, scale.unwrap_or(ReflectanceScale::Unit)))
     }
 }
@@ -146,5 +183,6 @@ fn registered(pair: Matched, map_refined: Option<bool>) -> RegisteredPair {
         matches: pair.motion,
         map_refined,
         rounds: pair.rounds,
+        notices: Vec::new(),
     }
 }
