@@ -1,6 +1,6 @@
 #![forbid(unsafe_code)]
 //! The odometry: its loop over scans ([`pipeline::Odometry`], over any [`pipeline::FrameMatcher`]), its
-//! settings as `dmlo run` saves them ([`config`]), and the per-frame state shared with `dmlo.Odometry`: the
+//! settings, declared once ([`config`]), and the per-frame state the loop runs on: the
 //! frame clock that counts missing scans from the timestamps ([`clock`]), the constant-velocity motion model
 //! with the judgement of every pair's motion against it (§III-D-c, [`motion`]), and the local map that
 //! refines every pose by scan-to-map NDT (§III-D-c, [`mapping`]), and the moving-object network's rule for the
@@ -28,8 +28,11 @@ pub mod moving;
 pub mod pipeline;
 
 pub use config::OdometryConfig;
+pub use motion::Fallback;
 pub use moving::MovingObjectNetwork;
-pub use pipeline::{EncodeAhead, FrameDiagnostics, FrameMatcher, Odometry, Scan};
+pub use pipeline::{
+    EncodeAhead, FrameDiagnostics, FrameMatcher, Notice, Odometry, RegisteredPair, Scan,
+};
 
 #[cfg(test)]
 mod tests;

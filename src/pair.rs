@@ -1,5 +1,5 @@
 #![forbid(unsafe_code)]
-//! One pair's motion from the matcher's output (paper §III-D), the chain `dmlo.Odometry` runs on every
+//! One pair's motion from the matcher's output (paper §III-D), the chain the odometry runs on every
 //! pair: each cell's confidence weighted by the coherence of its flow ([`crate::coherence`]), the flow
 //! decoded into 3D matches with NMS fused in (§III-D-a, [`crate::matches::select_matches`]), each
 //! match's vote in RANSAC's consensus from the tilt of the surface under it ([`crate::surface`]) and
@@ -34,8 +34,8 @@ use crate::projection::CylinderConfig;
 use crate::ransac::{ransac_rigid_voted, RansacConfig};
 use crate::surface::horizontal_votes;
 
-/// The settings of [`match_pair`]; `Default` is `dmlo.Odometry`'s default configuration (its
-/// `matching` and `ransac` sections).
+/// The settings of [`match_pair`]; `Default` is the odometry config's default (its `matching` and
+/// `ransac` sections).
 #[derive(Debug, Clone, PartialEq)]
 pub struct PairConfig {
     /// A confidence `Q*` below this drops the cell before NMS.

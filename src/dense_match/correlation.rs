@@ -11,8 +11,8 @@
 //!   windows overlap, so the few planes stay in L1.
 //! - **cells** (many channels, a multiple of 8: the coarse stage's 32): channels-last, a window row one
 //!   contiguous run. With 32 planes a window touches 32 × D rows of the planes, which the prefetcher
-//!   cannot follow (measured at D = 15: 41 ms a frame in planes, 4× the cells' time); a dot product per
-//!   cell of 4 lanes and one horizontal sum streams instead.
+//!   cannot follow (docs/measurements.md times both layouts); a dot product per cell of 4 lanes and one
+//!   horizontal sum streams instead.
 //!
 //! Both read one cell's window at a time. Where eight neighbouring reference cells' windows are
 //! neighbours too (almost everywhere, `GroupMatcher`), [`PaddedTarget::group_logits`] reads planes of any
@@ -143,7 +143,7 @@ impl PaddedTarget {
 
     /// One window row of [`Self::group_logits`] for a channel count known at compile time (the bundled
     /// model's refine 8): the channel loop unrolled, the bounds checked once. Not for its coarse 32,
-    /// whose reference lanes no longer fit the registers (measured slower than the loop above).
+    /// whose reference lanes no longer fit the registers, which makes it slower than the loop above.
     fn group_row<const CHANNELS: usize>(
         &self,
         reference: &[f32x8],

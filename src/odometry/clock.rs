@@ -101,7 +101,7 @@ impl FrameClock {
         }
         let frames = match self.period() {
             None => counted,
-            // Half-way rounds to even, as Python's `round`.
+            // Half-way rounds to even.
             Some(period) => {
                 counted.max((interval / period).round_ties_even().min(u64::MAX as f64) as u64)
             }

@@ -34,7 +34,7 @@ pub const STANDING_ANGLE_DEG: f64 = 0.1;
 /// from the pose that fits every point best, a step or two from the one that fits its points best.
 pub const LEVEL_NEWTON_STEPS: usize = 2;
 
-/// `dmlo.Odometry`'s `mapping` settings (`Default`: its defaults).
+/// The local map's settings, the config's `mapping` section (`Default`: its defaults).
 #[derive(Debug, Clone, PartialEq)]
 pub struct MappingConfig {
     /// NDT voxel edge (m).
@@ -404,7 +404,7 @@ pub enum MapStart {
 }
 
 impl MapStart {
-    /// The name `dmlo.Odometry`'s diagnostics give it (`ndt_start`).
+    /// The name the diagnostics give it (`ndt_start`).
     pub fn name(self) -> &'static str {
         match self {
             MapStart::Dmlo => "dmlo",
@@ -453,6 +453,12 @@ impl LocalMap {
     /// Its settings.
     pub fn config(&self) -> &MappingConfig {
         &self.config
+    }
+
+    /// Empties the map: no keyframe, no scan.
+    pub fn clear(&mut self) {
+        self.map.clear();
+        self.keyframe = None;
     }
 
     /// The newest keyframe's pose.

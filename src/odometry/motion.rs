@@ -6,14 +6,14 @@
 //! prediction than a car's change of speed allows is not chained into the trajectory either: the
 //! matches that agree with the prediction are solved instead when they are a consensus of their own,
 //! otherwise the prediction is taken. Transforms are 4×4 homogeneous matrices, `T_tgt_ref` for motions
-//! and `T_world_lidar` for poses, as `dmlo.Odometry` holds them.
+//! and `T_world_lidar` for poses.
 
 use nalgebra::{Matrix3, Matrix4, Point3, Vector3};
 
 use crate::error::{Error, Result};
 use crate::ransac::Refit;
 
-/// When a pair's motion gives way to the prediction: `dmlo.Odometry`'s `motion_model` settings and the
+/// When a pair's motion gives way to the prediction: the config's `motion_model` settings and the
 /// RANSAC settings its guided solve uses.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MotionLimits {

@@ -7,8 +7,8 @@
 //! cell of the scan's cylinder image, the probability of a moving object from two images — the range of
 //! each cell's kept point and its height `z` — and every point in a cell above the threshold is left out
 //! of matching and of the map, as a caller's `moving` mask would leave it ([`super::pipeline::Scan`]).
-//! The images and the rule are `dmlo.odometry.moving`'s, so that a network trained in Python flags the
-//! same points here. The runtime is the caller's: `dmlo_rs::inference` runs the graph in tract or
+//! Training makes its images with [`network_images`] too, so the network sees at run time what it was
+//! trained on. The runtime is the caller's: `dmlo_rs::inference` runs the graph in tract or
 //! onnxruntime (features `inference` / `onnxruntime`).
 
 use crate::error::{Error, Result};
@@ -74,7 +74,7 @@ pub fn moving_points_and_fill<N: MovingObjectNetwork + ?Sized>(
 
 /// The points of a flat `N × channels` scan (3 or 4 values a point) in cells whose `probability` (`H × W`,
 /// the network's answer for [`network_images`]) exceeds `threshold`: the rule of [`moving_points`], for a
-/// network run elsewhere (`dmlo.Odometry` runs it in Python's onnxruntime).
+/// network run elsewhere.
 pub fn flagged_points(
     points: &[f32],
     channels: usize,

@@ -7,8 +7,8 @@
 //! scan's cached features (§III-C); the pair's back end ([`crate::pair::match_pair`]) turns the flow
 //! into a motion (§III-D), which the motion model judges ([`super::motion`], §III-D-c) and the local
 //! map refines by NDT ([`super::mapping`]); the motions chain into `T_world_lidar` poses, the first scan
-//! being the world. The steps and their settings are `dmlo.Odometry`'s, read from the same config
-//! ([`super::config`]). Beyond the paper, as in Python: pairs whose predicted motion outgrows the
+//! being the world. The settings are the config's ([`super::config`]); `dmlo.Odometry` in Python is this
+//! loop. Beyond the paper: pairs whose predicted motion outgrows the
 //! network's window are matched from the prediction, and pairs across missing scans (or whose own
 //! motion gives way) are matched again from it.
 //! [`Odometry::register_pair`] registers two scans with no drive around them (`dmlo register`).
@@ -17,7 +17,7 @@
 //! ([`FrameMatcher::runs_matching_stage`]). Points on moving objects are left out: those the caller
 //! masks ([`Scan::moving`]), else, with a moving-object network ([`Odometry::with_moving_objects`]) and
 //! `moving_objects.detect`, those the network flags (without either, every point is kept, as
-//! `dmlo.Odometry` keeps them with a model folder without `moving.onnx`). Re-matching tries the wide window when the matcher has one
+//! as with a model folder without `moving.onnx`). Re-matching tries the wide window when the matcher has one
 //! ([`FrameMatcher::has_wide_window`]). Scans without usable reflectance switch to the range-only model
 //! ([`Odometry::with_range_only`]).
 //!
@@ -255,10 +255,15 @@ pub struct Odometry<M: FrameMatcher> {
     pose_frame: Option<u64>,
     poses: Vec<Matrix4<f64>>,
     diagnostics: Vec<FrameDiagnostics>,
+    /// Scans registered since the start (or the last [`Odometry::reset`]): the index of the next.
+    frames: usize,
+    /// The newest frames whose poses and diagnostics are kept; `None`: all of them.
+    history: Option<usize>,
     reflectance: Option<ReflectanceScale>,
     /// Why that scale (the values seen, or the config), for the notices that name it.
     reflectance_reason: String,
-    /// The range-only model, run from the first scan without usable reflectance on.
+    /// The model not running: the range-only one until the first scan without usable reflectance, the
+    /// model itself from then on (kept for [`Odometry::reset`]).
     range_only: Option<M>,
     /// The range-only model runs in place of the model.
     runs_range_only: bool,
@@ -304,6 +309,8 @@ impl<M: FrameMatcher> Odometry<M> {
             pose_frame: None,
             poses: Vec::new(),
             diagnostics: Vec::new(),
+            frames: 0,
+            history: None,
             reflectance: None,
             reflectance_reason: String::new(),
             range_only: None,
@@ -357,7 +364,7 @@ impl<M: FrameMatcher> Odometry<M> {
 
     /// The odometry running its model on zero reflectance for scans without usable reflectance when there
     /// is no range-only model, instead of refusing them: the model never saw such images, so its poses
-    /// cannot be trusted, and the caller should say so (`dmlo.Odometry` warns). For a model trained with
+    /// cannot be trusted, and a [`Notice::ZeroReflectance`] says so. For a model trained with
     /// reflectance, and for tools that must run on whatever a user gives them.
     pub fn allowing_zero_reflectance(mut self) -> Self {
         self.zero_reflectance_allowed = true;
@@ -374,14 +381,67 @@ impl<M: FrameMatcher> Odometry<M> {
         &self.config
     }
 
-    /// Every pose so far, `T_world_lidar` (the first scan is the world).
+    /// Every pose so far, `T_world_lidar` (the first scan is the world); with [`Odometry::keeping_history`]
+    /// the newest ones only.
     pub fn poses(&self) -> &[Matrix4<f64>] {
         &self.poses
     }
 
-    /// What happened to every scan so far.
+    /// What happened to every scan so far (the newest ones only, as [`Odometry::poses`]).
     pub fn diagnostics(&self) -> &[FrameDiagnostics] {
         &self.diagnostics
+    }
+
+    /// The newest scan's pose `T_world_lidar`; `None` before the first.
+    pub fn pose(&self) -> Option<Matrix4<f64>> {
+        self.poses.last().copied()
+    }
+
+    /// The newest scan's motion from the one before, `T_previous_newest` (the pose of the newest scan in
+    /// the previous scan's frame); `None` before the second scan.
+    pub fn delta(&self) -> Option<Matrix4<f64>> {
+        match self.poses.as_slice() {
+            [.., previous, newest] => Some(rigid_inverse(previous) * newest),
+            _ => None,
+        }
+    }
+
+    /// Scans registered so far (since the last [`Odometry::reset`]), whatever the history keeps.
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// The odometry keeping the poses and diagnostics of the newest `frames` scans only (at least 2, for
+    /// [`Odometry::delta`]), so that a robot running for days holds bounded memory.
+    pub fn keeping_history(mut self, frames: usize) -> Self {
+        self.history = Some(frames.max(2));
+        self
+    }
+
+    /// Forgets the drive: the next scan is the world again, matched against nothing; the motion model, the
+    /// local map, the clock, the reflectance scale and the notices said start afresh, and the model runs
+    /// again where the range-only one took over. The matcher, the config and the networks stay.
+    pub fn reset(&mut self) {
+        if self.runs_range_only {
+            if let Some(model) = &mut self.range_only {
+                std::mem::swap(&mut self.matcher, model);
+                self.runs_range_only = false;
+            }
+        }
+        if let Some(map) = &mut self.map {
+            map.clear();
+        }
+        self.motion = MotionModel::new(self.config.motion_limits());
+        self.clock = FrameClock::new();
+        self.reference = None;
+        self.pose_frame = None;
+        self.poses.clear();
+        self.diagnostics.clear();
+        self.frames = 0;
+        self.reflectance = None;
+        self.reflectance_reason.clear();
+        self.notices.clear();
+        self.said = Said::default();
     }
 
     /// The reflectance scale chosen on the first scan ([`ReflectanceScale::Ignored`]: none used).
@@ -423,7 +483,7 @@ impl<M: FrameMatcher> Odometry<M> {
         check_one_per_point(scan.point_times, "point_times", "time", scan.points.len())?;
         let times = scan.point_times.map(|times| kept_rows(times, &keep));
         let min_points = self.config.min_points as usize;
-        let index = self.poses.len();
+        let index = self.frames;
         let values = scan.has_reflectance.then_some(&finite_reflectance[..]);
         let scale = self.reflectance_for(values, finite_reflectance.len(), min_points, index)?;
         let tick = self.clock.advance(scan.timestamp)?;
@@ -607,7 +667,7 @@ impl<M: FrameMatcher> Odometry<M> {
     pub fn predict_skipped(&mut self, reason: Fallback) -> Result<Matrix4<f64>> {
         self.clock.advance(None)?;
         let diagnostics = FrameDiagnostics {
-            index: self.poses.len(),
+            index: self.frames,
             ..Default::default()
         };
         Ok(self.skip(diagnostics, reason))
@@ -630,6 +690,15 @@ impl<M: FrameMatcher> Odometry<M> {
         self.pose_frame = Some(frame);
         self.poses.push(pose);
         self.diagnostics.push(diagnostics);
+        self.frames += 1;
+        if let Some(kept) = self.history {
+            // Trimmed in batches, so that each scan moves the history once on average.
+            if self.poses.len() >= 2 * kept {
+                let dropped = self.poses.len() - kept;
+                self.poses.drain(..dropped);
+                self.diagnostics.drain(..dropped);
+            }
+        }
         pose
     }
 

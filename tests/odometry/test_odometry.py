@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from dmlo.datasets import open_sequence
+from dmlo.metrics import registration_errors
 from dmlo.odometry import Odometry, OdometryConfig, PairResult
 from dmlo.odometry.matcher import ModelError, OnnxMatcher, default_model_path, wide_graph_path
 from dmlo.simulator import simulate_sequence
@@ -33,7 +34,7 @@ def test_a_caller_refilling_one_buffer_gets_the_poses_of_separate_scans(scans: l
     np.testing.assert_array_equal(np.stack(streamed.poses), np.stack(separate.poses))
 
 
-def test_first_pose_is_the_world_and_every_scan_gets_a_pose(scans: list[np.ndarray]) -> None:
+def test_first_pose_is_the_world_and_every_scan_gets_its_pose(drive: Path, scans: list[np.ndarray]) -> None:
     odometry = Odometry.from_default(frame_to_frame())
     poses = [odometry.register(points) for points in scans]
     assert np.array_equal(poses[0], np.eye(4))
@@ -41,8 +42,15 @@ def test_first_pose_is_the_world_and_every_scan_gets_a_pose(scans: list[np.ndarr
     for pose in poses:
         assert pose.shape == (4, 4) and np.isfinite(pose).all()
         assert np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-6)
+    # Each pair's motion is the simulator's (about 1 m a frame), within a few centimetres.
+    truth = [frame.pose for frame in open_sequence(drive)]
+    estimated = np.stack([np.linalg.inv(a) @ b for a, b in zip(poses, poses[1:])])
+    true = np.stack([np.linalg.inv(a) @ b for a, b in zip(truth, truth[1:])])
+    errors = registration_errors(estimated, true)
+    assert errors.translation_max < 0.05 and errors.angular_max < 0.3, errors
     later = odometry.diagnostics[1]
     assert 0 < later.num_matches <= frame_to_frame().matching.max_matches
+    assert later.num_inliers >= frame_to_frame().motion_model.min_inliers and later.fallback is None
     assert {"network", "pair"} <= set(later.timings_ms)
 
 

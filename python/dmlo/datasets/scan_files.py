@@ -1,11 +1,11 @@
 """Single scan files: KITTI ``.bin`` and ``.label``, PLY and PCD, parsed with numpy.
 
-The PLY and PCD parsers are dmlo's own rather than plyfile's and pypcd4's, measured on real scans
-(docs/measurements.md, "PLY and PCD readers", 2026-12-04): plyfile reads binary PLY no faster and ASCII PLY
-3 to 4 times slower; pypcd4 reads PCD no faster, refuses headers without ``COUNT`` or ``POINTS`` (optional
-in older files) or with more than ten lines, and reads a truncated file as fewer points instead of refusing
-it. Only the LZF decoding of ``binary_compressed`` PCD is borrowed: liblzf's C decoder from the ``io`` extra
-(``python-neo-lzf``, the one pypcd4 uses), 35 times faster than the pure-Python decoder it replaced.
+The PLY and PCD parsers are dmlo's own rather than plyfile's and pypcd4's (docs/measurements.md, "PLY and
+PCD readers", compares them on real scans): plyfile reads binary PLY no faster and ASCII PLY slower; pypcd4
+reads PCD no faster, refuses headers without ``COUNT`` or ``POINTS`` (optional in older files) or with more
+than ten lines, and reads a truncated file as fewer points instead of refusing it. Only the LZF decoding of
+``binary_compressed`` PCD is borrowed: liblzf's C decoder from the ``io`` extra (``python-neo-lzf``, the one
+pypcd4 uses), far faster than decoding in Python.
 
 Every reader returns an ``(N, 4)`` float32 array ``x, y, z, reflectance`` and raises
 :class:`~dmlo.datasets.base.DatasetError` naming the file and the problem for anything truncated or

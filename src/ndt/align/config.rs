@@ -7,12 +7,12 @@ use super::super::score::NeighbourSearch;
 use crate::{Error, Result};
 
 /// Default [`NdtAlignConfig::degeneracy_threshold`]: a translation with under 5 % of the information of
-/// the best-constrained one. A synthetic corridor's axis has ≈ 3 % (in-plane information of planar
-/// distributions is about the map's `min_eigenvalue_ratio` = 1 % of their normal information, times the
-/// share of points on them), the weakest translation on simulated streets 12–37 % (docs/measurements.md).
+/// the best-constrained one. Along a corridor the in-plane information of planar distributions is about
+/// the map's `min_eigenvalue_ratio` of their normal information, times the share of points on them: below
+/// this; a street's weakest translation lies well above it (docs/measurements.md).
 pub const DEFAULT_DEGENERACY_THRESHOLD: f64 = 0.05;
-/// Default [`NdtAlignConfig::rotation_degeneracy_threshold`]: the weakest rotation (roll) on simulated
-/// streets has 2–10 % of the strongest's, on the synthetic corridor 8 %.
+/// Default [`NdtAlignConfig::rotation_degeneracy_threshold`]: below the weakest rotation (roll) of a street
+/// or a corridor (docs/measurements.md).
 pub const DEFAULT_ROTATION_DEGENERACY_THRESHOLD: f64 = 0.01;
 
 /// Settings of [`NdtMap::align`](crate::ndt::NdtMap::align).
@@ -46,8 +46,8 @@ pub struct NdtAlignConfig {
     /// degenerate: the solve keeps the initial estimate along it (see the module docs). In [0, 1); 0 off.
     pub degeneracy_threshold: f64,
     /// The same for rotation directions (translation marginalised). Lower than the translation's: the
-    /// rotation information grows with the squared lever arm, so on a long narrow street roll has only
-    /// 2–10 % of yaw's although the ground pins it well.
+    /// rotation information grows with the squared lever arm, so on a long narrow street roll has a small
+    /// fraction of yaw's although the ground pins it well.
     pub rotation_degeneracy_threshold: f64,
 }
 

@@ -8,7 +8,7 @@ use serde::Serialize;
 use super::{Matched, Notice};
 use crate::odometry::motion::Fallback;
 
-/// What happened to one scan, as `dmlo.Odometry`'s `FrameDiagnostics` (the same keys in
+/// What happened to one scan (`FrameDiagnostics` in Python, the same keys in
 /// `diagnostics.jsonl`).
 #[derive(Debug, Clone, PartialEq, Default, Serialize)]
 pub struct FrameDiagnostics {
@@ -70,7 +70,7 @@ pub struct FrameDiagnostics {
     pub notices: Vec<Notice>,
 }
 
-/// `value` to `DIGITS` decimals, as `dmlo.Odometry`'s diagnostics write it.
+/// `value` to `DIGITS` decimals, as the diagnostics are written.
 fn round_to<const DIGITS: i32>(value: f64) -> f64 {
     let scale = 10f64.powi(DIGITS);
     (value * scale).round() / scale

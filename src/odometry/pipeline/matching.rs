@@ -267,7 +267,7 @@ pub(super) fn symmetric(forward: Matched, backward: Matched, min_inliers: usize)
 
 /// Per cell, whether following `flow` and then `back` (read at the nearest cell of the match) lands
 /// further than `limit` pixels from where it started, or the match leaves the image: optical flow's
-/// forward–backward consistency check, in float32 as `dmlo.Odometry` computes it.
+/// forward–backward consistency check, in float32.
 pub(super) fn round_trip_outliers(
     flow: &DenseFlow,
     back: &DenseFlow,

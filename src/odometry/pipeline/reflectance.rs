@@ -100,7 +100,7 @@ impl<M: FrameMatcher> Odometry<M> {
     /// (`scan`: a later scan that moved it there); without one, the model runs on zero reflectance when
     /// that is allowed (with a notice that its poses cannot be trusted), else an error naming `why`.
     pub(super) fn switch_to_range_only(&mut self, scan: Option<usize>, why: String) -> Result<()> {
-        let Some(range_only) = self.range_only.take() else {
+        let Some(mut range_only) = self.range_only.take() else {
             if self.zero_reflectance_allowed {
                 self.notices.push(Notice::ZeroReflectance { scan, why });
                 return Ok(());
@@ -119,7 +119,8 @@ impl<M: FrameMatcher> Odometry<M> {
                 }
             }
         }
-        self.matcher = range_only;
+        std::mem::swap(&mut self.matcher, &mut range_only);
+        self.range_only = Some(range_only);
         self.runs_range_only = true;
         self.notices.push(Notice::RangeOnlyModel { scan, why });
         Ok(())

@@ -411,7 +411,7 @@ pub(super) fn expected_flow(
         .collect()
 }
 
-/// A scan with its points moved by `transform`, in float32 as the points are stored (as Python's).
+/// A scan with its points moved by `transform`, in float32 as the points are stored.
 pub(super) fn moved_cloud(cloud: &[[f32; 4]], transform: &Matrix4<f64>) -> Vec<[f32; 4]> {
     if *transform == Matrix4::identity() {
         return cloud.to_vec();

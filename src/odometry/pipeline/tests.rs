@@ -558,6 +558,54 @@ fn scans_without_reflectance_switch_to_the_range_only_model() {
     assert_eq!(alone.reflectance_scale(), Some(ReflectanceScale::Ignored));
 }
 
+#[test]
+fn a_reset_starts_the_drive_afresh_and_the_history_stays_bounded() {
+    let range_only = OracleMatcher {
+        reads_reflectance: false,
+        ..OracleMatcher::new()
+    };
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(true))
+        .unwrap()
+        .with_range_only(range_only)
+        .unwrap()
+        .keeping_history(3);
+    // Both models told the truth: the range-only one takes over within a frame.
+    let drive = |odometry: &mut Odometry<OracleMatcher>| -> Vec<Matrix4<f64>> {
+        (0..7)
+            .map(|i| {
+                let truth = true_pose(i).inverse() * true_pose(i.saturating_sub(1));
+                odometry.matcher.truth.set(truth);
+                odometry.range_only.as_ref().unwrap().truth.set(truth);
+                let points = scan(i);
+                let dark: Vec<[f32; 4]> =
+                    points.iter().map(|&[x, y, z, _]| [x, y, z, 0.0]).collect();
+                odometry
+                    .register(Scan::new(if i < 4 { &points } else { &dark }))
+                    .unwrap()
+            })
+            .collect()
+    };
+    let first = drive(&mut odometry);
+    assert_eq!(odometry.frames(), 7);
+    assert!(odometry.poses().len() <= 5 && odometry.poses().len() >= 3);
+    assert_eq!(odometry.pose(), Some(first[6]));
+    assert_eq!(odometry.diagnostics().last().unwrap().index, 6);
+    let delta = odometry.delta().unwrap();
+    let expected = rigid_inverse(&first[5]) * first[6];
+    assert!((delta - expected).abs().max() < 1e-12);
+    assert!(odometry.runs_range_only());
+    odometry.reset();
+    assert_eq!(
+        (odometry.frames(), odometry.pose(), odometry.delta()),
+        (0, None, None)
+    );
+    assert!(!odometry.runs_range_only() && odometry.reflectance_scale().is_none());
+    // The same drive again gives the same poses: nothing of the first is left.
+    let again = drive(&mut odometry);
+    assert_eq!(again, first);
+    assert_eq!(notice_kinds(&odometry).concat(), ["range_only_model"]);
+}
+
 /// The kinds of the notices of every frame so far, frame by frame.
 fn notice_kinds<M: FrameMatcher>(odometry: &Odometry<M>) -> Vec<Vec<&'static str>> {
     odometry

@@ -171,7 +171,7 @@ impl<M: FrameMatcher> Odometry<M> {
                 ),
             ));
         }
-        let index = self.poses.len();
+        let index = self.frames;
         let scale = self.reflectance_for(values, finite_reflectance.len(), min_points, index)?;
         Ok(normalised(kept, scale.unwrap_or(ReflectanceScale::Unit)))
     }
