@@ -764,7 +764,7 @@ class Odometry:
     [2, H, W] float32: range, reflectance), `match(reference, target)` → (flow [2, H, W], confidence [H, W])
     float32, and optionally `uses_reflectance` (bool), `match_cells(reference, target, cells)` (the flow of the
     reference cells marked in `cells`, bool [H, W]: those that hold a point; other cells' values are not read)
-    and `wide_match(reference, target, target_image)` — as `dmlo.odometry.matcher.CrateMatcher`. An exception
+    and `wide_match(reference, target, target_image)` — as `dmlo.odometry.matcher.FrameMatcherAdapter`. An exception
     the matcher raises comes through unchanged. `config_json`: `dmlo run`'s config.json text (None: the
     defaults; a bad setting raises ConfigError naming it); `range_only`: the range-only model's matcher, run
     from the first scan without usable reflectance on; `allow_zero_reflectance`: without a range-only model,
@@ -807,7 +807,10 @@ class Odometry:
         `large_motion`: the wide window from the configured search starts, then rounds of the model's own;
         `*_moving`: one flag per point, left out. The drive's poses are untouched."""
     def predict_skipped(self, reason: str = "unreadable_scan") -> npt.NDArray[np.float64]:
-        """Records a scan that could not be read: its pose from the motion model."""
+        """Records a scan that could not be read: its pose from the motion model (`reason`: a fallback's
+        name)."""
+    def reset(self) -> None:
+        """Forgets the drive: the next scan is the world again; the matchers and the config stay."""
     @property
     def poses(self) -> npt.NDArray[np.float64]:
         """Every pose so far, (N, 4, 4)."""

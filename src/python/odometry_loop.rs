@@ -445,6 +445,11 @@ impl PyOdometry {
         ))
     }
 
+    /// Forgets the drive: the next scan is the world again (`Odometry::reset`).
+    fn reset(&mut self) {
+        self.inner.reset();
+    }
+
     /// Records a scan that could not be read: its pose from the motion model, `reason` in its diagnostics.
     #[pyo3(signature = (reason = "unreadable_scan"))]
     fn predict_skipped<'py>(

@@ -1,5 +1,5 @@
 """`dmlo.Odometry` is the crate's per-frame loop (`dmlo_rs.Odometry`, `odometry::pipeline` in Rust) run over
-Python's matcher (onnxruntime behind the crate's `FrameMatcher` trait, `dmlo.odometry.matcher.CrateMatcher`):
+Python's matcher (onnxruntime behind the crate's `FrameMatcher` trait, `dmlo.odometry.matcher.FrameMatcherAdapter`):
 what Python adds (scan checks, reflectance notices, the moving-object network) changes no pose; the frame graph
 runs once a scan where it matches (`matching_stage` "graph", or a model with `frame.onnx` alone); the binding
 passes the matcher's own exceptions through and names wrong outputs, bad configs and bad scans. (Before the
@@ -19,7 +19,7 @@ import pytest
 
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
-from dmlo.odometry.matcher import CrateMatcher, OnnxMatcher, default_model_path
+from dmlo.odometry.matcher import FrameMatcherAdapter, OnnxMatcher, default_model_path
 from dmlo.odometry import ReflectanceNotice
 
 GRAPHS = ("encoder.onnx", "frame.onnx", "match.onnx")
@@ -147,7 +147,7 @@ def test_scans_without_reflectance_switch_the_crate_to_the_range_only_model(
     assert python.matcher is range_only and crate.reflectance_scale == "none"
     assert _without_timings(crate.diagnostics) == _without_timings([d.to_dict() for d in python.diagnostics])
     with pytest.raises(ValueError, match="range_only: reads the reflectance"):
-        dmlo_rs.Odometry(range_only, range_only=CrateMatcher(OnnxMatcher(tmp_path / "frame.onnx")))
+        dmlo_rs.Odometry(range_only, range_only=FrameMatcherAdapter(OnnxMatcher(tmp_path / "frame.onnx")))
 
 
 class _Recorder:

@@ -54,6 +54,17 @@ def test_first_pose_is_the_world_and_every_scan_gets_its_pose(drive: Path, scans
     assert {"network", "pair"} <= set(later.timings_ms)
 
 
+def test_a_reset_odometry_registers_a_drive_as_a_new_one(scans: list[np.ndarray]) -> None:
+    odometry = Odometry.from_default(frame_to_frame())
+    first = [odometry.register(p) for p in scans[:3]]
+    odometry.register(scans[4])
+    odometry.reset()
+    assert odometry.poses == [] and odometry.diagnostics == []
+    again = [odometry.register(p) for p in scans[:3]]
+    assert all(np.array_equal(a, b) for a, b in zip(first, again))
+    assert [d.index for d in odometry.diagnostics] == [0, 1, 2]
+
+
 def test_same_scans_give_identical_poses(scans: list[np.ndarray]) -> None:
     runs = []
     for _ in range(2):

@@ -17,7 +17,7 @@ onnx = pytest.importorskip("onnx")
 import dmlo_rs  # noqa: E402
 from dmlo.export import export_onnx, similarity_scales  # noqa: E402
 from dmlo.model import Matcher, MatcherConfig  # noqa: E402
-from dmlo.odometry.matcher import CrateMatcher, ModelError, OnnxMatcher, default_model_path  # noqa: E402
+from dmlo.odometry.matcher import FrameMatcherAdapter, ModelError, OnnxMatcher, default_model_path  # noqa: E402
 
 from test_export import HEIGHT, WIDTH, calibrated_matcher, tied_cells  # noqa: E402
 from test_model import synthetic_pair  # noqa: E402
@@ -120,14 +120,14 @@ def test_crate_agrees_with_the_bundled_match_graph_on_kitti_scans(shared_data: P
 
 
 def test_the_occupied_cells_alone_are_matched_as_in_the_dense_stage(shared_data: Path) -> None:
-    # What the odometry asks for (`CrateMatcher.match_cells`): a real scan's cells that hold a point.
+    # What the odometry asks for (`FrameMatcherAdapter.match_cells`): a real scan's cells that hold a point.
     matcher = OnnxMatcher(default_model_path(), threads=2, matching_stage="crate")
     images = kitti_images(shared_data, matcher)
     ref, tgt = (matcher.encode(image) for image in images)
     occupied = images[0][0] > 0
     assert 0.5 < occupied.mean() < 0.95
     dense_flow, dense_confidence = matcher.match(ref, tgt)
-    crate = CrateMatcher(matcher)
+    crate = FrameMatcherAdapter(matcher)
     flow, confidence = crate.match_cells(ref, tgt, occupied)
     np.testing.assert_array_equal(flow[:, occupied], dense_flow[:, occupied])
     np.testing.assert_allclose(confidence[occupied], dense_confidence[occupied], rtol=1e-5)
@@ -136,8 +136,8 @@ def test_the_occupied_cells_alone_are_matched_as_in_the_dense_stage(shared_data:
 
 def test_a_matcher_in_its_graphs_matches_every_cell() -> None:
     graph = OnnxMatcher(default_model_path(), threads=2, matching_stage="graph")
-    assert not hasattr(CrateMatcher(graph), "match_cells")
-    assert not hasattr(CrateMatcher(graph), "match_guided")
+    assert not hasattr(FrameMatcherAdapter(graph), "match_cells")
+    assert not hasattr(FrameMatcherAdapter(graph), "match_guided")
     height, width = graph.cylinder.height, graph.cylinder.width
     features = graph.encode(np.zeros((2, height, width), np.float32))
     with pytest.raises(ModelError, match="guide"):
@@ -163,7 +163,7 @@ def test_windows_placed_by_the_expected_flow_reach_a_turn_beyond_the_window(shar
     plain, _ = matcher.match(ref, tgt, occupied)
     expected = np.full(image.shape[1:] + (2,), np.nan, np.float32)
     expected[occupied] = [0.0, 97.0]  # a few columns off, as a prediction is
-    guided, confidence = CrateMatcher(matcher).match_guided(ref, tgt, occupied, expected)
+    guided, confidence = FrameMatcherAdapter(matcher).match_guided(ref, tgt, occupied, expected)
     assert reached(plain) < 0.05 and reached(guided) > 0.95, (reached(plain), reached(guided))
     assert np.isnan(guided[:, ~occupied]).all() and (confidence[~occupied] == 0).all()
     # Expecting nothing anywhere is the plain match.

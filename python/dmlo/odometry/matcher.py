@@ -406,12 +406,13 @@ def _cylinder_from_metadata(values: dict[str, object], graph: Path) -> dmlo_rs.C
         raise ModelError(f"{graph}: invalid cylinder configuration: {err}") from err
 
 
-class CrateMatcher:
-    """`matcher` as the crate's odometry loop (`dmlo_rs.Odometry`) calls it: `encode`, `match`, `cylinder`,
-    `uses_reflectance`, `match_cells` and `match_guided` when the crate matches (only the cells that hold a
-    point: the loop reads no other; the coarse windows placed where the prediction takes each cell, for pairs
-    beyond the window), and `wide_match` when the wide-window graph lies beside the model (opened on the first
-    pair far apart, with `threads` and `matching_stage` as the model's; an `OnnxMatcher`'s only).
+class FrameMatcherAdapter:
+    """`matcher` adapted to the crate's `FrameMatcher` protocol, as its odometry loop (`dmlo_rs.Odometry`)
+    calls it: `encode`, `match`, `cylinder`, `uses_reflectance`, `match_cells` and `match_guided` when the
+    crate matches (only the cells that hold a point: the loop reads no other; the coarse windows placed where
+    the prediction takes each cell, for pairs beyond the window), and `wide_match` when the wide-window graph
+    lies beside the model (opened on the first pair far apart, with `threads` and `matching_stage` as the
+    model's; an `OnnxMatcher`'s only).
 
     A matcher that matches in the crate (`OnnxMatcher` on a CPU) encodes each scan with `encoder.onnx`. Any
     other — the `frame` graph, which encodes a scan while matching the previous one against it (all of it on
@@ -492,7 +493,7 @@ class CrateMatcher:
 
 @dataclass
 class _Deferred:
-    """A scan's image whose features are computed when first needed (`CrateMatcher`)."""
+    """A scan's image whose features are computed when first needed (`FrameMatcherAdapter`)."""
 
     image: npt.NDArray[np.float32]
     features: Features | None = None

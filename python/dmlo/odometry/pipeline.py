@@ -26,7 +26,7 @@ from dmlo.odometry.matcher import (
     ENCODER_GRAPH,
     MATCH_GRAPH,
     RANGE_ONLY_DIR,
-    CrateMatcher,
+    FrameMatcherAdapter,
     Matcher,
     ModelError,
     OnnxMatcher,
@@ -175,8 +175,8 @@ class Odometry:
         settings = self.config.to_dict()
         if self._available_rematch_gap() is None:  # the graphs it needs are missing (warned)
             settings["motion_model"].update(rematch_gap=None, match_from_prediction_m=None, start_check_m=None)
-        self._loop_matcher = CrateMatcher(matcher, self.config.threads, self.config.matching_stage)
-        range_only = None if self._range_only is None else CrateMatcher(
+        self._loop_matcher = FrameMatcherAdapter(matcher, self.config.threads, self.config.matching_stage)
+        range_only = None if self._range_only is None else FrameMatcherAdapter(
             self._range_only, self._beside_threads(), self.config.matching_stage
         )
         # Scans without reflectance and no range-only model run on zeros, with the crate's notice that their
@@ -257,6 +257,13 @@ class Odometry:
         mask = None if moving is None else _as_mask(moving, len(cloud))
         pose = self._loop.register(cloud, moving=mask, timestamp=timestamp, point_times=times)
         return self._record(pose, self._newest_diagnostics())
+
+    def reset(self) -> None:
+        """Forgets the drive: the next scan is the world again, with a fresh motion model, local map, clock
+        and reflectance scale; the model and the config stay."""
+        self._loop.reset()
+        self.poses.clear()
+        self.diagnostics.clear()
 
     def predict_skipped(self, reason: str = "unreadable_scan") -> Matrix4:
         """Records a scan that could not be read: its pose comes from the motion model."""
