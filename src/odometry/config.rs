@@ -92,10 +92,7 @@ impl Named for RefitKind {
     ];
 }
 
-const REFITS: [&str; 2] = names(&[
-    (RefitKind::PointToPoint, "point_to_point"),
-    (RefitKind::RayNoise, "ray_noise"),
-]);
+const REFITS: [&str; 2] = names(RefitKind::NAMES);
 
 settings! {
     /// RANSAC around the closed-form SVD solve (§III-D-b).
@@ -364,11 +361,7 @@ impl Named for MatchingStage {
     ];
 }
 
-const MATCHING_STAGES: [&str; 3] = names(&[
-    (MatchingStage::Auto, "auto"),
-    (MatchingStage::Crate, "crate"),
-    (MatchingStage::Graph, "graph"),
-]);
+const MATCHING_STAGES: [&str; 3] = names(MatchingStage::NAMES);
 
 /// The scans' reflectance scale.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -396,13 +389,7 @@ impl Named for ReflectanceScale {
     ];
 }
 
-const REFLECTANCE_SCALES: [&str; 5] = names(&[
-    (ReflectanceScale::Auto, "auto"),
-    (ReflectanceScale::Unit, "unit"),
-    (ReflectanceScale::ZeroTo255, "0-255"),
-    (ReflectanceScale::ZeroTo65535, "0-65535"),
-    (ReflectanceScale::Ignored, "none"),
-]);
+const REFLECTANCE_SCALES: [&str; 5] = names(ReflectanceScale::NAMES);
 
 settings! {
     /// Every setting of the odometry (module docs); `Default` is `dmlo run`'s.

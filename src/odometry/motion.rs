@@ -11,6 +11,7 @@
 use nalgebra::{Matrix3, Matrix4, Point3, Vector3};
 
 use crate::error::{Error, Result};
+use crate::odometry::config::schema::Named;
 use crate::ransac::Refit;
 
 /// When a pair's motion gives way to the prediction: the config's `motion_model` settings and the
@@ -115,9 +116,8 @@ pub enum Fallback {
     UnreadableScan,
 }
 
-impl Fallback {
-    /// Every fallback, with the name the diagnostics give it.
-    pub const NAMES: [(Fallback, &'static str); 8] = [
+impl Named for Fallback {
+    const NAMES: &'static [(Self, &'static str)] = &[
         (Fallback::ConstantVelocity, "constant_velocity"),
         (Fallback::DegenerateScene, "degenerate_scene"),
         (Fallback::GuidedConsensus, "guided_consensus"),
@@ -130,22 +130,6 @@ impl Fallback {
         (Fallback::TooFewPoints, "too_few_points"),
         (Fallback::UnreadableScan, "unreadable_scan"),
     ];
-
-    /// The name the diagnostics give it.
-    pub fn name(self) -> &'static str {
-        Self::NAMES
-            .iter()
-            .find(|(fallback, _)| *fallback == self)
-            .map_or("", |(_, name)| name)
-    }
-
-    /// The fallback of a name, if any.
-    pub fn from_name(name: &str) -> Option<Self> {
-        Self::NAMES
-            .iter()
-            .find(|(_, n)| *n == name)
-            .map(|(fallback, _)| *fallback)
-    }
 }
 
 impl serde::Serialize for Fallback {

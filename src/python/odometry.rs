@@ -5,6 +5,7 @@ use numpy::PyArray2;
 use pyo3::prelude::*;
 
 use crate::odometry::clock::FrameClock;
+use crate::odometry::config::schema::Named;
 use crate::odometry::config::OdometryConfig;
 use crate::odometry::motion::{MotionLimits, MotionModel, PairEvidence};
 

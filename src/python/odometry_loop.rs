@@ -458,7 +458,10 @@ impl PyOdometry {
         reason: &str,
     ) -> PyResult<Bound<'py, numpy::PyArray2<f64>>> {
         let reason = Fallback::from_name(reason).ok_or_else(|| {
-            let names: Vec<&str> = Fallback::NAMES.iter().map(|(_, name)| *name).collect();
+            let names: Vec<&str> = <Fallback as Named>::NAMES
+                .iter()
+                .map(|(_, name)| *name)
+                .collect();
             PyValueError::new_err(format!(
                 "reason: expected one of {}, got {reason:?}",
                 names.join(", ")

@@ -368,7 +368,8 @@ impl<T: SettingValue> SettingValue for Option<T> {
     }
 }
 
-/// A setting that is one of several names ([`Rule::Choice`]): its variants and their names.
+/// A type that is one of several names (a setting's choices, [`Rule::Choice`]; a frame's fallback): its
+/// variants and their names.
 pub trait Named: Sized + Copy + PartialEq + 'static {
     /// Every variant with its name in the config.
     const NAMES: &'static [(Self, &'static str)];
@@ -390,8 +391,8 @@ pub trait Named: Sized + Copy + PartialEq + 'static {
     }
 }
 
-/// The names of a [`Named`] type's variants, for its [`Rule::Choice`].
-pub const fn names<const N: usize, T: Copy>(named: &[(T, &'static str); N]) -> [&'static str; N] {
+/// The names of a [`Named`] type's `N` variants, for its [`Rule::Choice`].
+pub const fn names<const N: usize, T: Copy>(named: &[(T, &'static str)]) -> [&'static str; N] {
     let mut out = [""; N];
     let mut i = 0;
     while i < N {
