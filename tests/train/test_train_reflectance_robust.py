@@ -168,3 +168,17 @@ def test_the_pose_stage_trains_whole_images_from_the_crop_stage_with_the_same_au
     assert argv[argv.index("--crop-width") + 1] == "0" and float(argv[argv.index("--pose-loss-weight") + 1]) > 0
     assert "--resume" in argv and "--device" not in argv
     assert options == default_recipe.REFLECTANCE_ROBUST_AUGMENTATION
+
+
+@pytest.mark.skipif(not (STATE.parent / "reflectance_robust_pose" / "train.json").is_file(),
+                    reason="no reflectance-robust pose state committed")
+def test_committed_reflectance_robust_pose_state_was_made_by_the_recipe() -> None:
+    import json
+
+    config = TrainConfig.from_dict(json.loads((STATE.parent / "reflectance_robust_pose" / "train.json").read_text()))
+    arguments = default_recipe.REFLECTANCE_ROBUST_POSE_ARGUMENTS
+    for name, value in default_recipe.REFLECTANCE_ROBUST_AUGMENTATION.items():
+        assert getattr(config, name) == value
+    assert config.pose_loss_weight == float(arguments[arguments.index("--pose-loss-weight") + 1])
+    assert config.crop_width is None and config.val_width is None  # "--crop-width 0": the whole image
+    assert config.init is not None and Path(config.init).parent.name == "reflectance_robust"
