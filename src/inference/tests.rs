@@ -23,6 +23,18 @@ fn bundled_encoder() -> PathBuf {
 /// then returns early, and says it skipped past the harness's capture of its output, so that a skip is
 /// never read as a pass. Under `CI=true`, where `.ci/setup` provides all of it, an absence fails the test.
 fn needed<T>(found: Option<T>, what: &str) -> Option<T> {
+    let under_ci = std::env::var("CI").as_deref() == Ok("true");
+    // Straight to stderr: the harness captures `eprintln!` of passing tests.
+    skip_or_fail(found, what, under_ci, &mut std::io::stderr())
+}
+
+/// [`needed`]'s rule, its skip line written to `report`.
+fn skip_or_fail<T>(
+    found: Option<T>,
+    what: &str,
+    under_ci: bool,
+    report: &mut dyn Write,
+) -> Option<T> {
     if found.is_some() {
         return found;
     }
@@ -31,23 +43,34 @@ fn needed<T>(found: Option<T>, what: &str) -> Option<T> {
         .unwrap_or("a test")
         .to_string();
     assert!(
-        std::env::var("CI").as_deref() != Ok("true"),
+        !under_ci,
         "{test}: {what} is missing, and under CI=true it must be there"
     );
-    // Straight to stderr: the harness captures `eprintln!` of passing tests.
-    let _ = writeln!(std::io::stderr(), "SKIPPED {test}: {what} is missing");
+    let _ = writeln!(report, "SKIPPED {test}: {what} is missing");
     None
 }
 
 #[test]
 fn a_missing_resource_skips_the_test_but_fails_it_under_ci() {
-    let under_ci = std::env::var("CI").as_deref() == Ok("true");
-    let outcome = std::panic::catch_unwind(|| needed(None::<()>, "a resource no test has"));
-    match outcome {
-        Ok(found) => assert!(!under_ci && found.is_none()),
-        Err(_) => assert!(under_ci),
-    }
-    assert_eq!(needed(Some(7), "a resource at hand"), Some(7));
+    let mut report = Vec::new();
+    assert_eq!(
+        skip_or_fail(None::<()>, "the data", false, &mut report),
+        None
+    );
+    let report = String::from_utf8(report).unwrap();
+    assert_eq!(
+        report,
+        "SKIPPED inference::tests::a_missing_resource_skips_the_test_but_fails_it_under_ci: the data is missing\n"
+    );
+    let under_ci =
+        std::panic::catch_unwind(|| skip_or_fail(None::<()>, "the data", true, &mut Vec::new()));
+    assert!(under_ci.is_err());
+    let mut silent = Vec::new();
+    assert_eq!(
+        skip_or_fail(Some(7), "the data", true, &mut silent),
+        Some(7)
+    );
+    assert!(silent.is_empty());
 }
 
 /// `../shared/data`, the real scans the tests compare against; `None` (the test skips) without it.
