@@ -9,12 +9,11 @@
 //! ```
 //!
 //! `SCANS_DIR` holds the scans (`*.bin`, N × 4 float32: x, y, z, reflectance), registered in name
-//! order. `MODEL_DIR` (default `python/dmlo/models/default`) holds `encoder.onnx` (with `frame_wide.onnx`
-//! beside it: its wide window for pairs re-matched from the prediction; with `range_only/encoder.onnx`:
-//! the range-only model for scans without usable reflectance; with `moving.onnx`: the moving-object
-//! network, whose flagged points are left out as `dmlo run` leaves them out, unless the config's
-//! `moving_objects.detect` is false); `CONFIG.json` is a
-//! config as `dmlo run` writes it (default: the defaults). `OUT_DIR` gets `poses_kitti.txt`
+//! order. `MODEL_DIR` (default `python/dmlo/models/default`) is a model folder as `dmlo export` writes it,
+//! opened by [`Odometry::open_with_runtime`]: the encoder with its wide window, the range-only model and
+//! the moving-object network (whose flagged points are left out as `dmlo run` leaves them out, unless the
+//! config's `moving_objects.detect` is false) when the folder has them; `CONFIG.json` is a config as
+//! `dmlo run` writes it (default: the defaults). `OUT_DIR` gets `poses_kitti.txt`
 //! (`T_world_lidar`, the first scan the world: one row of 12 numbers a scan, readable by evo) and
 //! `diagnostics.jsonl` (one JSON object a scan), both appended and flushed scan by scan, so an interrupted
 //! run keeps every scan done. `--threads` sizes rayon's pool (tract and the crate's stages) and onnxruntime's
@@ -30,13 +29,10 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use dmlo_rs::inference::{
-    graph_metadata, Encoder, LearnedMatcher, TractEncoder, TractMovingObjects,
-};
+use dmlo_rs::inference::Runtime;
 use dmlo_rs::odometry::config::OdometryConfig;
 use dmlo_rs::odometry::motion::Fallback;
-use dmlo_rs::odometry::moving::MovingObjectNetwork;
-use dmlo_rs::odometry::pipeline::{EncodeAhead, Odometry, Scan};
+use dmlo_rs::odometry::pipeline::{Odometry, Scan};
 use dmlo_rs::scan_file::{kitti_scan_files, read_kitti_scan};
 
 const USAGE: &str = "usage: odometry SCANS_DIR --out OUT_DIR [--model MODEL_DIR] [--config CONFIG.json] [--threads N] [--onnxruntime LIB] [--encode-ahead]";
@@ -114,20 +110,6 @@ fn python_exponent(text: &str) -> String {
     }
 }
 
-/// The model in `folder` over `encoder` (its `encoder.onnx` opened by the runtime), with the wide window of
-/// `frame_wide.onnx` beside it when there is one.
-fn learned_matcher<E: Encoder + Send + Sync + 'static>(
-    folder: &Path,
-    encoder: impl Fn(&Path) -> dmlo_rs::Result<E>,
-) -> dmlo_rs::Result<EncodeAhead<LearnedMatcher<E>>> {
-    let mut matcher = LearnedMatcher::new(encoder(&folder.join("encoder.onnx"))?)?;
-    let wide = folder.join("frame_wide.onnx");
-    if wide.is_file() {
-        matcher = matcher.with_wide_window(graph_metadata(&wide)?.coarse_window)?;
-    }
-    Ok(EncodeAhead::new(matcher))
-}
-
 fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let arguments = parse(args)?;
     let config = match &arguments.config {
@@ -140,66 +122,38 @@ fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error + Send + Sync>> 
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
-    pool.install(|| match &arguments.onnxruntime {
-        None => drive(
-            &arguments,
-            config,
-            |path: &Path| TractEncoder::open(path),
-            |path: &Path| TractMovingObjects::open(path),
-        ),
-        Some(library) => with_onnxruntime(&arguments, config, library, threads),
+    let runtime = runtime(arguments.onnxruntime.as_deref(), threads)?;
+    pool.install(|| drive(&arguments, config, &runtime))
+}
+
+/// onnxruntime, from its shared library `library`, when one is given; else tract.
+#[cfg(feature = "onnxruntime")]
+fn runtime(library: Option<&Path>, threads: usize) -> Result<Runtime, String> {
+    Ok(match library {
+        None => Runtime::Tract,
+        Some(library) => Runtime::Onnxruntime {
+            library: library.to_path_buf(),
+            threads,
+        },
     })
 }
 
-#[cfg(feature = "onnxruntime")]
-fn with_onnxruntime(
-    arguments: &Arguments,
-    config: OdometryConfig,
-    library: &Path,
-    threads: usize,
-) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
-    use dmlo_rs::inference::{OrtEncoder, OrtMovingObjects};
-    drive(
-        arguments,
-        config,
-        |path: &Path| OrtEncoder::open(path, library, threads),
-        |path: &Path| OrtMovingObjects::open(path, library, threads),
-    )
-}
-
 #[cfg(not(feature = "onnxruntime"))]
-fn with_onnxruntime(
-    _: &Arguments,
-    _: OdometryConfig,
-    _: &Path,
-    _: usize,
-) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
-    Err("--onnxruntime: built without the `onnxruntime` feature (cargo run --features inference,onnxruntime …)".into())
+fn runtime(library: Option<&Path>, _threads: usize) -> Result<Runtime, String> {
+    match library {
+        None => Ok(Runtime::Tract),
+        Some(_) => Err("--onnxruntime: built without the `onnxruntime` feature (cargo run --features inference,onnxruntime …)".into()),
+    }
 }
 
-/// The odometry over every scan of the folder, the encoders opened by `encoder` and the moving-object
-/// network by `moving_objects`.
-fn drive<E, N>(
+/// The odometry of the model folder, its graphs run by `runtime`, over every scan of the folder.
+fn drive(
     arguments: &Arguments,
     config: OdometryConfig,
-    encoder: impl Fn(&Path) -> dmlo_rs::Result<E>,
-    moving_objects: impl Fn(&Path) -> dmlo_rs::Result<N>,
-) -> Result<(), Box<dyn std::error::Error + Send + Sync>>
-where
-    E: Encoder + Send + Sync + 'static,
-    N: MovingObjectNetwork + Send + Sync + 'static,
-{
+    runtime: &Runtime,
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let files = kitti_scan_files(&arguments.scans)?;
-    let detect = config.moving_objects.detect;
-    let mut odometry = Odometry::new(learned_matcher(&arguments.model, &encoder)?, config)?;
-    let range_only = arguments.model.join("range_only");
-    if range_only.join("encoder.onnx").is_file() {
-        odometry = odometry.with_range_only(learned_matcher(&range_only, &encoder)?)?;
-    }
-    let moving = arguments.model.join("moving.onnx");
-    if detect && moving.is_file() {
-        odometry = odometry.with_moving_objects(moving_objects(&moving)?)?;
-    }
+    let mut odometry = Odometry::open_with_runtime(&arguments.model, config, runtime)?;
     std::fs::create_dir_all(&arguments.out)?;
     let mut poses = BufWriter::new(File::create(arguments.out.join("poses_kitti.txt"))?);
     let mut diagnostics = BufWriter::new(File::create(arguments.out.join("diagnostics.jsonl"))?);

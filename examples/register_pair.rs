@@ -1,5 +1,5 @@
 //! Registers two KITTI `.bin` scans with DMLO from Rust alone, no Python (feature `inference`): the
-//! model's encoder run by tract, and [`dmlo_rs::odometry::pipeline::Odometry::register_pair`] — what
+//! model folder opened by [`Odometry::open`] (its encoder run by tract), and [`dmlo_rs::odometry::pipeline::Odometry::register_pair`] — what
 //! `dmlo register A B` does: the network's flow, the pair's back end (coherence, decoding with NMS, tilt
 //! and crowding votes, RANSAC around the SVD solve), then NDT against A as a one-scan map; with
 //! `--large-motion`, for scans far apart, the wide window (`frame_wide.onnx` beside the encoder) from
@@ -17,7 +17,6 @@
 use std::path::Path;
 use std::process::ExitCode;
 
-use dmlo_rs::inference::{graph_metadata, LearnedMatcher, TractEncoder};
 use dmlo_rs::odometry::config::OdometryConfig;
 use dmlo_rs::odometry::pipeline::{Odometry, Scan};
 use dmlo_rs::scan_file::read_kitti_scan;
@@ -77,15 +76,9 @@ fn run(args: &[String]) -> Result<(), Box<dyn std::error::Error>> {
         }
     }
 
-    let model = Path::new(model);
-    let mut matcher = LearnedMatcher::new(TractEncoder::open(model.join("encoder.onnx"))?)?;
-    let wide = model.join("frame_wide.onnx");
-    if wide.is_file() {
-        matcher = matcher.with_wide_window(graph_metadata(&wide)?.coarse_window)?;
-    }
     let mut config = OdometryConfig::default();
     config.mapping.enabled = options.mapping;
-    let mut odometry = Odometry::new(matcher, config)?;
+    let mut odometry = Odometry::open(model, config)?;
     let start = std::time::Instant::now();
     let pair =
         odometry.register_pair(Scan::new(&scan_a), Scan::new(&scan_b), options.large_motion)?;

@@ -9,6 +9,13 @@ use crate::dense_match::{DenseMatchConfig, OffsetRule, NETWORK_STRIDE};
 use crate::error::{Error, Result};
 use crate::projection::CylinderConfig;
 
+/// The version of the graphs' interface (inputs, outputs, metadata) this crate reads, as `dmlo export`
+/// writes it in `dmlo.interface_version`.
+const INTERFACE_VERSION: &str = "1";
+
+/// The names `dmlo.model_config.refine_offset` may hold ([`OffsetRule::from_name`]).
+const REFINE_OFFSETS: [&str; 2] = ["window", "peak_centroid"];
+
 /// What a dmlo graph's metadata says about the model: its input size, which graph it is, and the
 /// settings of the matching stage.
 #[derive(Debug, Clone, PartialEq)]
@@ -37,7 +44,11 @@ pub struct ModelMetadata {
 }
 
 impl ModelMetadata {
-    /// Reads the metadata entries (`key → value`) of the graph at `path` (named in errors).
+    /// Reads the metadata entries (`key → value`) of the graph at `path` (named in errors), checked whole:
+    /// the interface version this crate reads, positive input sizes, odd windows of at least 3 cells, a
+    /// known `refine_offset`, a boolean `use_reflectance` (absent: true), positive similarity scales and a
+    /// cylinder image of the input's size (both may be absent in older exports). Every error is an
+    /// [`Error::Model`] naming `path` and the key at fault.
     pub fn from_entries(entries: &HashMap<String, String>, path: &str) -> Result<Self> {
         let missing = |key: &str| {
             Error::Model(format!(
@@ -49,12 +60,16 @@ impl ModelMetadata {
             serde_json::from_str(text(key)?)
                 .map_err(|e| Error::Model(format!("{path}: {key} is not JSON: {e}")))
         };
-        let count = |key: &str, value: Option<&Value>| -> Result<usize> {
+        // A window is centred on a cell: an odd count of at least 3 cells a side.
+        let window = |key: &str, value: Option<&Value>| -> Result<usize> {
             value
                 .and_then(Value::as_u64)
                 .and_then(|v| usize::try_from(v).ok())
-                .filter(|&v| v > 0)
-                .ok_or_else(|| Error::Model(format!("{path}: {key} must be a positive integer")))
+                .filter(|&v| v >= 3 && v % 2 == 1)
+                .ok_or_else(|| {
+                    let got = value.map_or("it lacks it".to_string(), |v| format!("got {v}"));
+                    Error::Model(format!("{path}: {key} must be an odd integer >= 3; {got}"))
+                })
         };
         let size = |key: &str| -> Result<usize> {
             let value = text(key)?;
@@ -69,12 +84,49 @@ impl ModelMetadata {
                     ))
                 })
         };
+        match text("dmlo.interface_version")?.as_str() {
+            INTERFACE_VERSION => {}
+            other => {
+                return Err(Error::Model(format!(
+                    "{path}: dmlo.interface_version {other:?}: this crate reads version \"{INTERFACE_VERSION}\" \
+                     (export the model again with the `dmlo export` of this release)"
+                )))
+            }
+        }
         let config = json("dmlo.model_config")?;
-        let refine_offset = config
-            .get("refine_offset")
-            .and_then(Value::as_str)
-            .unwrap_or("window")
-            .to_string();
+        if !config.is_object() {
+            return Err(Error::Model(format!(
+                "{path}: dmlo.model_config must be a JSON object"
+            )));
+        }
+        let coarse_window = window(
+            "dmlo.model_config.coarse_window",
+            config.get("coarse_window"),
+        )?;
+        let refine_window = window(
+            "dmlo.model_config.refine_window",
+            config.get("refine_window"),
+        )?;
+        let refine_offset = match config.get("refine_offset") {
+            Some(Value::String(name)) if OffsetRule::from_name(name).is_some() => name.clone(),
+            other => {
+                let got = other.map_or("it lacks it".to_string(), |v| format!("got {v}"));
+                return Err(Error::Model(format!(
+                    "{path}: dmlo.model_config.refine_offset must be one of {}; {got}",
+                    REFINE_OFFSETS.join(", ")
+                )));
+            }
+        };
+        let use_reflectance = match config.get("use_reflectance") {
+            // Models exported before the setting was written read reflectance.
+            None => true,
+            Some(Value::Bool(reads)) => *reads,
+            Some(other) => {
+                return Err(Error::Model(format!(
+                    "{path}: dmlo.model_config.use_reflectance must be true or false; got {other}"
+                )))
+            }
+        };
         let similarity_scales = match entries.get("dmlo.similarity_scales") {
             None => None,
             Some(_) => {
@@ -111,21 +163,12 @@ impl ModelMetadata {
             graph: text("dmlo.graph")?.clone(),
             height,
             width,
-            coarse_window: count(
-                "dmlo.model_config.coarse_window",
-                config.get("coarse_window"),
-            )?,
-            refine_window: count(
-                "dmlo.model_config.refine_window",
-                config.get("refine_window"),
-            )?,
+            coarse_window,
+            refine_window,
             refine_offset,
             similarity_scales,
             cylinder,
-            use_reflectance: config
-                .get("use_reflectance")
-                .and_then(Value::as_bool)
-                .unwrap_or(true),
+            use_reflectance,
         })
     }
 
@@ -171,14 +214,29 @@ pub fn moving_graph_cylinder(
             )))
         }
     }
-    let text = entries.get("dmlo.cylinder_config").ok_or_else(|| {
-        Error::Model(format!(
-            "{path}: no dmlo.cylinder_config in the graph's metadata: export it again with `dmlo export`"
-        ))
-    })?;
-    let value: Value = serde_json::from_str(text)
+    let text = |key: &str| {
+        entries.get(key).ok_or_else(|| {
+            Error::Model(format!(
+                "{path}: no {key} in the graph's metadata: export it again with `dmlo export`"
+            ))
+        })
+    };
+    let value: Value = serde_json::from_str(text("dmlo.cylinder_config")?)
         .map_err(|e| Error::Model(format!("{path}: dmlo.cylinder_config is not JSON: {e}")))?;
-    cylinder_config(&value, path)
+    let cylinder = cylinder_config(&value, path)?;
+    for (key, expected) in [
+        ("dmlo.height", cylinder.height),
+        ("dmlo.width", cylinder.width),
+    ] {
+        let size = text(key)?;
+        if size.trim().parse::<usize>().ok() != Some(expected) {
+            return Err(Error::Model(format!(
+                "{path}: {key} = {size:?}, but its cylinder image (dmlo.cylinder_config) is {} × {}",
+                cylinder.height, cylinder.width
+            )));
+        }
+    }
+    Ok(cylinder)
 }
 
 /// The cylinder of `dmlo.cylinder_config` (the fields `CylinderConfig` has; the derived ones it also

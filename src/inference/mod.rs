@@ -11,7 +11,10 @@
 //!
 //! The model is found by an explicit path (nothing is downloaded); its settings travel in the graph's
 //! metadata, written by `dmlo export`: the input size, the windows of the matching stage
-//! (`dmlo.model_config`) and its two learned softmax scales (`dmlo.similarity_scales`).
+//! (`dmlo.model_config`) and its two learned softmax scales (`dmlo.similarity_scales`), checked by
+//! [`ModelMetadata::from_entries`]. A whole model folder — the encoder, its wide window, the range-only
+//! model and the moving-object network — opens in one call, `Odometry::open` ([`ModelFolder`], which alone
+//! knows the folder's layout); the pieces below are for a runtime or pipeline of one's own.
 //!
 //! ```no_run
 //! # #[cfg(feature = "inference")]
@@ -34,12 +37,16 @@
 //! ```
 
 mod metadata;
+#[cfg(feature = "inference")]
+mod model_folder;
 #[cfg(feature = "onnxruntime")]
 mod onnxruntime;
 #[cfg(feature = "inference")]
 mod tract;
 
 pub use metadata::ModelMetadata;
+#[cfg(feature = "inference")]
+pub use model_folder::{FolderMatcher, ModelFolder, Runtime, RuntimeEncoder};
 #[cfg(feature = "onnxruntime")]
 pub use onnxruntime::{OrtEncoder, OrtMovingObjects};
 #[cfg(feature = "inference")]

@@ -1,4 +1,5 @@
 use std::collections::HashMap;
+use std::io::Write;
 use std::path::PathBuf;
 
 use serde_json::Value;
@@ -8,6 +9,8 @@ use crate::odometry::moving::MovingObjectNetwork;
 use crate::projection::{project_flat, CylinderConfig};
 use crate::scan_file::{kitti_scan_files, read_kitti_scan};
 
+mod model_folder;
+
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
@@ -16,7 +19,76 @@ fn bundled_encoder() -> PathBuf {
     root().join("python/dmlo/models/default/encoder.onnx")
 }
 
-/// The image of a real scan under `../shared/data` as the odometry builds it: range, then reflectance.
+/// `found`, what a test needs from outside the repository (`what`), or `None` when it is absent: the test
+/// then returns early, and says it skipped past the harness's capture of its output, so that a skip is
+/// never read as a pass. Under `CI=true`, where `.ci/setup` provides all of it, an absence fails the test.
+fn needed<T>(found: Option<T>, what: &str) -> Option<T> {
+    let under_ci = std::env::var("CI").as_deref() == Ok("true");
+    // Straight to stderr: the harness captures `eprintln!` of passing tests.
+    skip_or_fail(found, what, under_ci, &mut std::io::stderr())
+}
+
+/// [`needed`]'s rule, its skip line written to `report`.
+fn skip_or_fail<T>(
+    found: Option<T>,
+    what: &str,
+    under_ci: bool,
+    report: &mut dyn Write,
+) -> Option<T> {
+    if found.is_some() {
+        return found;
+    }
+    let test = std::thread::current()
+        .name()
+        .unwrap_or("a test")
+        .to_string();
+    assert!(
+        !under_ci,
+        "{test}: {what} is missing, and under CI=true it must be there"
+    );
+    let _ = writeln!(report, "SKIPPED {test}: {what} is missing");
+    None
+}
+
+#[test]
+fn a_missing_resource_skips_the_test_but_fails_it_under_ci() {
+    let mut report = Vec::new();
+    assert_eq!(
+        skip_or_fail(None::<()>, "the data", false, &mut report),
+        None
+    );
+    let report = String::from_utf8(report).unwrap();
+    assert_eq!(
+        report,
+        "SKIPPED inference::tests::a_missing_resource_skips_the_test_but_fails_it_under_ci: the data is missing\n"
+    );
+    let under_ci =
+        std::panic::catch_unwind(|| skip_or_fail(None::<()>, "the data", true, &mut Vec::new()));
+    assert!(under_ci.is_err());
+    let mut silent = Vec::new();
+    assert_eq!(
+        skip_or_fail(Some(7), "the data", true, &mut silent),
+        Some(7)
+    );
+    assert!(silent.is_empty());
+}
+
+/// `../shared/data`, the real scans the tests compare against; `None` (the test skips) without it.
+fn shared_data() -> Option<PathBuf> {
+    let folder = root().join("../shared/data");
+    needed(
+        folder.is_dir().then_some(folder),
+        "../shared/data (the real scans)",
+    )
+}
+
+/// The scan `name` under `../shared/data`; `None` (the test skips) without the folder, a panic naming the
+/// file when the folder is there without it.
+fn shared_scan(name: &str) -> Option<Vec<[f32; 4]>> {
+    let path = shared_data()?.join(name);
+    Some(read_kitti_scan(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display())))
+}
+
 /// The network input `[2, H, W]` (range, reflectance) of a real KITTI scan under `../shared/data/`.
 fn real_image(name: &str) -> Option<Vec<f32>> {
     real_scan_images(name).map(|(image, _, _)| image)
@@ -47,7 +119,6 @@ fn tract_features_equal_onnxruntimes_on_a_real_scan() {
     )
     .unwrap();
     let Some(image) = real_image(fixture["scan"].as_str().unwrap()) else {
-        eprintln!("no shared KITTI scans: skipped");
         return;
     };
     let encoder = TractEncoder::open(bundled_encoder()).unwrap();
@@ -74,7 +145,6 @@ fn tract_features_equal_onnxruntimes_on_a_real_scan() {
 #[test]
 fn a_scan_matched_with_itself_stays_in_place() {
     let Some(image) = real_image("kitti_real/odometry_03/velodyne/000000.bin") else {
-        eprintln!("no shared KITTI scans: skipped");
         return;
     };
     let matcher = LearnedMatcher::new(TractEncoder::open(bundled_encoder()).unwrap()).unwrap();
@@ -114,7 +184,6 @@ fn the_wide_window_is_the_bundled_frame_wide_graphs_and_matches_wider() {
     let matcher = matcher.with_wide_window(coarse_window).unwrap();
     assert!(FrameMatcher::has_wide_window(&matcher));
     let Some((image, _, _)) = real_scan_images("kitti_real/odometry_03/velodyne/000000.bin") else {
-        eprintln!("no shared KITTI scans: skipped");
         return;
     };
     let Some((target, _, _)) = real_scan_images("kitti_real/odometry_03/velodyne/000001.bin")
@@ -205,6 +274,7 @@ fn entries(pairs: &[(&str, &str)]) -> HashMap<String, String> {
 #[test]
 fn metadata_is_read_and_checked() {
     let good = [
+        ("dmlo.interface_version", "1"),
         ("dmlo.graph", "encoder"),
         ("dmlo.height", "64"),
         ("dmlo.width", "1792"),
@@ -265,14 +335,64 @@ fn metadata_is_read_and_checked() {
     assert!(
         matches!(ModelMetadata::from_entries(&scales, "m.onnx"), Err(Error::Model(m)) if m.contains("coarse"))
     );
-    let mut offset = entries(&good);
-    offset.insert(
-        "dmlo.model_config".into(),
-        r#"{"coarse_window": 15, "refine_window": 7, "refine_offset": "x"}"#.into(),
+    // The matching stage's settings, each named with what it must be.
+    let with_config = |config: &str| {
+        let mut entries = entries(&good);
+        entries.insert("dmlo.model_config".into(), config.into());
+        ModelMetadata::from_entries(&entries, "m.onnx")
+    };
+    for (config, message) in [
+        (
+            r#"{"coarse_window": 14, "refine_window": 7, "refine_offset": "window"}"#,
+            "m.onnx: dmlo.model_config.coarse_window must be an odd integer >= 3; got 14",
+        ),
+        (
+            r#"{"coarse_window": 15, "refine_window": 1, "refine_offset": "window"}"#,
+            "m.onnx: dmlo.model_config.refine_window must be an odd integer >= 3; got 1",
+        ),
+        (
+            r#"{"refine_window": 7, "refine_offset": "window"}"#,
+            "m.onnx: dmlo.model_config.coarse_window must be an odd integer >= 3; it lacks it",
+        ),
+        (
+            r#"{"coarse_window": 15, "refine_window": 7, "refine_offset": "x"}"#,
+            "m.onnx: dmlo.model_config.refine_offset must be one of window, peak_centroid; got \"x\"",
+        ),
+        (
+            r#"{"coarse_window": 15, "refine_window": 7}"#,
+            "m.onnx: dmlo.model_config.refine_offset must be one of window, peak_centroid; it lacks it",
+        ),
+        (
+            r#"{"coarse_window": 15, "refine_window": 7, "refine_offset": "window", "use_reflectance": 1}"#,
+            "m.onnx: dmlo.model_config.use_reflectance must be true or false; got 1",
+        ),
+        ("[15, 7]", "m.onnx: dmlo.model_config must be a JSON object"),
+    ] {
+        let error = with_config(config).unwrap_err();
+        assert_eq!(error, Error::Model(message.into()));
+    }
+    let range_only = with_config(
+        r#"{"coarse_window": 15, "refine_window": 7, "refine_offset": "peak_centroid", "use_reflectance": false}"#,
+    )
+    .unwrap();
+    assert!(!range_only.use_reflectance);
+    assert_eq!(
+        range_only.dense_match_config().unwrap().refine_offset,
+        crate::dense_match::OffsetRule::PeakCentroid
     );
-    let odd = ModelMetadata::from_entries(&offset, "m.onnx").unwrap();
+
+    let mut version = entries(&good);
+    version.insert("dmlo.interface_version".into(), "2".into());
+    let error = ModelMetadata::from_entries(&version, "m.onnx").unwrap_err();
     assert!(
-        matches!(odd.dense_match_config(), Err(Error::Model(m)) if m.contains("refine_offset"))
+        matches!(&error, Error::Model(m) if m.starts_with("m.onnx: dmlo.interface_version \"2\"")),
+        "{error}"
+    );
+    let error =
+        ModelMetadata::from_entries(&without("dmlo.interface_version"), "m.onnx").unwrap_err();
+    assert!(
+        matches!(&error, Error::Model(m) if m.contains("no dmlo.interface_version") && m.contains("not a dmlo export")),
+        "{error}"
     );
 }
 
@@ -282,12 +402,13 @@ fn the_cylinder_is_read_from_the_metadata_and_checked() {
         "height": 64, "horizontal_resolution_deg": 0.2, "vertical_resolution_deg": 0.4, "width": 1792}"#;
     let with = |cylinder: &str, width: &str| {
         entries(&[
+            ("dmlo.interface_version", "1"),
             ("dmlo.graph", "encoder"),
             ("dmlo.height", "64"),
             ("dmlo.width", width),
             (
                 "dmlo.model_config",
-                r#"{"coarse_window": 15, "refine_window": 7}"#,
+                r#"{"coarse_window": 15, "refine_window": 7, "refine_offset": "window"}"#,
             ),
             ("dmlo.cylinder_config", cylinder),
         ])
@@ -314,7 +435,7 @@ fn the_cylinder_is_read_from_the_metadata_and_checked() {
 /// A real KITTI scan under `../shared/data`: its network image (range, then reflectance), its range
 /// image and its point image (each cell's kept point, NaN where empty).
 fn real_scan_images(name: &str) -> Option<(Vec<f32>, Vec<f32>, Vec<f32>)> {
-    let scan = read_kitti_scan(&root().join("../shared/data").join(name)).ok()?;
+    let scan = shared_scan(name)?;
     let points: &[f32] = scan.as_flattened();
     let projection = project_flat(points, 4, &CylinderConfig::kitti()).unwrap();
     let cell_points = projection
@@ -342,7 +463,6 @@ fn the_learned_pair_from_rust_equals_the_python_odometrys() {
         real_scan_images(scans[0].as_str().unwrap()),
         real_scan_images(scans[1].as_str().unwrap()),
     ) else {
-        eprintln!("no shared KITTI scans: skipped");
         return;
     };
     let matcher = LearnedMatcher::new(TractEncoder::open(bundled_encoder()).unwrap()).unwrap();
@@ -386,11 +506,11 @@ fn the_learned_pair_from_rust_equals_the_python_odometrys() {
 
 /// The `.bin` scans of a real set under `../shared/data/kitti_real`, in name order; None without them.
 fn real_drive(name: &str) -> Option<Vec<Vec<[f32; 4]>>> {
-    let folder = root()
-        .join("../shared/data/kitti_real")
+    let folder = shared_data()?
+        .join("kitti_real")
         .join(name)
         .join("velodyne");
-    let files = kitti_scan_files(&folder).ok()?;
+    let files = kitti_scan_files(&folder).unwrap_or_else(|e| panic!("{e}"));
     Some(
         files
             .iter()
@@ -421,7 +541,6 @@ fn the_rust_odometry_over_tract_equals_the_python_odometry_on_real_drives() {
         let expected = &fixture[key];
         let (name, mode) = key.split_once('/').unwrap();
         let Some(scans) = real_drive(name) else {
-            eprintln!("no shared KITTI scans: skipped");
             return;
         };
         let mut config = OdometryConfig::default();
@@ -438,9 +557,17 @@ fn the_rust_odometry_over_tract_equals_the_python_odometry_on_real_drives() {
 }
 
 /// The onnxruntime shared library `dmlo run` uses: `ORT_DYLIB_PATH`, else the Python wheel's in `.venv`
-/// (`.ci/setup` installs it); None without one.
+/// (`.ci/setup` installs it); `None` (the test skips) without one.
 #[cfg(feature = "onnxruntime")]
 fn onnxruntime_library() -> Option<PathBuf> {
+    needed(
+        find_onnxruntime_library(),
+        "the onnxruntime library (ORT_DYLIB_PATH, or .venv's onnxruntime wheel)",
+    )
+}
+
+#[cfg(feature = "onnxruntime")]
+fn find_onnxruntime_library() -> Option<PathBuf> {
     if let Some(path) = std::env::var_os("ORT_DYLIB_PATH") {
         return Some(PathBuf::from(path));
     }
@@ -463,10 +590,7 @@ fn onnxruntime_library() -> Option<PathBuf> {
 
 #[cfg(feature = "onnxruntime")]
 fn ort_encoder(path: PathBuf) -> Option<OrtEncoder> {
-    let Some(library) = onnxruntime_library() else {
-        eprintln!("no onnxruntime library (ORT_DYLIB_PATH, or .venv's wheel): skipped");
-        return None;
-    };
+    let library = onnxruntime_library()?;
     Some(OrtEncoder::open(path, library, 0).unwrap())
 }
 
@@ -478,7 +602,6 @@ fn onnxruntime_features_from_rust_are_pythons() {
     )
     .unwrap();
     let Some(image) = real_image(fixture["scan"].as_str().unwrap()) else {
-        eprintln!("no shared KITTI scans: skipped");
         return;
     };
     let Some(encoder) = ort_encoder(bundled_encoder()) else {
@@ -551,13 +674,11 @@ fn the_rust_odometry_over_onnxruntime_equals_the_python_odometry_on_every_real_d
     )
     .unwrap();
     let Some(library) = onnxruntime_library() else {
-        eprintln!("no onnxruntime library: skipped");
         return;
     };
     for (key, expected) in fixture.as_object().unwrap() {
         let (name, mode) = key.split_once('/').unwrap();
         let Some(scans) = real_drive(name) else {
-            eprintln!("no shared KITTI scans: skipped");
             return;
         };
         let mut config = OdometryConfig::default();
@@ -678,8 +799,7 @@ fn assert_flags_are_pythons(
     let step = fixture["step"].as_u64().unwrap() as usize;
     for scan in fixture["scans"].as_array().unwrap() {
         let name = scan["scan"].as_str().unwrap();
-        let Ok(points) = read_kitti_scan(&root().join("../shared/data").join(name)) else {
-            eprintln!("no shared KITTI scans: skipped");
+        let Some(points) = shared_scan(name) else {
             return;
         };
         let (range, height) = network_images(points.as_flattened(), 4, network.cylinder()).unwrap();
@@ -762,7 +882,6 @@ fn a_graph_that_is_not_the_moving_object_network_is_a_named_error() {
 #[test]
 fn onnxruntime_from_rust_flags_the_moving_points_pythons_detector_flags() {
     let Some(library) = onnxruntime_library() else {
-        eprintln!("no onnxruntime library (ORT_DYLIB_PATH, or .venv's wheel): skipped");
         return;
     };
     let network = OrtMovingObjects::open(bundled_moving_graph(), &library, 0).unwrap();
@@ -771,4 +890,28 @@ fn onnxruntime_from_rust_flags_the_moving_points_pythons_detector_flags() {
         .unwrap_err()
         .to_string();
     assert!(error.contains("not the moving-object network"), "{error}");
+}
+
+#[test]
+fn a_moving_object_graph_whose_input_is_not_its_cylinder_image_is_a_named_error() {
+    let kitti = r#"{"fov_down_deg": -24.9, "fov_up_deg": 2.0, "height": 64,
+        "horizontal_resolution_deg": 0.2, "vertical_resolution_deg": 0.4, "width": 1792}"#;
+    let with_width = |width: &str| {
+        entries(&[
+            ("dmlo.graph", "moving"),
+            ("dmlo.height", "64"),
+            ("dmlo.width", width),
+            ("dmlo.cylinder_config", kitti),
+        ])
+    };
+    let cylinder = metadata::moving_graph_cylinder(&with_width("1792"), "moving.onnx").unwrap();
+    assert_eq!(cylinder, CylinderConfig::kitti());
+    let error = metadata::moving_graph_cylinder(&with_width("896"), "moving.onnx").unwrap_err();
+    assert_eq!(
+        error,
+        Error::Model(
+            "moving.onnx: dmlo.width = \"896\", but its cylinder image (dmlo.cylinder_config) is 64 × 1792"
+                .into()
+        )
+    );
 }
