@@ -130,8 +130,8 @@ impl<M: FrameMatcher> Odometry<M> {
         Error::invalid(
             "points",
             format!(
-                "{why}, and the model reads reflectance: give the range-only model beside it \
-                 (range_only/) to Odometry::with_range_only"
+                "{why}, and the model reads reflectance: put a range-only model in the model folder's \
+                 range_only/ (Odometry::open attaches it), or give one to Odometry::with_range_only"
             ),
         )
     }
