@@ -118,7 +118,9 @@ def test_the_stage_fine_tunes_the_bundled_weights_with_the_augmentations(
 ) -> None:
     calls: list[tuple[list[str], dict[str, object]]] = []
     monkeypatch.setattr(default_recipe, "simulate_drives", lambda data, poses: ([tmp_path / "t"], [tmp_path / "v"]))
-    monkeypatch.setattr(default_recipe, "train_with_options", lambda argv, options: calls.append((argv, options)) or 0)
+    import dmlo.train.__main__ as train_entry
+
+    monkeypatch.setattr(train_entry, "main", lambda argv, options=None: calls.append((argv, options)) or 0)
     out = tmp_path / "run"
     assert default_recipe.main(["--data", str(tmp_path), "--out", str(out), "--reflectance-robust", "--device", "cpu"]) == 0
     ((argv, options),) = calls
@@ -155,7 +157,9 @@ def test_the_pose_stage_trains_whole_images_from_the_crop_stage_with_the_same_au
 ) -> None:
     calls: list[tuple[list[str], dict[str, object]]] = []
     monkeypatch.setattr(default_recipe, "simulate_drives", lambda data, poses: ([tmp_path / "t"], [tmp_path / "v"]))
-    monkeypatch.setattr(default_recipe, "train_with_options", lambda argv, options: calls.append((argv, options)) or 0)
+    import dmlo.train.__main__ as train_entry
+
+    monkeypatch.setattr(train_entry, "main", lambda argv, options=None: calls.append((argv, options)) or 0)
     out = tmp_path / "run"
     with pytest.raises(SystemExit):  # the crop stage has not run
         default_recipe.main(["--data", str(tmp_path), "--out", str(out), "--reflectance-robust-pose"])

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import argparse
 from pathlib import Path
 from typing import Any
@@ -110,7 +113,11 @@ def model_config_from_args(args: argparse.Namespace) -> Any:
     return dataclasses.replace(config, **changes)
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, options: Mapping[str, Any] | None = None) -> int:
+    """Trains as `args` say; `options`: `TrainConfig` fields the command line does not take (a recipe's
+    augmentations), recorded in `train.json` with the rest."""
+    import dataclasses
+
     from dmlo.cli import UserError
 
     _check_run_folder(args, prepare=False)
@@ -135,16 +142,12 @@ def run(args: argparse.Namespace) -> int:
             confidence_loss_weight=args.confidence_loss_weight,
             init=str(args.init) if args.init else None, no_reflectance=args.no_reflectance,
         )
+        config = dataclasses.replace(config, **(options or {}))
         if config.init is not None and not Path(config.init).is_file():
             raise UserError(f"--init checkpoint not found: {config.init}")
         pose_jacobian = config.pose_loss_weight > 0
-        augmentation = Augmentation(
-            config.crop_height, config.crop_width, config.yaw_roll, mirror=config.mirror,
-            laser_gain_spread=config.laser_gain_spread, row_dropout=config.row_dropout,
-            reflectance_dropout=config.reflectance_dropout,
-        )
         train_set = PairDataset.from_paths(
-            config.data, augmentation=augmentation, max_gap=config.max_gap, seed=config.seed, pose_jacobian=pose_jacobian
+            config.data, augmentation=config.augmentation(), max_gap=config.max_gap, seed=config.seed, pose_jacobian=pose_jacobian
         )
         val_set = None
         if config.val:

@@ -64,7 +64,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Mapping
 from pathlib import Path
 
 # (name, KITTI ground-truth trajectory the drive follows, seed, first pose of that trajectory, frames)
@@ -199,57 +198,6 @@ def simulate_listed_drives(
     return train, val
 
 
-def train_with_options(argv: list[str], options: Mapping[str, float]) -> int:
-    """`dmlo train` with `argv`, and `options` (`TrainConfig` fields the command line does not take) set in
-    its settings: recorded in `train.json` and given to the training pairs' `Augmentation`."""
-    import dataclasses
-
-    from dmlo.commands.train import add_arguments, model_config_from_args
-    from dmlo.train import PairDataset, TrainConfig, Trainer
-    from dmlo.train.dataset import Augmentation
-    from dmlo.train.distributed import init_distributed, resolve_device
-
-    parser = argparse.ArgumentParser(prog="python -m dmlo.train.default_recipe")
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    for path in [*args.data, *args.val]:
-        if not Path(path).is_dir():
-            parser.error(f"sequence folder not found: {path}")
-    if args.init and not Path(args.init).is_file():
-        parser.error(f"--init checkpoint not found: {args.init}")
-    config = TrainConfig(
-        data=[str(p) for p in args.data], val=[str(p) for p in args.val], out=str(args.out),
-        epochs=args.epochs, batch_size=args.batch_size, optimizer=args.optimizer, lr=args.lr, momentum=args.momentum,
-        weight_decay=args.weight_decay, lr_step_epochs=args.lr_step, lr_gamma=args.lr_gamma,
-        crop_height=args.crop_height or None, crop_width=args.crop_width or None, yaw_roll=not args.no_yaw_roll,
-        mirror=args.mirror, laser_gain_spread=args.laser_gain_spread, row_dropout=args.row_dropout,
-        reflectance_dropout=args.reflectance_dropout, max_gap=args.max_gap, val_max_pairs=args.val_max_pairs,
-        val_width=args.val_width or None, seed=args.seed, workers=args.workers, device=args.device,
-        checkpoint_every=args.checkpoint_every, max_steps=args.max_steps, pose_loss_weight=args.pose_loss_weight,
-        confidence_loss_weight=args.confidence_loss_weight, init=str(args.init) if args.init else None,
-        no_reflectance=args.no_reflectance,
-    )
-    config = dataclasses.replace(config, **options)  # type: ignore[arg-type]
-    pose_jacobian = config.pose_loss_weight > 0
-    train_set = PairDataset.from_paths(config.data, augmentation=config.augmentation(), max_gap=config.max_gap,
-                                       seed=config.seed, pose_jacobian=pose_jacobian)
-    val_set = None
-    if config.val:
-        val_set = PairDataset.from_paths(
-            config.val, augmentation=Augmentation(None, config.val_width, yaw_roll=False, random=False), max_gap=1,
-            pose_jacobian=pose_jacobian,
-        )
-    context = init_distributed(resolve_device(config.device))
-    trainer = Trainer(model_config_from_args(args), config, train_set, val_set, context, resume=args.resume,
-                      progress=not args.no_progress)
-    trainer.run()
-    if context.enabled:
-        import torch.distributed as dist
-
-        dist.destroy_process_group()
-    return 0
-
-
 def recipe_parser(description: str) -> argparse.ArgumentParser:
     """The arguments every recipe takes: where its drives go, where the run goes, which KITTI poses to follow."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -325,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--{stage.replace('_', '-')} starts from {init}, which does not exist")
         argv = [*data, "--out", str(args.out / stage), "--init", str(init), *arguments, *device]
         if stage in ("reflectance_robust", "reflectance_robust_pose"):
-            return train_with_options(argv, REFLECTANCE_ROBUST_AUGMENTATION)
+            return train_main(argv, REFLECTANCE_ROBUST_AUGMENTATION)
         return train_main(argv)
     if args.finetune:
         start = args.out / "best.pt"
