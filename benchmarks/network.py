@@ -198,7 +198,7 @@ def _stage_table(args: argparse.Namespace) -> None:
         "encoder.onnx + crate, wide window": lambda: ways["crate", "frame_wide.onnx"].frame(scan, cached[0]),
     }
     medians = _time_calls(rows, args.repeats)
-    window = ways["graph", "frame_wide.onnx"].model_config["coarse_window"]
+    window = ways["graph", "frame_wide.onnx"].metadata.coarse_window
     print(f"{folder} on {args.drive} frames {args.frame}→{args.frame + 1} ({scan.shape[1]}×{scan.shape[2]}), "
           f"onnxruntime {ort.__version__}, {args.threads} threads, median of {args.repeats}; wide: D = {window}\n")
     print("| matching stage | wall ms | CPU ms | graph / crate (wall) | cells \\|Δflow\\| > 1e-3 |\n|---|---|---|---|---|")

@@ -177,7 +177,7 @@ fn drive(
                 odometry.predict_skipped(Fallback::UnreadableScan)?
             }
         };
-        writeln!(poses, "{}", kitti_row(&pose))?;
+        writeln!(poses, "{}", kitti_row(&pose.to_homogeneous()))?;
         let last = odometry
             .diagnostics()
             .last()

@@ -35,7 +35,6 @@ pub mod dense_match;
 pub mod deskew;
 pub mod error;
 pub mod ground_truth;
-#[cfg(any(feature = "inference", feature = "onnxruntime"))]
 pub mod inference;
 pub mod matches;
 pub mod ndt;

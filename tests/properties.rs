@@ -453,6 +453,7 @@ proptest! {
             };
             match odometry.register(scan) {
                 Ok(pose) => {
+                    let pose = pose.to_homogeneous();
                     prop_assert!(pose.iter().all(|v| v.is_finite()), "{}", pose);
                     let rotation = pose.fixed_view::<3, 3>(0, 0);
                     prop_assert!((rotation.transpose() * rotation - nalgebra::Matrix3::identity()).abs().max() < 1e-6);

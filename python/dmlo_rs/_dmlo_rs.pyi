@@ -3,7 +3,7 @@
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["ConfigError", "RegistrationError", "__version__"]
+__all__ = ["ConfigError", "ModelError", "RegistrationError", "__version__"]
 
 __version__: str
 
@@ -14,9 +14,12 @@ class RegistrationError(ValueError):
 class ConfigError(ValueError):
     """A config that does not fit the odometry's schema: one message naming every bad key."""
 
+class ModelError(ValueError):
+    """A model file that is missing, not a dmlo export, or does not fit the input."""
+
 # ---- core (issue 2): projection, ground truth, matches, NMS, rigid solve, RANSAC ----------------------
 
-from typing import Literal, final
+from typing import Any, Literal, final
 
 __all__ += [
     "CylinderConfig",
@@ -815,11 +818,24 @@ class Odometry:
     def poses(self) -> npt.NDArray[np.float64]:
         """Every pose so far, (N, 4, 4)."""
     @property
-    def diagnostics(self) -> list[dict[str, object]]:
-        """Every frame's diagnostics, as `dmlo.Odometry`'s `FrameDiagnostics.to_dict()`."""
+    def diagnostics(self) -> list[FrameDiagnostics]:
+        """Every frame's diagnostics (those kept)."""
     @property
-    def last_diagnostics(self) -> dict[str, object] | None:
+    def last_diagnostics(self) -> FrameDiagnostics | None:
         """The newest frame's diagnostics (None before the first scan)."""
+    def pose_from_flow(
+        self,
+        ref_range: npt.NDArray[np.floating],
+        tgt_range: npt.NDArray[np.floating],
+        flow: npt.NDArray[np.floating],
+        confidence: npt.NDArray[np.floating],
+        *,
+        ref_points: npt.NDArray[np.floating] | None = None,
+        leave_out: npt.NDArray[np.bool_] | None = None,
+        tilt_votes: bool = True,
+    ) -> PairMotion:
+        """The back end alone with this odometry's settings: a pair's motion from a flow [2, H, W] and
+        confidence [H, W] between two range images."""
     @property
     def reflectance_scale(self) -> str | None:
         """The reflectance scale chosen on the first matched scan ("unit", "0-255", "0-65535", "none")."""
@@ -835,3 +851,70 @@ class Odometry:
         """The network's input [2, H, W] (range, reflectance on the scale chosen) and the range image [H, W]
         of a scan's finite points; nothing is decided by it."""
     def __len__(self) -> int: ...
+
+# ---- a model folder's layout and its graphs' metadata ------------------------------------------------
+
+__all__ += ["ModelFolder", "ModelMetadata", "moving_graph_cylinder"]
+
+@final
+class ModelMetadata:
+    """What a dmlo graph's metadata says about its model, checked whole when made (ModelError naming
+    `path` and the key at fault)."""
+    def __new__(cls, entries: dict[str, str], path: str) -> ModelMetadata: ...
+    @property
+    def graph(self) -> str: ...
+    @property
+    def height(self) -> int: ...
+    @property
+    def width(self) -> int: ...
+    @property
+    def coarse_window(self) -> int: ...
+    @property
+    def refine_window(self) -> int: ...
+    @property
+    def refine_offset(self) -> Literal["window", "peak_centroid"]: ...
+    @property
+    def similarity_scales(self) -> tuple[float, float] | None: ...
+    @property
+    def cylinder(self) -> CylinderConfig: ...
+    @property
+    def use_reflectance(self) -> bool: ...
+    def check_range_only_for(self, model: ModelMetadata, path: str, model_path: str) -> None:
+        """ModelError unless this graph is a range-only model taking `model`'s images."""
+    def check_export_of(
+        self,
+        graph: str,
+        model: ModelMetadata,
+        path: str,
+        model_path: str,
+        *,
+        ignore_matching_stage: bool = False,
+        ignored: list[str] = ...,
+    ) -> None:
+        """ModelError unless this graph is the `graph` graph of `model`'s weights."""
+
+@final
+class ModelFolder:
+    """The file names of a model folder's graphs."""
+    ENCODER: str
+    FRAME: str
+    MATCH: str
+    WIDE_WINDOW: str
+    RANGE_ONLY: str
+    MOVING_OBJECTS: str
+
+def moving_graph_cylinder(entries: dict[str, str], path: str) -> CylinderConfig:
+    """The cylinder image of a moving-object graph from its metadata entries (ModelError otherwise)."""
+
+# ---- a frame's diagnostics ----------------------------------------------------------------------------
+
+__all__ += ["FrameDiagnostics"]
+
+@final
+class FrameDiagnostics:
+    """What happened to one scan, the crate's record: its fields are attributes, `to_dict()` its line of
+    diagnostics.jsonl."""
+    def __new__(cls, *args: object, **fields: object) -> FrameDiagnostics: ...
+    # Its fields by name (a slot of the compiled class: tests/cli/stubtest_allowlist.txt).
+    def __getattr__(self, name: str) -> Any: ...
+    def to_dict(self) -> dict[str, Any]: ...

@@ -3,7 +3,7 @@
 
 use std::collections::HashMap;
 
-use serde_json::Value;
+use serde_json::{Map, Value};
 
 use crate::dense_match::{DenseMatchConfig, OffsetRule, NETWORK_STRIDE};
 use crate::error::{Error, Result};
@@ -41,7 +41,14 @@ pub struct ModelMetadata {
     /// Whether the model reads the reflectance channel (`dmlo.model_config.use_reflectance`; false: a
     /// range-only model); true when the graph does not say.
     pub use_reflectance: bool,
+    /// The whole `dmlo.model_config` (the network's settings: channels, windows, …), by which graphs of
+    /// one model's weights are told from another's ([`ModelMetadata::check_export_of`]).
+    pub model_config: Map<String, Value>,
 }
+
+/// The keys of `dmlo.model_config` chosen at export for the matching stage: graphs of the same weights may
+/// differ in them (an encoder serves every window; `frame_wide.onnx` widens the coarse one).
+pub const MATCHING_STAGE_KEYS: [&str; 3] = ["coarse_window", "refine_window", "refine_offset"];
 
 impl ModelMetadata {
     /// Reads the metadata entries (`key → value`) of the graph at `path` (named in errors), checked whole:
@@ -93,12 +100,14 @@ impl ModelMetadata {
                 )))
             }
         }
-        let config = json("dmlo.model_config")?;
-        if !config.is_object() {
-            return Err(Error::Model(format!(
-                "{path}: dmlo.model_config must be a JSON object"
-            )));
-        }
+        let config = match json("dmlo.model_config")? {
+            Value::Object(config) => config,
+            _ => {
+                return Err(Error::Model(format!(
+                    "{path}: dmlo.model_config must be a JSON object"
+                )))
+            }
+        };
         let coarse_window = window(
             "dmlo.model_config.coarse_window",
             config.get("coarse_window"),
@@ -131,15 +140,21 @@ impl ModelMetadata {
             None => None,
             Some(_) => {
                 let scales = json("dmlo.similarity_scales")?;
+                if !scales.is_object() {
+                    return Err(Error::Model(format!(
+                        "{path}: dmlo.similarity_scales must be a JSON object"
+                    )));
+                }
                 let scale = |stage: &str| -> Result<f32> {
-                    scales
-                        .get(stage)
+                    let value = scales.get(stage);
+                    value
                         .and_then(Value::as_f64)
                         .filter(|v| v.is_finite() && *v > 0.0)
                         .map(|v| v as f32)
                         .ok_or_else(|| {
+                            let got = value.map_or("it lacks it".to_string(), |v| format!("got {v}"));
                             Error::Model(format!(
-                                "{path}: dmlo.similarity_scales.{stage} must be a number > 0"
+                                "{path}: dmlo.similarity_scales.{stage} must be a finite number > 0; {got}"
                             ))
                         })
                 };
@@ -169,7 +184,90 @@ impl ModelMetadata {
             similarity_scales,
             cylinder,
             use_reflectance,
+            model_config: config,
         })
+    }
+
+    /// The cylinder image the model takes: its `dmlo.cylinder_config`, or KITTI's for graphs exported
+    /// before it was written (the only one then).
+    pub fn image_cylinder(&self) -> CylinderConfig {
+        self.cylinder.unwrap_or_else(CylinderConfig::kitti)
+    }
+
+    /// Checks that this graph (at `path`) is a range-only model that can stand in for `model`
+    /// (`model_path`'s) on scans without usable reflectance: it reads no reflectance and takes the same
+    /// images (size and cylinder). The error ([`Error::Model`]) names `path` and what is wrong.
+    pub fn check_range_only_for(
+        &self,
+        model: &ModelMetadata,
+        path: &str,
+        model_path: &str,
+    ) -> Result<()> {
+        let differs = if [self.height, self.width] != [model.height, model.width] {
+            format!(
+                "takes {} × {} images, the model {} × {}",
+                self.height, self.width, model.height, model.width
+            )
+        } else if self.image_cylinder() != model.image_cylinder() {
+            "takes the images of another cylinder (dmlo.cylinder_config) than the model".to_string()
+        } else if self.use_reflectance {
+            return Err(Error::Model(format!(
+                "{path}: reads the reflectance channel (dmlo.model_config.use_reflectance): not a \
+                 range-only model"
+            )));
+        } else {
+            return Ok(());
+        };
+        Err(Error::Model(format!(
+            "{path}: the range-only model {differs} ({model_path}): every graph of a model folder reads \
+             the same images"
+        )))
+    }
+
+    /// Checks that this graph (at `path`) is the `graph` graph ("encoder", "frame", "match") of `model`'s
+    /// weights (`model_path`'s): the same input size and cylinder image, the same `dmlo.model_config` but
+    /// for the keys in `ignored` (e.g. [`MATCHING_STAGE_KEYS`]), and the same similarity scales where both
+    /// graphs have them. The error ([`Error::Model`]) names `path` and what differs.
+    pub fn check_export_of(
+        &self,
+        graph: &str,
+        model: &ModelMetadata,
+        ignored: &[&str],
+        path: &str,
+        model_path: &str,
+    ) -> Result<()> {
+        if self.graph != graph {
+            return Err(Error::Model(format!(
+                "{path}: a dmlo {:?} graph, not the {graph} graph of {model_path}'s model",
+                self.graph
+            )));
+        }
+        let mut differing = Vec::new();
+        if [self.height, self.width] != [model.height, model.width] {
+            differing.push("its input size".to_string());
+        }
+        if self.image_cylinder() != model.image_cylinder() {
+            differing.push("its cylinder image".to_string());
+        }
+        let keys = self.model_config.keys().chain(model.model_config.keys());
+        for key in keys.filter(|key| !ignored.contains(&key.as_str())) {
+            let name = format!("dmlo.model_config.{key}");
+            if self.model_config.get(key) != model.model_config.get(key) && !differing.contains(&name) {
+                differing.push(name);
+            }
+        }
+        if let (Some(ours), Some(theirs)) = (self.similarity_scales, model.similarity_scales) {
+            if ours != theirs {
+                differing.push("dmlo.similarity_scales".to_string());
+            }
+        }
+        if differing.is_empty() {
+            return Ok(());
+        }
+        Err(Error::Model(format!(
+            "{path}: not the {graph} graph of {model_path}'s model ({} differ)",
+            differing.join(", ")
+        )))
     }
 
     /// The matching stage's settings for this model. Errors when the graph has no similarity scales

@@ -36,6 +36,7 @@
 //! # fn main() {}
 //! ```
 
+mod folder;
 mod metadata;
 #[cfg(feature = "inference")]
 mod model_folder;
@@ -44,9 +45,10 @@ mod onnxruntime;
 #[cfg(feature = "inference")]
 mod tract;
 
-pub use metadata::ModelMetadata;
+pub use folder::ModelFolder;
+pub use metadata::{moving_graph_cylinder, ModelMetadata, MATCHING_STAGE_KEYS};
 #[cfg(feature = "inference")]
-pub use model_folder::{FolderMatcher, ModelFolder, Runtime, RuntimeEncoder};
+pub use model_folder::{FolderMatcher, Runtime, RuntimeEncoder};
 #[cfg(feature = "onnxruntime")]
 pub use onnxruntime::{OrtEncoder, OrtMovingObjects};
 #[cfg(feature = "inference")]
@@ -75,6 +77,7 @@ pub struct EncodedScan {
 impl EncodedScan {
     /// The encoder graph's two outputs (values and `(channels, rows, columns)`), the refine features
     /// checked to be at the input's `[rows, columns]`; errors name the graph (`path`).
+    #[cfg(any(feature = "inference", feature = "onnxruntime"))]
     pub(crate) fn from_outputs(
         path: &str,
         (coarse, coarse_shape): (Vec<f32>, [usize; 3]),
@@ -140,11 +143,7 @@ impl<E: Encoder> LearnedMatcher<E> {
     /// The matcher of `encoder`'s model, its matching stage set from the graph's metadata.
     pub fn new(encoder: E) -> Result<Self> {
         let config = encoder.metadata().dense_match_config()?;
-        // Graphs exported before the cylinder was written are KITTI's (the only one then).
-        let cylinder = encoder
-            .metadata()
-            .cylinder
-            .unwrap_or_else(CylinderConfig::kitti);
+        let cylinder = encoder.metadata().image_cylinder();
         Ok(LearnedMatcher {
             encoder,
             config,
@@ -259,6 +258,7 @@ impl<E: Encoder> FrameMatcher for LearnedMatcher<E> {
 }
 
 /// Checks an image for [`Encoder::encode`]: `2 · rows · columns` finite values.
+#[cfg(any(feature = "inference", feature = "onnxruntime"))]
 pub(crate) fn check_image(image: &[f32], [rows, columns]: [usize; 2]) -> Result<()> {
     let expected = 2 * rows * columns;
     if image.len() != expected {
@@ -286,6 +286,7 @@ pub(crate) fn check_image(image: &[f32], [rows, columns]: [usize; 2]) -> Result<
 }
 
 /// Checks the moving-object network's two images (range, height): `rows · columns` finite values each.
+#[cfg(any(feature = "inference", feature = "onnxruntime"))]
 pub(crate) fn check_moving_images(
     range: &[f32],
     height: &[f32],

@@ -1,13 +1,6 @@
 #![forbid(unsafe_code)]
-//! A model folder as `dmlo export` writes it, opened in one call: [`Odometry::open`].
-//!
-//! ```text
-//! MODEL_DIR/
-//!   encoder.onnx      the network's encoder: a scan's image in, its features out (required)
-//!   frame_wide.onnx   the same weights with the wide coarse window, for pairs re-matched from the prediction
-//!   range_only/       a model of this layout trained without reflectance, for scans without usable reflectance
-//!   moving.onnx       the moving-object network, whose flagged points are left out of matching
-//! ```
+//! A model folder ([`ModelFolder`]) opened in one call: [`Odometry::open`]. It needs the encoder; the
+//! wide window, the range-only model and the moving-object network are attached when the folder has them.
 //!
 //! The other graphs of an export (`frame.onnx`, `match.onnx`) are the ones `dmlo run` runs on a GPU; the
 //! crate matches in its own stage and does not read them. Of `frame_wide.onnx` only the metadata is read:
@@ -27,9 +20,10 @@
 
 use std::path::{Path, PathBuf};
 
+
 use super::{
-    graph_metadata, EncodedScan, Encoder, LearnedMatcher, ModelMetadata, TractEncoder,
-    TractMovingObjects,
+    graph_metadata, EncodedScan, Encoder, LearnedMatcher, ModelFolder, ModelMetadata,
+    TractEncoder, TractMovingObjects,
 };
 use crate::error::{Error, Result};
 use crate::odometry::config::OdometryConfig;
@@ -37,58 +31,13 @@ use crate::odometry::moving::MovingObjectNetwork;
 use crate::odometry::pipeline::{EncodeAhead, FrameMatcher, Odometry};
 use crate::projection::CylinderConfig;
 
-/// Where each graph of a model lies in its folder: the folder's layout, known here alone.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct ModelFolder {
-    path: PathBuf,
-}
-
 impl ModelFolder {
-    /// The encoder graph's file name.
-    pub const ENCODER: &'static str = "encoder.onnx";
-    /// The file name of the frame graph exported with the wide coarse window.
-    pub const WIDE_WINDOW: &'static str = "frame_wide.onnx";
-    /// The sub-folder holding the range-only model.
-    pub const RANGE_ONLY: &'static str = "range_only";
-    /// The moving-object network's file name.
-    pub const MOVING_OBJECTS: &'static str = "moving.onnx";
-
-    /// The model folder at `path` (nothing is read yet).
-    pub fn new(path: impl Into<PathBuf>) -> Self {
-        ModelFolder { path: path.into() }
-    }
-
-    /// The folder.
-    pub fn path(&self) -> &Path {
-        &self.path
-    }
-
-    /// Its encoder graph.
-    pub fn encoder(&self) -> PathBuf {
-        self.path.join(Self::ENCODER)
-    }
-
-    /// Its wide-window graph.
-    pub fn wide_window(&self) -> PathBuf {
-        self.path.join(Self::WIDE_WINDOW)
-    }
-
-    /// Its range-only model's folder.
-    pub fn range_only(&self) -> ModelFolder {
-        ModelFolder::new(self.path.join(Self::RANGE_ONLY))
-    }
-
-    /// Its moving-object network.
-    pub fn moving_objects(&self) -> PathBuf {
-        self.path.join(Self::MOVING_OBJECTS)
-    }
-
     /// The learned matcher of this folder's model in `runtime`: its encoder, with the wide window of its
     /// `frame_wide.onnx` when there is one. Errors ([`Error::Model`]) name the file at fault.
     pub fn learned_matcher(&self, runtime: &Runtime) -> Result<LearnedMatcher<RuntimeEncoder>> {
-        let shown = self.path.display();
-        if !self.path.is_dir() {
-            let what = if self.path.exists() {
+        let shown = self.path().display();
+        if !self.path().is_dir() {
+            let what = if self.path().exists() {
                 "not a folder"
             } else {
                 "no such folder"
@@ -129,87 +78,34 @@ impl ModelFolder {
         model: &LearnedMatcher<RuntimeEncoder>,
     ) -> Result<Option<LearnedMatcher<RuntimeEncoder>>> {
         let folder = self.range_only();
-        if !folder.path.exists() {
+        if !folder.path().exists() {
             return Ok(None);
         }
         let encoder = folder.encoder();
         if encoder.is_file() {
-            let metadata = graph_metadata(&encoder)?;
-            let model_encoder = self.encoder();
-            let image = [metadata.height, metadata.width];
-            check_same_image(
-                &encoder,
-                "the range-only model",
-                (image, &cylinder_of(&metadata)),
-                (model.encoder().input_size(), FrameMatcher::cylinder(model)),
-                &model_encoder,
+            graph_metadata(&encoder)?.check_range_only_for(
+                model.encoder().metadata(),
+                &encoder.display().to_string(),
+                &self.encoder().display().to_string(),
             )?;
-            if metadata.use_reflectance {
-                return Err(Error::Model(format!(
-                    "{}: reads the reflectance channel (dmlo.model_config.use_reflectance): not a \
-                     range-only model",
-                    encoder.display()
-                )));
-            }
         }
         folder.learned_matcher(runtime).map(Some)
     }
 }
 
-/// The cylinder image of a graph; graphs exported before the cylinder was written are KITTI's, as
-/// [`LearnedMatcher::new`] reads them.
-fn cylinder_of(metadata: &ModelMetadata) -> CylinderConfig {
-    metadata.cylinder.unwrap_or_else(CylinderConfig::kitti)
-}
-
-/// The coarse window of the wide-window graph at `path`, checked to be an export of the encoder's model
-/// (`encoder`: its metadata): a frame graph of the same input, cylinder, refine stage and softmax scales,
-/// since the wide window runs on the encoder's features with the encoder's other settings.
+/// The coarse window of the wide-window graph at `path`, checked to be the frame graph of the encoder's
+/// model (`encoder`: its metadata) but for its coarse window, since the wide window runs on the encoder's
+/// features with the encoder's other settings.
 fn wide_coarse_window(encoder: &ModelMetadata, path: &Path) -> Result<usize> {
     let wide = graph_metadata(path)?;
-    let shown = path.display();
-    if wide.graph != "frame" {
-        return Err(Error::Model(format!(
-            "{shown}: a dmlo {:?} graph, not the frame graph exported with the wide window",
-            wide.graph
-        )));
-    }
-    let differing = [
-        (
-            "its input size",
-            [wide.height, wide.width] != [encoder.height, encoder.width],
-        ),
-        (
-            "its cylinder image",
-            cylinder_of(&wide) != cylinder_of(encoder),
-        ),
-        (
-            "dmlo.model_config.refine_window",
-            wide.refine_window != encoder.refine_window,
-        ),
-        (
-            "dmlo.model_config.refine_offset",
-            wide.refine_offset != encoder.refine_offset,
-        ),
-        (
-            "dmlo.model_config.use_reflectance",
-            wide.use_reflectance != encoder.use_reflectance,
-        ),
-        (
-            "dmlo.similarity_scales",
-            wide.similarity_scales != encoder.similarity_scales,
-        ),
-    ]
-    .into_iter()
-    .filter_map(|(what, differs)| differs.then_some(what))
-    .collect::<Vec<_>>();
-    if !differing.is_empty() {
-        return Err(Error::Model(format!(
-            "{shown}: not an export of the encoder's model ({} differ from {}'s)",
-            differing.join(", "),
-            path.with_file_name(ModelFolder::ENCODER).display()
-        )));
-    }
+    let encoder_path = path.with_file_name(ModelFolder::ENCODER);
+    wide.check_export_of(
+        "frame",
+        encoder,
+        &["coarse_window"],
+        &path.display().to_string(),
+        &encoder_path.display().to_string(),
+    )?;
     Ok(wide.coarse_window)
 }
 

@@ -698,7 +698,7 @@ fn the_rust_odometry_over_onnxruntime_equals_the_python_odometry_on_every_real_d
 /// another processor, and onnxruntime's CPU kernels differ between processors in the last bits of the
 /// features, which a frame-to-frame chain accumulates. The same run on one machine agrees to 1e-6
 /// (`tests/odometry/test_rust_example.py`); a flipped inlier parts chains by millimetres and fails here.
-fn assert_pose_is(pose: &nalgebra::Matrix4<f64>, row: &Value, context: &str) {
+fn assert_pose_is(pose: &nalgebra::Isometry3<f64>, row: &Value, context: &str) {
     let row: Vec<f64> = row
         .as_array()
         .unwrap()
@@ -709,7 +709,8 @@ fn assert_pose_is(pose: &nalgebra::Matrix4<f64>, row: &Value, context: &str) {
     expected
         .fixed_view_mut::<3, 4>(0, 0)
         .copy_from(&nalgebra::Matrix3x4::from_row_slice(&row));
-    let (moved, turned) = crate::odometry::motion::pose_difference(&expected, pose);
+    let (moved, turned) =
+        crate::odometry::motion::pose_difference(&expected, &pose.to_homogeneous());
     assert!(
         moved < 1e-5 && turned.to_radians() < 1e-5,
         "{context}: {moved} m, {} rad from dmlo.Odometry's pose",

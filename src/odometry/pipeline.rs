@@ -71,7 +71,7 @@
 //! let mut odometry = Odometry::new(StandingStill(CylinderConfig::kitti()), OdometryConfig::default())?;
 //! for _ in 0..3 {
 //!     let pose = odometry.register(Scan::new(&points))?; // T_world_lidar, the first scan the world
-//!     assert!(pose.fixed_view::<3, 1>(0, 3).norm() < 0.01);
+//!     assert!(pose.translation.vector.norm() < 0.01);
 //! }
 //! assert_eq!(odometry.diagnostics().len(), 3);
 //! # Ok(())
@@ -81,7 +81,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use nalgebra::Matrix4;
+use nalgebra::{Isometry3, Matrix4};
 
 use crate::dense_match::DenseFlow;
 use crate::error::{Error, Result};
@@ -93,6 +93,7 @@ use crate::odometry::motion::{nearest_rigid, rigid_inverse, Fallback, MotionMode
 use crate::odometry::moving::{moving_points_and_fill, MovingObjectNetwork};
 use crate::pair::{PairConfig, PairMotion};
 use crate::projection::{project, CylinderConfig, Projection};
+use crate::rigid::isometry_from_parts;
 
 /// The network as the odometry runs it: scans' images encoded once (features cached, a scan being the
 /// target of one pair and the reference of the next), and the dense flow between two encoded scans.
@@ -383,7 +384,13 @@ impl<M: FrameMatcher> Odometry<M> {
 
     /// Every pose so far, `T_world_lidar` (the first scan is the world); with [`Odometry::keeping_history`]
     /// the newest ones only.
-    pub fn poses(&self) -> &[Matrix4<f64>] {
+    pub fn poses(&self) -> impl ExactSizeIterator<Item = Isometry3<f64>> + '_ {
+        self.poses.iter().map(isometry)
+    }
+
+    /// [`Odometry::poses`] as the 4×4 matrices the odometry chains (what the Python binding hands over).
+    #[cfg(feature = "python")]
+    pub(crate) fn pose_matrices(&self) -> &[Matrix4<f64>] {
         &self.poses
     }
 
@@ -393,15 +400,15 @@ impl<M: FrameMatcher> Odometry<M> {
     }
 
     /// The newest scan's pose `T_world_lidar`; `None` before the first.
-    pub fn pose(&self) -> Option<Matrix4<f64>> {
-        self.poses.last().copied()
+    pub fn pose(&self) -> Option<Isometry3<f64>> {
+        self.poses.last().map(isometry)
     }
 
     /// The newest scan's motion from the one before, `T_previous_newest` (the pose of the newest scan in
     /// the previous scan's frame); `None` before the second scan.
-    pub fn delta(&self) -> Option<Matrix4<f64>> {
+    pub fn delta(&self) -> Option<Isometry3<f64>> {
         match self.poses.as_slice() {
-            [.., previous, newest] => Some(rigid_inverse(previous) * newest),
+            [.., previous, newest] => Some(isometry(previous).inverse() * isometry(newest)),
             _ => None,
         }
     }
@@ -460,7 +467,12 @@ impl<M: FrameMatcher> Odometry<M> {
     /// diagnostics say so. Errors name a bad argument (a mask of the wrong length, a non-finite timestamp,
     /// reflectance the model cannot use); the odometry's state is then as before the call, apart from
     /// the clock of a scan whose error came from the matcher.
-    pub fn register(&mut self, scan: Scan<'_>) -> Result<Matrix4<f64>> {
+    pub fn register(&mut self, scan: Scan<'_>) -> Result<Isometry3<f64>> {
+        self.register_matrix(scan).map(|pose| isometry(&pose))
+    }
+
+    /// [`Odometry::register`]'s pose as the 4×4 matrix the odometry chains.
+    pub(crate) fn register_matrix(&mut self, scan: Scan<'_>) -> Result<Matrix4<f64>> {
         let detecting = Instant::now();
         let detected = self.detect_moving(&scan, true)?;
         let detecting = detecting.elapsed().as_secs_f64() * 1e3;
@@ -664,7 +676,12 @@ impl<M: FrameMatcher> Odometry<M> {
 
     /// Records a scan that could not be read: its pose comes from the motion model (`reason` in its
     /// diagnostics, e.g. [`Fallback::UnreadableScan`]).
-    pub fn predict_skipped(&mut self, reason: Fallback) -> Result<Matrix4<f64>> {
+    pub fn predict_skipped(&mut self, reason: Fallback) -> Result<Isometry3<f64>> {
+        self.predict_skipped_matrix(reason).map(|pose| isometry(&pose))
+    }
+
+    /// [`Odometry::predict_skipped`]'s pose as the 4×4 matrix the odometry chains.
+    pub(crate) fn predict_skipped_matrix(&mut self, reason: Fallback) -> Result<Matrix4<f64>> {
         self.clock.advance(None)?;
         let diagnostics = FrameDiagnostics {
             index: self.frames,
@@ -790,6 +807,14 @@ use reflectance::normalised;
 #[cfg(test)]
 use rematching::moved_cloud;
 use scan_points::{as_points, check_one_per_point, kept_points, kept_rows, KeptPoints};
+
+/// A pose the odometry chained (a rigid 4×4 matrix, orthonormal by construction) as an isometry.
+fn isometry(pose: &Matrix4<f64>) -> Isometry3<f64> {
+    isometry_from_parts(
+        &pose.fixed_view::<3, 3>(0, 0).into_owned(),
+        &pose.fixed_view::<3, 1>(0, 3).into_owned(),
+    )
+}
 
 #[cfg(test)]
 mod tests;

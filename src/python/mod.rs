@@ -9,8 +9,10 @@
 mod convert;
 mod dense_match;
 mod deskew;
+mod diagnostics;
 mod mapping;
 mod matches;
+mod model;
 mod moving;
 mod ndt;
 mod odometry;
@@ -45,12 +47,20 @@ pyo3::create_exception!(
      ValueError."
 );
 
+pyo3::create_exception!(
+    dmlo_rs,
+    ModelError,
+    PyValueError,
+    "A model file that is missing, not a dmlo export, or does not fit the input: the message names the \
+     file and what is wrong. A subclass of ValueError."
+);
+
 impl From<Error> for PyErr {
     fn from(err: Error) -> PyErr {
         match err {
-            Error::InvalidArgument { .. } | Error::Model(_) => {
-                PyValueError::new_err(err.to_string())
-            }
+            Error::InvalidArgument { .. } => PyValueError::new_err(err.to_string()),
+            // The exception's type says what the Rust message's "model: " prefix does.
+            Error::Model(message) => ModelError::new_err(message),
             Error::Config(_) => ConfigError::new_err(err.to_string()),
             Error::TooFewPoints { .. } | Error::Degenerate(_) => {
                 RegistrationError::new_err(err.to_string())
@@ -65,6 +75,7 @@ fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("RegistrationError", m.py().get_type::<RegistrationError>())?;
     m.add("ConfigError", m.py().get_type::<ConfigError>())?;
+    m.add("ModelError", m.py().get_type::<ModelError>())?;
     projection::register(m)?;
     registration::register(m)?;
     matches::register(m)?;
@@ -79,5 +90,7 @@ fn _dmlo_rs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     mapping::register(m)?;
     projective::register(m)?;
     moving::register(m)?;
+    model::register(m)?;
+    diagnostics::register(m)?;
     Ok(())
 }

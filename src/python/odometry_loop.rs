@@ -19,11 +19,12 @@ use crate::odometry::config::schema::Named;
 use crate::odometry::config::{MatchingStage, OdometryConfig};
 use crate::odometry::motion::Fallback;
 use crate::odometry::moving::MovingObjectNetwork;
-use crate::odometry::pipeline::{FrameDiagnostics, FrameMatcher, Odometry, Scan};
+use crate::odometry::pipeline::{FrameMatcher, Odometry, Scan};
 use crate::projection::CylinderConfig;
 
+use super::diagnostics::PyFrameDiagnostics;
 use super::convert::{matrix4_to_numpy, named_scan_points, shape_error, vector_f64};
-use super::pair::PyPairMotion;
+use super::pair::{pair_from_flow, FlowImages, PyPairMotion};
 use super::pool::run;
 use super::projection::PyCylinderConfig;
 
@@ -41,6 +42,8 @@ struct PythonMatcher {
     matches_cells: bool,
     guides_windows: bool,
     wide_window: bool,
+    /// The matcher encodes a scan inside its `match` (`defers_encoding`): the two are timed as one.
+    defers_encoding: bool,
     raised: Raised,
 }
 
@@ -81,6 +84,10 @@ impl PythonMatcher {
             matches_cells: callable("match_cells")?,
             guides_windows: callable("match_guided")?,
             wide_window: callable("wide_match")?,
+            defers_encoding: match object.getattr_opt("defers_encoding")? {
+                Some(value) => value.is_truthy()?,
+                None => false,
+            },
             raised: raised.clone(),
         })
     }
@@ -304,6 +311,8 @@ pub struct PyOdometry {
     inner: Odometry<PythonMatcher>,
     raised: Raised,
     threads: Option<i64>,
+    /// The matcher encodes scans while matching them: its matching time is counted as the network's.
+    encoding_in_matching: bool,
 }
 
 impl PyOdometry {
@@ -331,7 +340,9 @@ impl PyOdometry {
             None => OdometryConfig::default(),
         };
         let raised = Raised::default();
-        let mut odometry = Odometry::new(PythonMatcher::new("matcher", matcher, &raised)?, config)?;
+        let matcher = PythonMatcher::new("matcher", matcher, &raised)?;
+        let encoding_in_matching = matcher.defers_encoding;
+        let mut odometry = Odometry::new(matcher, config)?;
         if let Some(range_only) = range_only {
             let range_only = PythonMatcher::new("range_only", range_only, &raised)?;
             odometry = odometry.with_range_only(range_only)?;
@@ -346,6 +357,7 @@ impl PyOdometry {
             inner: odometry,
             raised,
             threads: super::pool::threads(num_threads)?,
+            encoding_in_matching,
         })
     }
 
@@ -374,7 +386,7 @@ impl PyOdometry {
         let threads = self.threads;
         let inner = &mut self.inner;
         let result = run(py, threads, || {
-            inner.register(Scan {
+            inner.register_matrix(Scan {
                 points: &cloud,
                 has_reflectance,
                 moving: mask.as_deref(),
@@ -467,35 +479,66 @@ impl PyOdometry {
                 names.join(", ")
             ))
         })?;
-        let pose = self.inner.predict_skipped(reason)?;
+        let pose = self.inner.predict_skipped_matrix(reason)?;
         Ok(matrix4_to_numpy(py, &pose))
     }
 
     /// Every pose so far, `(N, 4, 4)` float64.
     #[getter]
     fn poses<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray3<f64>> {
-        let poses = self.inner.poses();
+        let poses = self.inner.pose_matrices();
         numpy::ndarray::Array3::from_shape_fn((poses.len(), 4, 4), |(n, i, j)| poses[n][(i, j)])
             .into_pyarray(py)
     }
 
-    /// Every frame's diagnostics, as `dmlo.Odometry`'s `FrameDiagnostics.to_dict()` gives them.
+    /// The back end alone with this odometry's settings: a pair's motion from any flow `[2, H, W]` and
+    /// confidence `[H, W]` between the range images `ref_range` and `tgt_range` (§III-D; `match_pair` with
+    /// the config's matching and RANSAC settings). `ref_points` `[H, W, 3]`: the surfaces under the
+    /// matches (None: the virtual points of the reference's cells); `leave_out` `[H, W]`: cells left out;
+    /// `tilt_votes` False: one vote a match whatever `ransac.vote_by_tilt` says.
+    #[pyo3(signature = (ref_range, tgt_range, flow, confidence, *, ref_points = None, leave_out = None, tilt_votes = true))]
+    #[allow(clippy::too_many_arguments)]
+    fn pose_from_flow(
+        &self,
+        py: Python<'_>,
+        ref_range: &Bound<'_, PyAny>,
+        tgt_range: &Bound<'_, PyAny>,
+        flow: &Bound<'_, PyAny>,
+        confidence: &Bound<'_, PyAny>,
+        ref_points: Option<&Bound<'_, PyAny>>,
+        leave_out: Option<&Bound<'_, PyAny>>,
+        tilt_votes: bool,
+    ) -> PyResult<PyPairMotion> {
+        let images = FlowImages {
+            ref_range,
+            tgt_range,
+            flow,
+            confidence,
+            ref_points,
+            leave_out,
+        };
+        let settings = self.inner.config().pair_config();
+        let cylinder = *self.inner.matcher().cylinder();
+        pair_from_flow(py, images, &cylinder, &settings, tilt_votes, self.threads)
+    }
+
+    /// Every frame's diagnostics (those kept: `keeping_history`).
     #[getter]
-    fn diagnostics<'py>(&self, py: Python<'py>) -> PyResult<Vec<Bound<'py, PyAny>>> {
+    fn diagnostics(&self) -> PyResult<Vec<PyFrameDiagnostics>> {
         self.inner
             .diagnostics()
             .iter()
-            .map(|d| diagnostics_dict(py, d))
+            .map(|d| PyFrameDiagnostics::new(d, self.encoding_in_matching))
             .collect()
     }
 
-    /// The newest frame's diagnostics (as `diagnostics` gives each), None before the first scan.
+    /// The newest frame's diagnostics, None before the first scan.
     #[getter]
-    fn last_diagnostics<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
+    fn last_diagnostics(&self) -> PyResult<Option<PyFrameDiagnostics>> {
         self.inner
             .diagnostics()
             .last()
-            .map(|d| diagnostics_dict(py, d))
+            .map(|d| PyFrameDiagnostics::new(d, self.encoding_in_matching))
             .transpose()
     }
 
@@ -545,22 +588,12 @@ impl PyOdometry {
     }
 
     fn __len__(&self) -> usize {
-        self.inner.poses().len()
+        self.inner.pose_matrices().len()
     }
 
     fn __repr__(&self) -> String {
-        format!("Odometry(scans={})", self.inner.poses().len())
+        format!("Odometry(scans={})", self.inner.pose_matrices().len())
     }
-}
-
-/// One frame's diagnostics as a dict, through their JSON form (the keys and rounding `dmlo` writes).
-fn diagnostics_dict<'py>(
-    py: Python<'py>,
-    diagnostics: &FrameDiagnostics,
-) -> PyResult<Bound<'py, PyAny>> {
-    let text = serde_json::to_string(diagnostics)
-        .map_err(|e| PyValueError::new_err(format!("diagnostics: {e}")))?;
-    py.import("json")?.getattr("loads")?.call1((text,))
 }
 
 /// A scan `name` given as N×4 (x, y, z, reflectance) or N×3 (no reflectance) float32 or float64, as the

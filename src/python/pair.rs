@@ -7,6 +7,7 @@ use pyo3::prelude::*;
 
 use crate::coherence::CoherenceConfig;
 use crate::pair::{self, PairConfig, PairImages};
+use crate::projection::CylinderConfig;
 use crate::ransac::RansacConfig;
 
 use super::convert::{
@@ -96,21 +97,6 @@ fn match_pair(
     vote_voxel: Option<f64>,
     num_threads: Option<Int>,
 ) -> PyResult<PyPairMotion> {
-    let cylinder = config.inner;
-    let (ref_range, tgt_range) = (
-        image("ref_range", ref_range, &cylinder)?,
-        image("tgt_range", tgt_range, &cylinder)?,
-    );
-    let (flow, confidence) = (
-        flow_image(flow, &cylinder)?,
-        image("confidence", confidence, &cylinder)?,
-    );
-    let ref_points = ref_points
-        .map(|p| point_image("ref_points", p, &cylinder))
-        .transpose()?;
-    let leave_out = leave_out
-        .map(|m| bool_image("leave_out", m, &cylinder))
-        .transpose()?;
     let settings = PairConfig {
         min_confidence,
         nms_radius,
@@ -130,6 +116,52 @@ fn match_pair(
         tilt_vote_floor,
         vote_voxel,
     };
+    let images = FlowImages {
+        ref_range,
+        tgt_range,
+        flow,
+        confidence,
+        ref_points,
+        leave_out,
+    };
+    pair_from_flow(py, images, &config.inner, &settings, tilt_votes, threads(num_threads)?)
+}
+
+/// A pair's images as Python gives them ([`pair_from_flow`]).
+pub(super) struct FlowImages<'a, 'py> {
+    pub ref_range: &'a Bound<'py, PyAny>,
+    pub tgt_range: &'a Bound<'py, PyAny>,
+    pub flow: &'a Bound<'py, PyAny>,
+    pub confidence: &'a Bound<'py, PyAny>,
+    pub ref_points: Option<&'a Bound<'py, PyAny>>,
+    pub leave_out: Option<&'a Bound<'py, PyAny>>,
+}
+
+/// The pair's motion from a flow (`pair::match_pair`), its images checked against `cylinder`.
+pub(super) fn pair_from_flow(
+    py: Python<'_>,
+    given: FlowImages<'_, '_>,
+    cylinder: &CylinderConfig,
+    settings: &PairConfig,
+    tilt_votes: bool,
+    threads: Option<i64>,
+) -> PyResult<PyPairMotion> {
+    let (ref_range, tgt_range) = (
+        image("ref_range", given.ref_range, cylinder)?,
+        image("tgt_range", given.tgt_range, cylinder)?,
+    );
+    let (flow, confidence) = (
+        flow_image(given.flow, cylinder)?,
+        image("confidence", given.confidence, cylinder)?,
+    );
+    let ref_points = given
+        .ref_points
+        .map(|p| point_image("ref_points", p, cylinder))
+        .transpose()?;
+    let leave_out = given
+        .leave_out
+        .map(|m| bool_image("leave_out", m, cylinder))
+        .transpose()?;
     let (ref_range, tgt_range, flow, confidence) = (
         ref_range.f32_data(),
         tgt_range.f32_data(),
@@ -145,8 +177,8 @@ fn match_pair(
         ref_points: ref_points.as_deref(),
         leave_out: leave_out.as_deref(),
     };
-    let motion = run(py, threads(num_threads)?, || {
-        pair::match_pair(&images, &cylinder, &settings, tilt_votes)
+    let motion = run(py, threads, || {
+        pair::match_pair(&images, cylinder, settings, tilt_votes)
     })?;
     Ok(PyPairMotion::new(py, motion))
 }

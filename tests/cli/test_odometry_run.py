@@ -14,7 +14,7 @@ import pytest
 
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry
-from dmlo.odometry.run import run_sequence
+from dmlo.run import run_sequence
 from dmlo.poses import read_kitti_poses, read_tum_poses
 from dmlo.simulator import simulate_sequence
 

@@ -19,7 +19,7 @@ from dmlo import outputs as writers
 from dmlo.cli import main
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry
-from dmlo.odometry.run import run_sequence
+from dmlo.run import run_sequence
 from dmlo.outputs import BENCH_FILES, RUN_FILES, FrameFiles, OutputError, atomic_output, prepare_output_folder
 from dmlo.poses import read_kitti_poses, read_tum_poses
 from dmlo.simulator import simulate_sequence

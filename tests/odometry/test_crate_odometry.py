@@ -43,8 +43,8 @@ def _scans(shared_data: Path, name: str) -> tuple[list[np.ndarray], list[float] 
     return [frame.points for frame in frames], None if any(t is None for t in times) else times  # type: ignore[misc]
 
 
-def _without_timings(diagnostics: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    return [{key: value for key, value in d.items() if key != "timings_ms"} for d in diagnostics]
+def _without_timings(diagnostics: list[dmlo_rs.FrameDiagnostics]) -> list[dict[str, Any]]:
+    return [{key: value for key, value in d.to_dict().items() if key != "timings_ms"} for d in diagnostics]
 
 
 @pytest.mark.slow
@@ -62,7 +62,7 @@ def test_dmlo_odometry_adds_nothing_to_the_crates_poses(
         expected = python.register(points, timestamp=timestamp)
         got = crate.register(points, timestamp=timestamp)
         np.testing.assert_array_equal(got, expected, err_msg=f"{name} scan {index}")
-    assert _without_timings(crate.diagnostics) == _without_timings([d.to_dict() for d in python.diagnostics])
+    assert _without_timings(crate.diagnostics) == _without_timings(python.diagnostics)
     assert crate.reflectance_scale == "unit" and len(crate) == len(scans)
 
 
@@ -145,7 +145,7 @@ def test_scans_without_reflectance_switch_the_crate_to_the_range_only_model(
         got = crate.register(points, timestamp=times[index])
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12, err_msg=f"scan {index}")
     assert python.matcher is range_only and crate.reflectance_scale == "none"
-    assert _without_timings(crate.diagnostics) == _without_timings([d.to_dict() for d in python.diagnostics])
+    assert _without_timings(crate.diagnostics) == _without_timings(python.diagnostics)
     with pytest.raises(ValueError, match="range_only: reads the reflectance"):
         dmlo_rs.Odometry(range_only, range_only=FrameMatcherAdapter(OnnxMatcher(tmp_path / "frame.onnx")))
 
@@ -233,7 +233,7 @@ def test_bad_matchers_configs_and_scans_are_named(onnx_matcher: Any, real_pair: 
     assert len(crate) == 0
     on_zeros = dmlo_rs.Odometry(onnx_matcher, allow_zero_reflectance=True)
     on_zeros.register(dark)
-    assert on_zeros.reflectance_scale == "none" and on_zeros.last_diagnostics["fallback"] is None
+    assert on_zeros.reflectance_scale == "none" and on_zeros.last_diagnostics.fallback is None
     crate.register(real_pair[0], moving=np.zeros(len(real_pair[0]), dtype=bool))
     skipped = crate.predict_skipped()
-    assert crate.diagnostics[-1]["fallback"] == "unreadable_scan" and skipped.shape == (4, 4)
+    assert crate.diagnostics[-1].fallback == "unreadable_scan" and skipped.shape == (4, 4)

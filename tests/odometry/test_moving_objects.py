@@ -19,10 +19,11 @@ from dmlo.datasets import moving_mask, open_sequence
 from dmlo.metrics.moving import precision_recall
 from dmlo.odometry import Odometry, OdometryConfig
 from dmlo.odometry.matcher import ModelError, default_model_path
-from dmlo.odometry.moving import GRAPH, MovingObjectDetector, moving_objects_graph, range_and_height
+from dmlo.odometry.moving import MovingObjectDetector, moving_objects_graph, range_and_height
 from dmlo.simulator import simulate_sequence
 from support import frame_to_frame
 
+GRAPH = dmlo_rs.ModelFolder.MOVING_OBJECTS
 BUNDLED = default_model_path() / GRAPH
 
 
@@ -164,7 +165,7 @@ def test_a_graph_that_is_not_a_moving_object_network_is_a_model_error(tmp_path: 
         if entry.key == "dmlo.graph":
             entry.value = "frame"
     onnx.save(graph, str(tmp_path / GRAPH))
-    with pytest.raises(ModelError, match="not a dmlo moving-object graph"):
+    with pytest.raises(ModelError, match="a dmlo \"frame\" graph, not the moving-object network"):
         MovingObjectDetector(tmp_path / GRAPH)
     (tmp_path / "broken.onnx").write_bytes(b"not onnx")
     with pytest.raises(ModelError, match="not a readable ONNX model"):
@@ -303,7 +304,7 @@ def test_creeping_behind_traffic_the_odometry_does_not_follow_the_cars(tmp_path:
 
 def test_a_run_says_how_much_the_network_left_out(jam: Path, tmp_path: Path) -> None:
     from dmlo.commands.run import format_summary
-    from dmlo.odometry.run import run_sequence
+    from dmlo.run import run_sequence
 
     sequence = open_sequence(jam)
     summary = run_sequence(sequence, Odometry(default_model_path(), frame_to_frame()), tmp_path / "network",

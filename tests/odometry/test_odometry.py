@@ -328,7 +328,7 @@ def test_a_model_whose_input_does_not_fit_its_cylinder_is_refused(tmp_path: Path
             cylinder["width"] = 896
             entry.value = json.dumps(cylinder)
     onnx.save(model, str(tmp_path / "frame.onnx"))
-    with pytest.raises(ModelError, match=r"network input 64×1792 does not match its cylinder image 64×896"):
+    with pytest.raises(ModelError, match=r"frame\.onnx: dmlo\.cylinder_config is 64 × 896, the input 64 × 1792"):
         Odometry(tmp_path)
 
 
@@ -338,7 +338,7 @@ def test_large_motion_pair_uses_the_wide_window_graph(scans: list[np.ndarray]) -
     assert result.T_tgt_ref.shape == (4, 4)
     wide = odometry._loop_matcher._wide  # opened by the crate's first wide-window match
     assert wide is not None
-    assert wide.model_config["coarse_window"] > odometry.matcher.model_config["coarse_window"]
+    assert wide.metadata.coarse_window > odometry.matcher.metadata.coarse_window
 
 
 def test_large_motion_rounds_rematch_the_moved_reference_and_keep_the_scans_frames(drive: Path) -> None:

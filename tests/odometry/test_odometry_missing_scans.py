@@ -17,7 +17,7 @@ import dmlo_rs
 from dmlo.datasets import open_sequence
 from dmlo.metrics import registration_errors
 from dmlo.odometry import Odometry, OdometryConfig, TimestampWarning
-from dmlo.odometry.run import run_sequence
+from dmlo.run import run_sequence
 from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
 from faults import corrupt

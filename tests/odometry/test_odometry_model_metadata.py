@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import dmlo_rs
+
 onnx = pytest.importorskip("onnx")
 
 from dmlo.cli import main as dmlo_main  # noqa: E402
@@ -59,24 +61,24 @@ def _model_config(drop: str | None = None, **changes: object) -> str:
 
 
 CORRUPT = [
-    ({"dmlo.model_config": None}, r"frame\.onnx: its metadata lacks dmlo\.model_config"),
-    ({"dmlo.model_config": "{\"coarse_window\": 15"}, r"frame\.onnx: metadata dmlo\.model_config is not JSON"),
-    ({"dmlo.model_config": "[15, 7]"}, r"frame\.onnx: metadata dmlo\.model_config must be a JSON object"),
-    ({"dmlo.model_config": "drop coarse_window"}, r"frame\.onnx: metadata dmlo\.model_config lacks coarse_window"),
-    ({"dmlo.model_config": "drop refine_window"}, r"frame\.onnx: metadata dmlo\.model_config lacks refine_window"),
+    ({"dmlo.model_config": None}, r"frame\.onnx: no dmlo\.model_config in the graph's metadata: not a dmlo export"),
+    ({"dmlo.model_config": "{\"coarse_window\": 15"}, r"frame\.onnx: dmlo\.model_config is not JSON"),
+    ({"dmlo.model_config": "[15, 7]"}, r"frame\.onnx: dmlo\.model_config must be a JSON object"),
+    ({"dmlo.model_config": "drop coarse_window"}, r"frame\.onnx: dmlo\.model_config\.coarse_window must be an odd integer >= 3; it lacks it"),
+    ({"dmlo.model_config": "drop refine_window"}, r"frame\.onnx: dmlo\.model_config\.refine_window must be an odd integer >= 3; it lacks it"),
     ({"dmlo.model_config": "drop refine_offset"}, r"dmlo\.model_config\.refine_offset must be one of window, peak_centroid; it lacks it"),
-    ({"dmlo.model_config": "refine_window=6"}, r"dmlo\.model_config\.refine_window must be an odd integer >= 3, got 6"),
-    ({"dmlo.model_config": "coarse_window=\"15\""}, r"dmlo\.model_config\.coarse_window must be an odd integer >= 3, got '15'"),
-    ({"dmlo.model_config": "use_reflectance=\"no\""}, r"dmlo\.model_config\.use_reflectance must be true or false, got 'no'"),
+    ({"dmlo.model_config": "refine_window=6"}, r"dmlo\.model_config\.refine_window must be an odd integer >= 3; got 6"),
+    ({"dmlo.model_config": "coarse_window=\"15\""}, r"dmlo\.model_config\.coarse_window must be an odd integer >= 3; got \"15\""),
+    ({"dmlo.model_config": "use_reflectance=\"no\""}, r"dmlo\.model_config\.use_reflectance must be true or false; got \"no\""),
     ({"dmlo.similarity_scales": "{\"coarse\": 13.2}"}, r"dmlo\.similarity_scales\.refine must be a finite number > 0; it lacks it"),
     ({"dmlo.similarity_scales": "{\"coarse\": -1, \"refine\": 11}"}, r"dmlo\.similarity_scales\.coarse must be a finite number > 0; got -1"),
-    ({"dmlo.similarity_scales": "{\"coarse\": \"13\", \"refine\": 11}"}, r"dmlo\.similarity_scales\.coarse must be a finite number > 0; got '13'"),
-    ({"dmlo.similarity_scales": "NaN"}, r"metadata dmlo\.similarity_scales must be a JSON object"),
-    ({"dmlo.similarity_scales": "13.2, 11.1"}, r"metadata dmlo\.similarity_scales is not JSON"),
-    ({"dmlo.cylinder_config": None}, r"frame\.onnx: its metadata lacks dmlo\.cylinder_config"),
-    ({"dmlo.cylinder_config": "{}"}, r"frame\.onnx: cylinder configuration lacks fov_up_deg"),
-    ({"dmlo.height": None}, r"frame\.onnx: its metadata lacks dmlo\.height"),
-    ({"dmlo.width": "1792.5"}, r"frame\.onnx: metadata dmlo\.width must be a positive integer, got '1792\.5'"),
+    ({"dmlo.similarity_scales": "{\"coarse\": \"13\", \"refine\": 11}"}, r"dmlo\.similarity_scales\.coarse must be a finite number > 0; got \"13\""),
+    ({"dmlo.similarity_scales": "[13.2, 11.1]"}, r"dmlo\.similarity_scales must be a JSON object"),
+    ({"dmlo.similarity_scales": "13.2, 11.1"}, r"dmlo\.similarity_scales is not JSON"),
+    ({"dmlo.cylinder_config": "{}"}, r"frame\.onnx: dmlo\.cylinder_config\.fov_up_deg must be a number"),
+    ({"dmlo.height": None}, r"frame\.onnx: no dmlo\.height in the graph's metadata"),
+    ({"dmlo.width": "1792.5"}, r"frame\.onnx: dmlo\.width = \"1792\.5\" is not a positive integer"),
+    ({"dmlo.interface_version": "2"}, r"frame\.onnx: dmlo\.interface_version \"2\": this crate reads version \"1\""),
 ]
 
 
@@ -104,23 +106,35 @@ def test_corrupt_metadata_is_a_model_error_naming_the_key(
 def test_corrupt_metadata_fails_when_the_model_opens_whichever_stage_matches(stage: str, bundled: Path, tmp_path: Path) -> None:
     # Before, the crate's stage read the model config's windows only at the first pair (a KeyError after frame 0).
     model = corrupt(bundled, tmp_path / "model", {"dmlo.model_config": _model_config(drop="coarse_window")})
-    with pytest.raises(ModelError, match="lacks coarse_window"):
+    with pytest.raises(ModelError, match="coarse_window must be an odd integer >= 3; it lacks it"):
         OnnxMatcher(model, matching_stage=stage)
 
 
 def test_a_corrupt_encoder_graph_is_named(bundled: Path, tmp_path: Path) -> None:
     model = corrupt(bundled, tmp_path / "model", {"dmlo.model_config": "{"}, graph="encoder.onnx")
-    with pytest.raises(ModelError, match=r"encoder\.onnx: metadata dmlo\.model_config is not JSON"):
+    with pytest.raises(ModelError, match=r"encoder\.onnx: dmlo\.model_config is not JSON"):
         OnnxMatcher(model, matching_stage="crate")
     model = corrupt(bundled, tmp_path / "sized", {"dmlo.height": "sixty-four"}, graph="encoder.onnx")
-    with pytest.raises(ModelError, match=r"encoder\.onnx: metadata dmlo\.height must be a positive integer"):
+    with pytest.raises(ModelError, match=r"encoder\.onnx: dmlo\.height = \"sixty-four\" is not a positive integer"):
         OnnxMatcher(model, matching_stage="crate")
 
 
 def test_the_bundled_models_metadata_passes(bundled: Path) -> None:
     matcher = OnnxMatcher(bundled)
-    assert matcher.model_config["coarse_window"] % 2 == 1
-    assert matcher._scales is not None and set(matcher._scales) == {"coarse", "refine"}
+    assert matcher.metadata.coarse_window % 2 == 1 and matcher.metadata.graph == "frame"
+    assert matcher.metadata.similarity_scales is not None and min(matcher.metadata.similarity_scales) > 0
+
+
+def test_a_graph_exported_before_its_cylinder_was_written_takes_kittis_image(bundled: Path, tmp_path: Path) -> None:
+    # The crate's rule for every runtime: the only cylinder there was then.
+    model = corrupt(bundled, tmp_path / "model", {"dmlo.cylinder_config": None})
+    assert OnnxMatcher(model).cylinder == dmlo_rs.CylinderConfig.kitti()
+
+
+def test_an_encoder_of_other_weights_is_refused(bundled: Path, tmp_path: Path) -> None:
+    model = corrupt(bundled, tmp_path / "model", {"dmlo.model_config": _model_config(refine_channels=16)}, graph="encoder.onnx")
+    with pytest.raises(ModelError, match=r"encoder\.onnx: not the encoder graph of frame\.onnx's model \(dmlo\.model_config\.refine_channels differ\)"):
+        OnnxMatcher(model, matching_stage="crate")
 
 
 @pytest.mark.parametrize("command", ["run", "register"])
@@ -172,11 +186,11 @@ def test_a_corrupt_range_only_model_fails_before_the_first_scan(bundled: Path, t
     model = tmp_path / "model"
     shutil.copytree(bundled, model)
     corrupt(default_model_path() / "range_only", model / "range_only", {"dmlo.model_config": "{"})
-    with pytest.raises(ModelError, match=r"range_only/frame\.onnx: metadata dmlo\.model_config is not JSON"):
+    with pytest.raises(ModelError, match=r"range_only/frame\.onnx: dmlo\.model_config is not JSON"):
         Odometry(model, OdometryConfig())
     shutil.rmtree(model / "range_only")
     shutil.copytree(default_model_path() / "range_only", model / "range_only")
     odometry = Odometry(model, OdometryConfig())
     with pytest.warns(UserWarning, match="the range-only model runs"):
         odometry.register(np.ascontiguousarray(scans[0][:, :3]))  # no reflectance
-    assert odometry.matcher.model_config.get("use_reflectance") is False
+    assert odometry.matcher.uses_reflectance is False

@@ -11,14 +11,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import dmlo_rs
+
 from dmlo.datasets import open_sequence
 from dmlo.model import Matcher, MatcherConfig
 from dmlo.odometry import Odometry, OdometryConfig, ReflectanceNotice
-from dmlo.odometry.matcher import RANGE_ONLY_DIR, default_model_path
+from dmlo.odometry.matcher import default_model_path
 from dmlo.simulator import simulate_sequence
 from support import frame_to_frame
 
-RANGE_ONLY = default_model_path() / RANGE_ONLY_DIR
+RANGE_ONLY = default_model_path() / dmlo_rs.ModelFolder.RANGE_ONLY
 MODES = ("auto", "unit", "0-255", "0-65535", "none")
 VARIANTS = ("unit", "x255", "zeros", "absent")
 
@@ -110,7 +112,7 @@ def test_the_choice_is_noticed_once_per_odometry(scans: list[np.ndarray], name: 
     assert "\n" not in notices[0]
     runs_range_only = name != "x255"
     assert (odometry.matcher.path.parent == RANGE_ONLY) == runs_range_only
-    assert odometry.matcher.model_config.get("use_reflectance", True) is not runs_range_only  # older exports lack it
+    assert odometry.matcher.uses_reflectance is not runs_range_only
 
 
 @pytest.mark.parametrize(("setting", "said"), [("0-255", "the config says reflectance 0-255: divided by 255"),

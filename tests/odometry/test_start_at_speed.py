@@ -14,7 +14,7 @@ import pytest
 from dmlo.commands.run import format_summary
 from dmlo.datasets import open_sequence
 from dmlo.odometry import Odometry, OdometryConfig
-from dmlo.odometry.run import run_sequence
+from dmlo.run import run_sequence
 from dmlo.simulator import simulate_sequence
 
 

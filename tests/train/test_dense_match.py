@@ -212,7 +212,7 @@ def test_the_wide_graph_matches_in_the_crate_with_its_own_window(shared_data: Pa
     wide = default_model_path() / "frame_wide.onnx"
     crate = OnnxMatcher(wide, threads=2)
     graph = OnnxMatcher(wide, threads=2, matching_stage="graph")
-    assert crate.matching_stage == "crate" and crate.model_config["coarse_window"] > 11
+    assert crate.matching_stage == "crate" and crate.metadata.coarse_window > 11
     first, second = kitti_images(shared_data, crate)
     previous = crate.encode(first)
     got, want = crate.frame(second, previous), graph.frame(second, previous)

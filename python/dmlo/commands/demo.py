@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from dmlo.cli import UserError
     from dmlo.commands.run import build_odometry, format_summary
     from dmlo.datasets import open_sequence
-    from dmlo.odometry.run import run_sequence
+    from dmlo.run import run_sequence
     from dmlo.outputs import OutputError, describe_os_error, make_folder
     from dmlo.simulator import simulate_sequence
 

@@ -117,7 +117,7 @@ def build_odometry(args: argparse.Namespace, mapping: bool | None = None):  # ty
 
 def run(args: argparse.Namespace) -> int:
     from dmlo.datasets import DatasetError, open_sequence
-    from dmlo.odometry.run import run_sequence
+    from dmlo.run import run_sequence
     from dmlo.outputs import BENCH_FILES, RUN_FILES, OutputError, check_output_folder
 
     if not args.path.exists():

@@ -1,4 +1,5 @@
-"""The DMLO odometry pipeline: `Odometry` registers scans one by one; `run_sequence` runs a dataset."""
+"""The DMLO odometry: `Odometry` registers scans one by one (the crate's loop, the network in onnxruntime);
+`dmlo.run.run_sequence` runs it over a dataset."""
 
 from dmlo.odometry.config import (
     DeskewConfig,

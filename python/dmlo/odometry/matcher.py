@@ -13,14 +13,14 @@ window decoding, most of the exported `frame` graph's time on a CPU) runs is a c
 - ``auto`` (the default): ``crate`` when onnxruntime runs on the CPU and the model allows it, else ``graph``.
 
 The graph's metadata carries the cylinder configuration it was trained for; the projection is built
-from it, so a model and its input geometry cannot drift apart. All of the metadata that the run reads is
-checked when the model is opened: a missing or malformed key is a `ModelError` naming it, before any scan.
+from it, so a model and its input geometry cannot drift apart. The metadata is checked by the crate's
+rules (`dmlo_rs.ModelMetadata`, the ones its own runtimes apply) when the model is opened: a missing or
+malformed key is a `ModelError` naming it, before any scan. The folder's file names are the crate's
+(`dmlo_rs.ModelFolder`).
 """
 
 from __future__ import annotations
 
-import json
-import math
 import os
 import time
 import warnings
@@ -33,27 +33,8 @@ import numpy.typing as npt
 
 import dmlo_rs
 
-FRAME_GRAPH = "frame.onnx"
-WIDE_FRAME_GRAPH = "frame_wide.onnx"  # the same weights with the wide coarse window of §IV-D
-MATCH_GRAPH = "match.onnx"  # any pair of cached features, e.g. the new scan back against the previous one
-ENCODER_GRAPH = "encoder.onnx"  # a scan's features alone (frame.onnx would also match it against zeros)
-RANGE_ONLY_DIR = "range_only"  # the range-only model's folder inside a model's folder
-INTERFACE_VERSION = "1"
 MATCHING_STAGES = ("auto", "crate", "graph")
-REFINE_OFFSETS = ("window", "peak_centroid")  # `dmlo.model.MatcherConfig.refine_offset`
-_MATCH_STAGE_KEYS = ("coarse_window", "refine_window", "refine_offset")  # export-time choices, same weights
-_CYLINDER_KEYS = (
-    "fov_up_deg",
-    "fov_down_deg",
-    "vertical_resolution_deg",
-    "horizontal_resolution_deg",
-    "height",
-    "width",
-)
-
-
-class ModelError(ValueError):
-    """A model file that is missing, not a dmlo export, or does not fit the input."""
+ModelError = dmlo_rs.ModelError  # a model file missing, not a dmlo export, or not fitting the input
 
 
 @dataclass(frozen=True)
@@ -139,10 +120,10 @@ def onnxruntime_library() -> Path:
 
 def wide_graph_path(frame_graph: Path) -> Path:
     """The large-motion graph stored beside a model's `frame.onnx`."""
-    wide = frame_graph.with_name(WIDE_FRAME_GRAPH)
+    wide = frame_graph.with_name(dmlo_rs.ModelFolder.WIDE_WINDOW)
     if not wide.is_file():
         raise ModelError(
-            f"{frame_graph.parent} has no {WIDE_FRAME_GRAPH} for large motion; export one from the "
+            f"{frame_graph.parent} has no {wide.name} for large motion; export one from the "
             "checkpoint with `dmlo export CHECKPOINT --out DIR --wide-window 41`"
         )
     return wide
@@ -161,24 +142,17 @@ class OnnxMatcher:
         threads = usable_threads(threads)
         if matching_stage not in MATCHING_STAGES:
             raise ValueError(f"matching_stage: expected one of {', '.join(MATCHING_STAGES)}, got {matching_stage!r}")
-        graph = path / FRAME_GRAPH if path.is_dir() else path
+        graph = path / dmlo_rs.ModelFolder.FRAME if path.is_dir() else path
         if not graph.is_file():
             raise ModelError(f"model not found: {graph}")
         options = session_options(threads)
         providers = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
-        self._session = _open_session(graph, options, providers)
-        metadata = self._session.get_modelmeta().custom_metadata_map
-        if metadata.get("dmlo.interface_version") != INTERFACE_VERSION or metadata.get("dmlo.graph") != "frame":
-            raise ModelError(f"{graph}: not a dmlo frame graph (interface {INTERFACE_VERSION} expected)")
+        self._session, self.metadata = _open_graph_checked(graph, options, providers)
+        if self.metadata.graph != "frame":
+            raise ModelError(f"{graph}: a dmlo {self.metadata.graph!r} graph, not a frame graph")
         self.path = graph
-        self.model_config = _model_config(metadata, graph)
-        self.height, self.width = _size(metadata, graph)
-        self.cylinder = _cylinder_from_metadata(_json_object(metadata, "dmlo.cylinder_config", graph), graph)
-        if (self.cylinder.height, self.cylinder.width) != (self.height, self.width):
-            raise ModelError(
-                f"{graph}: network input {self.height}×{self.width} does not match its cylinder image "
-                f"{self.cylinder.height}×{self.cylinder.width}"
-            )
+        self.height, self.width = self.metadata.height, self.metadata.width
+        self.cylinder = self.metadata.cylinder
         shapes = {i.name: i.shape for i in self._session.get_inputs()}
         missing = [name for name in ("scan", "prev_coarse_features", "prev_refine_features") if name not in shapes]
         if missing:
@@ -189,27 +163,28 @@ class OnnxMatcher:
         )
         self._options, self._providers = options, providers
         self._threads = threads if threads > 0 else None
-        self._scales = _similarity_scales(metadata, graph)
         self._match_session: Any = None  # on the first `match` of the graph stage
         self._encoder_session: Any = None  # on the first `encode`
         self.matching_stage = self._choose_stage(matching_stage)
         if self.matching_stage == "crate":
-            self._encoder_session = self._open_graph(ENCODER_GRAPH, "encoder", "encode a scan on its own")
+            self._encoder_session = self._open_encoder()
         elif match_graph:
             self._match_session = self._open_match_graph()
 
     @property
     def uses_reflectance(self) -> bool:
         """Whether the model reads the reflectance channel (False: a range-only model)."""
-        return self.model_config.get("use_reflectance", True) is not False
+        return self.metadata.use_reflectance
 
     def _choose_stage(self, requested: str) -> str:
         on_cpu = self._session.get_providers()[0] == "CPUExecutionProvider"
-        crate_possible = self._scales is not None and self.path.with_name(ENCODER_GRAPH).is_file()
+        scales = self.metadata.similarity_scales
+        encoder = self.path.with_name(dmlo_rs.ModelFolder.ENCODER)
+        crate_possible = scales is not None and encoder.is_file()
         if requested == "auto":
             return "crate" if on_cpu and crate_possible else "graph"
         if requested == "crate" and not crate_possible:
-            missing = "dmlo.similarity_scales metadata" if self._scales is None else ENCODER_GRAPH
+            missing = "dmlo.similarity_scales metadata" if scales is None else encoder.name
             raise ModelError(
                 f"{self.path}: matching in the crate needs {missing} (export the model again with `dmlo export`)"
             )
@@ -273,7 +248,7 @@ class OnnxMatcher:
         only ever matched through `match` or as a `frame` call's `previous`."""
         self._check_image(image)
         if self._encoder_session is None:
-            self._encoder_session = self._open_graph(ENCODER_GRAPH, "encoder", "encode a scan on its own")
+            self._encoder_session = self._open_encoder()
         coarse, refine = self._encoder_session.run(None, {"scan": image[None].astype(np.float32, copy=False)})
         return Features(coarse=coarse, refine=refine)
 
@@ -284,24 +259,15 @@ class OnnxMatcher:
         cells: npt.NDArray[np.bool_] | None = None,
         guide: npt.NDArray[np.float32] | None = None,
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
-        assert self._scales is not None  # `_choose_stage` chose the crate only with them
-        config = self.model_config
+        metadata = self.metadata
+        assert metadata.similarity_scales is not None  # `_choose_stage` chose the crate only with them
+        coarse_scale, refine_scale = metadata.similarity_scales
         return dmlo_rs.match_features(
             reference.coarse, reference.refine, target.coarse, target.refine,
-            coarse_window=config["coarse_window"], refine_window=config["refine_window"],
-            coarse_scale=self._scales["coarse"], refine_scale=self._scales["refine"],
-            refine_offset=config["refine_offset"], cells=cells, guide=guide, num_threads=self._threads,
+            coarse_window=metadata.coarse_window, refine_window=metadata.refine_window,
+            coarse_scale=coarse_scale, refine_scale=refine_scale,
+            refine_offset=metadata.refine_offset, cells=cells, guide=guide, num_threads=self._threads,
         )
-
-    def _same_weights(self, config: Any, kind: str) -> bool:
-        """Whether a graph's model config is this graph's, up to what the graph's kind does not depend on: the
-        encoder serves every export of the same weights (e.g. `frame_wide.onnx`, whose windows differ)."""
-        if not isinstance(config, dict):
-            return False
-        ignored = _MATCH_STAGE_KEYS if kind == "encoder" else ()
-        return {k: v for k, v in config.items() if k not in ignored} == {
-            k: v for k, v in self.model_config.items() if k not in ignored
-        }
 
     def _check_image(self, image: npt.NDArray[np.float32]) -> None:
         if image.shape != (2, self.height, self.width):
@@ -310,22 +276,22 @@ class OnnxMatcher:
             )
 
     def _open_match_graph(self) -> Any:
-        return self._open_graph(MATCH_GRAPH, "match", "match a scan back against the previous one")
+        return self._open_graph(dmlo_rs.ModelFolder.MATCH, "match", "match a scan back against the previous one")
+
+    def _open_encoder(self) -> Any:
+        return self._open_graph(dmlo_rs.ModelFolder.ENCODER, "encoder", "encode a scan on its own")
 
     def _open_graph(self, name: str, kind: str, purpose: str) -> Any:
-        """A graph exported beside `frame.onnx`, checked to belong to the same model and input size."""
+        """A graph exported beside `frame.onnx`, checked by the crate to belong to the same model (the encoder
+        serves every window of its weights)."""
         graph = self.path.with_name(name)
         if not graph.is_file():
             raise ModelError(
                 f"{self.path.parent} has no {name} to {purpose}; export one with `dmlo export CHECKPOINT "
                 "--out DIR` (it writes all three graphs)"
             )
-        session = _open_session(graph, self._options, self._providers)
-        metadata = session.get_modelmeta().custom_metadata_map
-        if metadata.get("dmlo.graph") != kind or not self._same_weights(_model_config(metadata, graph), kind):
-            raise ModelError(f"{graph}: not the {kind} graph of {self.path.name}'s model")
-        if _size(metadata, graph) != (self.height, self.width):
-            raise ModelError(f"{graph}: input size differs from {self.path.name}'s {self.height}×{self.width}")
+        session, metadata = _open_graph_checked(graph, self._options, self._providers)
+        metadata.check_export_of(kind, self.metadata, str(graph), self.path.name, ignore_matching_stage=kind == "encoder")
         return session
 
 
@@ -338,72 +304,10 @@ def _open_session(graph: Path, options: Any, providers: list[str]) -> Any:
         raise ModelError(f"{graph}: not a readable ONNX model ({err})") from err
 
 
-def _json_object(metadata: dict[str, str], key: str, graph: Path) -> dict[str, Any]:
-    """A metadata property holding a JSON object, or a `ModelError` naming it."""
-    if key not in metadata:
-        raise ModelError(f"{graph}: its metadata lacks {key} (export the model again with `dmlo export`)")
-    try:
-        value = json.loads(metadata[key])
-    except ValueError as err:
-        raise ModelError(f"{graph}: metadata {key} is not JSON ({err})") from None
-    if not isinstance(value, dict):
-        raise ModelError(f"{graph}: metadata {key} must be a JSON object, got {metadata[key][:60]!r}")
-    return value
-
-
-def _size(metadata: dict[str, str], graph: Path) -> tuple[int, int]:
-    """The network input's `dmlo.height` and `dmlo.width`."""
-    size = []
-    for key in ("dmlo.height", "dmlo.width"):
-        text = metadata.get(key)
-        if text is None:
-            raise ModelError(f"{graph}: its metadata lacks {key} (export the model again with `dmlo export`)")
-        if not text.strip().isdigit() or int(text) < 1:
-            raise ModelError(f"{graph}: metadata {key} must be a positive integer, got {text[:60]!r}")
-        size.append(int(text))
-    return size[0], size[1]
-
-
-def _model_config(metadata: dict[str, str], graph: Path) -> dict[str, Any]:
-    """`dmlo.model_config`, with the settings the run reads checked: the matching stage's windows and
-    offset, and whether the model reads reflectance (absent: it does, as models exported before it)."""
-    config = _json_object(metadata, "dmlo.model_config", graph)
-    for name in ("coarse_window", "refine_window"):
-        if name not in config:
-            raise ModelError(f"{graph}: metadata dmlo.model_config lacks {name}")
-        value = config[name]
-        if isinstance(value, bool) or not isinstance(value, int) or value < 3 or value % 2 == 0:
-            raise ModelError(f"{graph}: dmlo.model_config.{name} must be an odd integer >= 3, got {value!r}")
-    if config.get("refine_offset") not in REFINE_OFFSETS:
-        got = f"got {config['refine_offset']!r}" if "refine_offset" in config else "it lacks it"
-        raise ModelError(f"{graph}: dmlo.model_config.refine_offset must be one of {', '.join(REFINE_OFFSETS)}; {got}")
-    if not isinstance(config.get("use_reflectance", True), bool):
-        raise ModelError(f"{graph}: dmlo.model_config.use_reflectance must be true or false, got {config['use_reflectance']!r}")
-    return config
-
-
-def _similarity_scales(metadata: dict[str, str], graph: Path) -> dict[str, float] | None:
-    """`dmlo.similarity_scales` (the learned softmax temperatures the crate's matching stage needs), None for
-    models exported before it: they match in the graph."""
-    if "dmlo.similarity_scales" not in metadata:
-        return None
-    scales = _json_object(metadata, "dmlo.similarity_scales", graph)
-    for name in ("coarse", "refine"):
-        value = scales.get(name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-            got = f"got {value!r}" if name in scales else "it lacks it"
-            raise ModelError(f"{graph}: dmlo.similarity_scales.{name} must be a finite number > 0; {got}")
-    return {"coarse": float(scales["coarse"]), "refine": float(scales["refine"])}
-
-
-def _cylinder_from_metadata(values: dict[str, object], graph: Path) -> dmlo_rs.CylinderConfig:
-    missing = [k for k in _CYLINDER_KEYS if k not in values]
-    if missing:
-        raise ModelError(f"{graph}: cylinder configuration lacks {', '.join(missing)}")
-    try:
-        return dmlo_rs.CylinderConfig(**{k: values[k] for k in _CYLINDER_KEYS})  # type: ignore[arg-type]
-    except (TypeError, ValueError, OverflowError) as err:
-        raise ModelError(f"{graph}: invalid cylinder configuration: {err}") from err
+def _open_graph_checked(graph: Path, options: Any, providers: list[str]) -> tuple[Any, dmlo_rs.ModelMetadata]:
+    """An onnxruntime session of a dmlo graph and its metadata, checked by the crate's rules."""
+    session = _open_session(graph, options, providers)
+    return session, dmlo_rs.ModelMetadata(session.get_modelmeta().custom_metadata_map, str(graph))
 
 
 class FrameMatcherAdapter:
@@ -428,7 +332,7 @@ class FrameMatcherAdapter:
         self._wide: OnnxMatcher | None = None
         self._threads, self._matching_stage = threads, matching_stage
         # The wide-window graph reads its model's features: a matcher of another kind has its own.
-        if isinstance(matcher, OnnxMatcher) and matcher.path.with_name(WIDE_FRAME_GRAPH).is_file():
+        if isinstance(matcher, OnnxMatcher) and matcher.path.with_name(dmlo_rs.ModelFolder.WIDE_WINDOW).is_file():
             self.wide_match = self._wide_match
         if self._encodes_alone and isinstance(matcher, OnnxMatcher):
             self.match_cells = self._match_cells

@@ -18,9 +18,6 @@ import numpy.typing as npt
 
 import dmlo_rs
 
-GRAPH = "moving.onnx"  # beside the model's frame.onnx
-
-
 def range_and_height(
     cloud: npt.NDArray[np.float32], cylinder: dmlo_rs.CylinderConfig
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
@@ -34,7 +31,7 @@ def range_and_height(
 
 def moving_objects_graph(model_graph: Path) -> Path | None:
     """The moving-object network beside a model's `frame.onnx`, if the model has one."""
-    graph = model_graph.with_name(GRAPH)
+    graph = model_graph.with_name(dmlo_rs.ModelFolder.MOVING_OBJECTS)
     return graph if graph.is_file() else None
 
 
@@ -44,17 +41,11 @@ class MovingObjectDetector:
     network puts on moving objects."""
 
     def __init__(self, graph: Path, threshold: float = 0.5, threads: int = 0) -> None:
-        from dmlo.odometry.matcher import (
-            ModelError, _cylinder_from_metadata, _json_object, _open_session, _size, session_options,
-        )
+        from dmlo.odometry.matcher import _open_session, session_options
 
         self._session: Any = _open_session(graph, session_options(threads), ["CPUExecutionProvider"])
         metadata = self._session.get_modelmeta().custom_metadata_map
-        if metadata.get("dmlo.graph") != "moving":
-            raise ModelError(f"{graph}: not a dmlo moving-object graph (dmlo.graph = 'moving' expected)")
-        self.cylinder = _cylinder_from_metadata(_json_object(metadata, "dmlo.cylinder_config", graph), graph)
-        if _size(metadata, graph) != (self.cylinder.height, self.cylinder.width):
-            raise ModelError(f"{graph}: network input size differs from its cylinder image")
+        self.cylinder = dmlo_rs.moving_graph_cylinder(metadata, str(graph))
         self.path = graph
         self.threshold = threshold
 

@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -23,12 +21,8 @@ from dmlo.odometry.config import OdometryConfig
 from dmlo.odometry.notices import warn
 from dmlo.odometry.pair import PairResult
 from dmlo.odometry.matcher import (
-    ENCODER_GRAPH,
-    MATCH_GRAPH,
-    RANGE_ONLY_DIR,
     FrameMatcherAdapter,
     Matcher,
-    ModelError,
     OnnxMatcher,
     available_cores,
     default_model_path,
@@ -39,90 +33,9 @@ from dmlo.odometry.moving import MovingObjectDetector, moving_objects_graph
 Matrix4 = npt.NDArray[np.float64]
 
 
-@dataclass
-class FrameDiagnostics:
-    """What happened to one scan: counts, the fallback taken, and the time of every stage in ms."""
-
-    index: int
-    num_points: int
-    # frames since the scan this one was matched against: > 1 after missing scans (skipped files, or a
-    # timestamp several sensor periods after the previous scan's); None for scans not matched
-    gap: int | None = None
-    num_matches: int = 0
-    num_inliers: int = 0
-    inlier_ratio: float = 0.0
-    # with ransac.vote_by_tilt: the inliers' summed votes above the floor (`ransac.min_vote`), how many matches
-    # on walls, posts and other upright surfaces the motion rests on (a road match adds ~0); None when not voted
-    inlier_votes: float | None = None
-    # "constant_velocity" when RANSAC found too few inliers; when its motion was far from the prediction,
-    # "guided_consensus" (the matches agreeing with the prediction were solved) or "implausible_motion" (too
-    # few agreed: the prediction was taken); "rematched_from_prediction" when the pair matched again from the
-    # prediction gave the motion (`motion_model.rematch_gap`); "degenerate_scene" when the inliers rest on too
-    # few upright surfaces to tell the horizontal motion (`motion_model.min_inlier_votes`); "forward_start" when
-    # an ambiguous first pair drove backwards and a start's forward motion was taken
-    # (`motion_model.start_max_reverse_m`); "too_few_points" / "unreadable_scan" for scans not matched
-    fallback: str | None = None
-    # with motion_model.rematch_gap or match_from_prediction_m: the rounds of matching from the prediction whose
-    # motion was taken, 0 when they were tried and none was kept; None when not tried
-    rematch_rounds: int | None = None
-    # with motion_model.guided_windows, a pair matched from the prediction with the coarse windows placed where
-    # the prediction takes each cell: True when that pair held, False when it gave way to the reference moved by
-    # the prediction; None when not tried
-    guided_windows: bool | None = None
-    # with motion_model.start_check_m, the first pair (no velocity yet): True when a start ahead or behind found
-    # another motion that holds (the frame's may be an alias of a repeating scene); None when not checked
-    ambiguous_start: bool | None = None
-    # with matching.symmetric: RANSAC inliers of the new scan matched back against the previous one
-    backward_inliers: int | None = None
-    ndt_converged: bool | None = None
-    ndt_degenerate_directions: int | None = None  # pose directions the map did not constrain (kept as DMLO's)
-    # with mapping: the horizontal motion and heading came from the scan's upright surfaces alone, the newest
-    # keyframe being near and its ground rings liable to hold the car in place (`mapping.ring_lock_distance`)
-    ndt_upright_only: bool | None = None
-    map_keyframe: bool | None = None  # with mapping: the scan entered the map (it moved far enough from the last)
-    ndt_start: str | None = None  # the NDT start that won: "dmlo", or "motion_model" when DMLO's pose was off;
-    # "standing": the car stood at the newest keyframe and was aligned to it by point-to-plane ICP
-    # points the moving-object network left out (`moving_objects`); None when it did not run (labels given,
-    # detection off, or a model without the network)
-    num_moving_predicted: int | None = None
-    image_fill: float | None = None  # fraction of the cylinder image's cells holding a point
-    deskewed: bool = False  # with deskew.enabled: the sweep was motion-compensated (from the 3rd scan on)
-    # ms per stage, each once: "network" (projection and onnxruntime), "matching" (the crate's matching
-    # stage, when it ran there), "pair" (the crate's back end of the pair: coherence, decoding with NMS,
-    # votes, RANSAC), and the optional ones' own stages
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    # what the odometry said about the scans at this frame, each a {"kind", "message"} (`dmlo.odometry.notices`)
-    notices: list[dict[str, str]] = field(default_factory=list)
-
-    def count_matches(self, pair: PairResult) -> None:
-        """The matches and RANSAC inliers of the pair whose motion the frame took."""
-        self.num_matches, self.num_inliers, self.inlier_ratio = pair.num_matches, pair.num_inliers, pair.inlier_ratio
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "index": self.index,
-            "num_points": self.num_points,
-            "gap": self.gap,
-            "num_matches": self.num_matches,
-            "num_inliers": self.num_inliers,
-            "inlier_ratio": round(self.inlier_ratio, 4),
-            "inlier_votes": None if self.inlier_votes is None else round(self.inlier_votes, 2),
-            "fallback": self.fallback,
-            "rematch_rounds": self.rematch_rounds,
-            "guided_windows": self.guided_windows,
-            "ambiguous_start": self.ambiguous_start,
-            "backward_inliers": self.backward_inliers,
-            "ndt_converged": self.ndt_converged,
-            "ndt_degenerate_directions": self.ndt_degenerate_directions,
-            "ndt_upright_only": self.ndt_upright_only,
-            "map_keyframe": self.map_keyframe,
-            "ndt_start": self.ndt_start,
-            "num_moving_predicted": self.num_moving_predicted,
-            "image_fill": None if self.image_fill is None else round(self.image_fill, 4),
-            "deskewed": self.deskewed,
-            "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
-            **({"notices": self.notices} if self.notices else {}),
-        }
+# What happened to one scan: the crate's record (`odometry::pipeline::FrameDiagnostics`), its fields as
+# attributes, `to_dict()` its line of diagnostics.jsonl (docs/odometry.md lists the fields).
+FrameDiagnostics = dmlo_rs.FrameDiagnostics
 
 
 class Odometry:
@@ -149,8 +62,8 @@ class Odometry:
         self.diagnostics: list[FrameDiagnostics] = []
         # The range-only model beside this one (run by the crate from the first scan without usable reflectance
         # on), unless this one is range-only. It opens now, so that a broken one fails before the first scan.
-        folder = matcher.path.parent / RANGE_ONLY_DIR
-        beside = matcher.uses_reflectance and (folder / "frame.onnx").is_file()
+        folder = matcher.path.parent / dmlo_rs.ModelFolder.RANGE_ONLY
+        beside = matcher.uses_reflectance and (folder / dmlo_rs.ModelFolder.FRAME).is_file()
         self._range_only = self._open_range_only(folder, matcher) if beside else None
         self._use_matcher(matcher)
 
@@ -199,7 +112,8 @@ class Odometry:
     def _available_rematch_gap(self) -> int | None:
         """`motion_model.rematch_gap`, or None with a warning when the model lacks the graphs it needs."""
         motion = self.config.motion_model
-        missing = [name for name in (ENCODER_GRAPH, MATCH_GRAPH) if not self._matcher.path.with_name(name).is_file()]
+        graphs = (dmlo_rs.ModelFolder.ENCODER, dmlo_rs.ModelFolder.MATCH)
+        missing = [name for name in graphs if not self._matcher.path.with_name(name).is_file()]
         moved = (motion.rematch_gap, motion.match_from_prediction_m, motion.start_check_m)
         if missing and any(setting is not None for setting in moved):
             warnings.warn(
@@ -213,13 +127,12 @@ class Odometry:
         return motion.rematch_gap
 
     def _open_range_only(self, folder: Path, model: OnnxMatcher) -> OnnxMatcher:
-        """The range-only model beside `model`, checked like it."""
+        """The range-only model beside `model`, checked like it and by the crate's rule for a range-only model."""
         matcher = OnnxMatcher(
             folder, threads=self._beside_threads(), match_graph=self.config.matching.symmetric,
             matching_stage=self.config.matching_stage,
         )
-        if (matcher.cylinder.height, matcher.cylinder.width) != (model.cylinder.height, model.cylinder.width):
-            raise ModelError(f"{matcher.path}: its cylinder image differs from {model.path}'s")
+        matcher.metadata.check_range_only_for(model.metadata, str(matcher.path), str(model.path))
         return matcher
 
     @classmethod
@@ -270,14 +183,10 @@ class Odometry:
         return self._record(self._loop.predict_skipped(reason), self._newest_diagnostics())
 
     def _newest_diagnostics(self) -> FrameDiagnostics:
-        """The crate's diagnostics of the newest frame, its notices said as warnings. Where the frame graph
-        encodes a scan while matching it (`matching_stage` "graph"), the two cannot be timed apart: the
-        matching counts as the network."""
-        fields: dict[str, Any] = self._loop.last_diagnostics  # type: ignore[assignment]
-        timings = fields.pop("timings_ms")
-        if self._loop_matcher.defers_encoding and "matching" in timings:
-            timings["network"] = timings.get("network", 0.0) + timings.pop("matching")
-        diagnostics = FrameDiagnostics(**fields, timings_ms=timings)
+        """The crate's diagnostics of the newest frame, its notices said as warnings (where the frame graph
+        encodes a scan while matching it, `matching_stage` "graph", the crate counts both as the network)."""
+        diagnostics = self._loop.last_diagnostics
+        assert diagnostics is not None  # a frame was just recorded
         warn([(notice["kind"], notice["message"]) for notice in diagnostics.notices], stacklevel=4)
         return diagnostics
 
@@ -368,23 +277,12 @@ class Odometry:
         ref_points: npt.NDArray[np.float32] | None = None,
         tilt_votes: bool = True,
     ) -> PairResult:
-        """The pair's motion from a flow (§III-D); `ref_points` is the reference's point image (H×W×3, NaN where empty),
-        None: the virtual points of `ref_range`'s cells. `tilt_votes`: RANSAC weighs matches by the tilt of their
-        surface as `ransac.vote_by_tilt` says; False: one vote each."""
-        m, r = self.config.matching, self.config.ransac
-        # The crate's back end of a pair (`dmlo_rs.match_pair`): the confidence weighted by the flow's
-        # coherence; the flow decoded into 3D pairs (p'_r, p̂_t), sampling D_t at the sub-pixel match
-        # (§III-D), with NMS fused in (§III-D-a); each match's vote; RANSAC around the closed-form SVD solve
-        # (Eq. 12–14, §III-D-b), its refits as `ransac.refit` says. Road matches cannot tell horizontal
-        # motions apart, so with tilt votes they vote less; a nearby car fills much of the image, so crowded
-        # matches vote less (`ransac.vote_voxel`).
-        pair = dmlo_rs.match_pair(
-            ref_range, tgt_range, flow, confidence, self.cylinder, ref_points=ref_points, leave_out=leave_out,
-            tilt_votes=tilt_votes, min_confidence=m.min_confidence, nms_radius=m.nms_radius,
-            max_matches=m.max_matches, coherence_px=m.coherence_px, coherence_radius=m.coherence_radius,
-            threshold=r.threshold, confidence_level=r.confidence, max_iterations=r.max_iterations, seed=r.seed,
-            refit=r.refit, range_ratio=r.ray_range_ratio, bearing_threshold_deg=r.ray_bearing_threshold_deg,
-            tilt_vote_floor=r.min_vote if r.vote_by_tilt else None, vote_voxel=r.vote_voxel,
+        """The pair's motion from a flow (§III-D) by the crate's back end with this odometry's settings
+        (`dmlo_rs.Odometry.pose_from_flow`); `ref_points` is the reference's point image (H×W×3, NaN where
+        empty), None: the virtual points of `ref_range`'s cells. `tilt_votes`: RANSAC weighs matches by the
+        tilt of their surface as `ransac.vote_by_tilt` says; False: one vote each."""
+        pair = self._loop.pose_from_flow(
+            ref_range, tgt_range, flow, confidence, ref_points=ref_points, leave_out=leave_out, tilt_votes=tilt_votes
         )
         return PairResult(
             T_tgt_ref=np.asarray(pair.transform, dtype=np.float64),

@@ -13,7 +13,7 @@
 use std::sync::mpsc::{channel, Receiver};
 use std::sync::{Arc, Mutex, MutexGuard};
 
-use nalgebra::Matrix4;
+use nalgebra::Isometry3;
 
 use super::reflectance::{detect_reflectance, normalised};
 use super::scan_points::{kept_points, KeptPoints};
@@ -268,7 +268,7 @@ where
         &mut self,
         scan: Scan<'_>,
         next: Option<Scan<'_>>,
-    ) -> Result<Matrix4<f64>> {
+    ) -> Result<Isometry3<f64>> {
         let queued = next.and_then(|next| self.next_scan(&next));
         *locked(&self.matcher.queued) = queued;
         let result = self.register(scan);

@@ -83,7 +83,7 @@ fn encoding_ahead_gives_the_serial_loops_poses_from_another_thread() {
             without_timings(ahead.diagnostics()),
             without_timings(serial.diagnostics())
         );
-        assert!(error_to_truth(ahead.poses().last().unwrap(), 5).0 < 0.02);
+        assert!(error_to_truth(&ahead.poses().last().unwrap(), 5).0 < 0.02);
         // Scans 0 and 1 are encoded here (the reflectance scale is chosen on scan 0); 2–5 ahead.
         let here = std::thread::current().id();
         let threads = ahead.matcher().matcher().encoders.lock().unwrap().clone();
