@@ -11,7 +11,7 @@ from dmlo.odometry.config import (
     RansacConfig,
 )
 from dmlo.odometry.pair import PairResult
-from dmlo.odometry.notices import ReflectanceNotice, SensorMismatchWarning, TimestampWarning
+from dmlo.odometry.notices import PairWarning, ReflectanceNotice, SensorMismatchWarning, TimestampWarning
 from dmlo.odometry.pipeline import FrameDiagnostics, Odometry
 
 __all__ = [
@@ -25,6 +25,7 @@ __all__ = [
     "Odometry",
     "OdometryConfig",
     "PairResult",
+    "PairWarning",
     "RansacConfig",
     "ReflectanceNotice",
     "SensorMismatchWarning",

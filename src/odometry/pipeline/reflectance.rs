@@ -29,6 +29,15 @@ impl<M: FrameMatcher> Odometry<M> {
             if chosen != ReflectanceScale::Ignored && detected == ReflectanceScale::Ignored {
                 self.switch_to_range_only(Some(scan), detected_why)?;
                 self.reflectance = Some(ReflectanceScale::Ignored);
+            } else if self.scan_scale(chosen, detected) != chosen {
+                let notice = Notice::ReflectanceRescaled {
+                    scan,
+                    values: detected_why,
+                    chosen,
+                    why: self.reflectance_reason.clone(),
+                };
+                self.say_once(|said| &mut said.rescaled, notice);
+                return Ok(Some(self.scan_scale(chosen, detected)));
             } else {
                 self.notice_clipping(values, scan);
             }
@@ -69,6 +78,29 @@ impl<M: FrameMatcher> Odometry<M> {
                 setting,
                 format!("the config says reflectance {}", setting.name()),
             ),
+        }
+    }
+
+    /// The scale a scan whose values look like `detected` is read on, once `chosen` is the sequence's:
+    /// `chosen`, unless it was guessed from the values (the config's `"auto"`) as 0–255 or 0–65535 and
+    /// this scan's values all lie within [0, 1] — divided by that scale's top they would be nearly black
+    /// (a scan on another scale: no real scan of such a sensor stays within [0, 1]) — then [0, 1].
+    pub(super) fn scan_scale(
+        &self,
+        chosen: ReflectanceScale,
+        detected: ReflectanceScale,
+    ) -> ReflectanceScale {
+        let larger = matches!(
+            chosen,
+            ReflectanceScale::ZeroTo255 | ReflectanceScale::ZeroTo65535
+        );
+        if self.config.reflectance == ReflectanceScale::Auto
+            && larger
+            && detected == ReflectanceScale::Unit
+        {
+            ReflectanceScale::Unit
+        } else {
+            chosen
         }
     }
 
