@@ -462,7 +462,7 @@ impl<M: FrameMatcher> Odometry<M> {
     /// Adds the next scan and returns its pose `T_world_lidar`. Points that are non-finite, closer than
     /// [`MIN_RETURN_RANGE_M`] to the sensor (at the origin: no return) or farther than
     /// [`MAX_SENSOR_RANGE_M`] are left out, as are the moving ones. A scan with fewer points left than
-    /// `min_points` (and than `motion_model.min_inliers`) is not matched: its pose comes from the motion
+    /// `min_points` (and than 3) is not matched: its pose comes from the motion
     /// model and its diagnostics say so (`too_few_points`). A scan that could not be matched against the
     /// previous one (`constant_velocity`: too few inliers) does not become the reference of the next,
     /// unless the scan before it could not be matched either. Errors name a bad argument (a mask of the
@@ -638,11 +638,10 @@ impl<M: FrameMatcher> Odometry<M> {
         }
     }
 
-    /// The points a scan needs to be matched: `min_points`, and never fewer than a motion's
-    /// `motion_model.min_inliers` (a scan with fewer cannot give that many matches).
+    /// The points a scan needs to be matched: `min_points`, and never fewer than the 3 a rigid motion
+    /// needs (with fewer, the scan would still choose the reflectance scale).
     fn points_needed(&self) -> usize {
-        let config = &self.config;
-        (config.min_points as usize).max(config.motion_model.min_inliers as usize)
+        (self.config.min_points as usize).max(3)
     }
 
     /// The sensor notice, once, for a scan that fills less than [`LOW_IMAGE_FILL`] of the image.

@@ -25,6 +25,8 @@ pub(super) struct KeptPoints {
     /// The reflectance of every point at a sensor's range, moving or not: what the reflectance scale is
     /// chosen from.
     pub(super) finite_reflectance: Vec<f32>,
+    /// Finite points.
+    pub(super) finite: usize,
     /// Finite points other than the origin.
     pub(super) returns: usize,
 }
@@ -57,24 +59,26 @@ impl KeptPoints {
         ))
     }
 
-    /// What was counted against `min_points`: the points kept, and those left out before.
-    pub(super) fn counted(&self, points: usize) -> String {
-        let moving = self.in_range() - self.kept.len();
-        let out_of_range = self.returns - self.in_range();
-        let mut left_out = vec![format!(
-            "{} non-finite or at the origin",
-            points - self.returns
-        )];
-        if out_of_range > 0 {
-            left_out.push(format!(
-                "{out_of_range} under {MIN_RETURN_RANGE_M} m or over {MAX_SENSOR_RANGE_M} m away"
-            ));
-        }
-        if moving > 0 {
-            left_out.push(format!("{moving} flagged moving"));
+    /// What was counted against `min_points`: the finite points kept, and those left out besides the
+    /// non-finite ones.
+    pub(super) fn counted(&self) -> String {
+        let left_out: Vec<String> = [
+            (self.finite - self.returns, "at the origin (no return)".to_string()),
+            (
+                self.returns - self.in_range(),
+                format!("under {MIN_RETURN_RANGE_M} m or over {MAX_SENSOR_RANGE_M} m away"),
+            ),
+            (self.in_range() - self.kept.len(), "flagged moving".to_string()),
+        ]
+        .into_iter()
+        .filter(|(count, _)| *count > 0)
+        .map(|(count, why)| format!("{count} {why}"))
+        .collect();
+        if left_out.is_empty() {
+            return format!("{} finite points", self.kept.len());
         }
         format!(
-            "{} points to match (of {points}: {} left out)",
+            "{} finite points left to match ({} left out)",
             self.kept.len(),
             left_out.join(", ")
         )
@@ -85,7 +89,7 @@ impl KeptPoints {
 pub(super) fn kept_points(scan: &Scan<'_>) -> Result<KeptPoints> {
     check_one_per_point(scan.moving, "moving", "flag", scan.points.len())?;
     let mut finite_reflectance = Vec::with_capacity(scan.points.len());
-    let mut returns = 0;
+    let (mut finite_points, mut returns) = (0, 0);
     let keep: Vec<bool> = scan
         .points
         .iter()
@@ -97,6 +101,7 @@ pub(super) fn kept_points(scan: &Scan<'_>) -> Result<KeptPoints> {
             let range = (x * x + y * y + z * z).sqrt();
             let returned = finite && range > 0.0;
             let in_range = returned && (MIN_RETURN_RANGE_M..=MAX_SENSOR_RANGE_M).contains(&range);
+            finite_points += usize::from(finite);
             returns += usize::from(returned);
             if in_range {
                 finite_reflectance.push(p[3]);
@@ -108,6 +113,7 @@ pub(super) fn kept_points(scan: &Scan<'_>) -> Result<KeptPoints> {
         kept: kept_rows(scan.points, &keep),
         keep,
         finite_reflectance,
+        finite: finite_points,
         returns,
     })
 }

@@ -148,7 +148,7 @@ impl<M: FrameMatcher> Odometry<M> {
 
     /// A pair's scan (`name`): its finite points at a sensor's ranges not flagged moving (by the caller,
     /// or with `detect_moving` by the moving-object network), reflectance brought to the model's scale;
-    /// at least `min_points` (and `motion_model.min_inliers`) of them, in a plausible scan.
+    /// at least `min_points` (and 3) of them, in a plausible scan.
     fn pair_cloud(
         &mut self,
         scan: Scan<'_>,
@@ -174,9 +174,8 @@ impl<M: FrameMatcher> Odometry<M> {
             return Err(Error::invalid(
                 name,
                 format!(
-                    "{}, fewer than the {min_points} needed to register a pair (config.min_points, \
-                     and at least motion_model.min_inliers)",
-                    points.counted(scan.points.len())
+                    "{}, fewer than the {min_points} needed to register a pair (config.min_points)",
+                    points.counted()
                 ),
             ));
         }
