@@ -176,3 +176,47 @@ def test_too_few_points_says_what_was_counted(abc) -> None:
     with pytest.raises(ValueError, match=r"^target: 110 finite points left to match \(890 flagged moving left out\), "
                                          r"fewer than the 1000 needed"):
         Odometry.from_default(frame_to_frame())._loop.register_pair(a, subsample, target_moving=moving)
+
+
+@pytest.mark.parametrize("config", ["abc", {}, 5])
+def test_a_config_that_is_not_one_is_refused_naming_what_is_accepted(config: object) -> None:
+    with pytest.raises(TypeError, match=r"^config: expected an OdometryConfig or None \(the defaults\), got (str|dict|int);"):
+        Odometry.from_default(config)  # type: ignore[arg-type]
+
+
+def test_a_moving_mask_is_booleans_or_zeros_and_ones(abc) -> None:
+    a, b, _ = abc
+    odometry = Odometry.from_default(frame_to_frame())
+    for mask, error, said in (
+        (np.full(len(a), np.nan), TypeError, "got dtype float64; threshold a probability first"),
+        (np.linspace(0, 1, len(a)), TypeError, "got dtype float64"),
+        (np.where(np.arange(len(a)) % 2 == 0, 0, 2), ValueError, "got 2 at point 1"),
+    ):
+        with pytest.raises(error, match=rf"^moving: expected booleans \(or integers 0 and 1\).*{said}"):
+            odometry.register(a, moving=mask)
+    assert odometry.poses == []
+    flags = np.zeros(len(a), bool)
+    flags[:1000] = True
+    as_bool = Odometry.from_default(frame_to_frame())
+    as_int = Odometry.from_default(frame_to_frame())
+    for points in (a, b):
+        np.testing.assert_array_equal(as_int.register(points, moving=flags[: len(points)].astype(np.int64)),
+                                      as_bool.register(points, moving=flags[: len(points)]))
+
+
+def test_an_odometry_used_from_two_threads_says_so(abc) -> None:
+    import threading
+    import time
+
+    a, _, _ = abc
+    odometry = Odometry.from_default()
+    worker = threading.Thread(target=odometry.register, args=(a,))
+    worker.start()
+    deadline = time.monotonic() + 30
+    while not odometry._in_use.locked() and time.monotonic() < deadline:
+        time.sleep(0.001)
+    with pytest.raises(RuntimeError, match=r"^Odometry\.register: another thread is using this Odometry; an Odometry "
+                                           r"is not shared between threads .*use one per thread"):
+        odometry.register(a)
+    worker.join()
+    assert len(odometry.poses) == 1

@@ -9,7 +9,9 @@ opens the model's graphs, hands numpy arrays over and turns the crate's notices 
 
 from __future__ import annotations
 
+import functools
 import json
+import threading
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -125,6 +127,25 @@ class FrameDiagnostics:
         }
 
 
+def _one_thread_at_a_time(method: Any) -> Any:
+    """`method` of an `Odometry`, refused with a clear error while another thread runs one of them on the same
+    odometry (the crate's loop would answer "Already borrowed")."""
+
+    @functools.wraps(method)
+    def guarded(self: Odometry, *args: Any, **kwargs: Any) -> Any:
+        if not self._in_use.acquire(blocking=False):
+            raise RuntimeError(
+                f"Odometry.{method.__name__}: another thread is using this Odometry; an Odometry is not shared "
+                "between threads (its scans are one drive, in order): use one per thread"
+            )
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            self._in_use.release()
+
+    return guarded
+
+
 class Odometry:
     """DMLO odometry with the paper's motion model and, by default, its scan-to-map NDT refinement
     (`mapping.enabled = False`: frame-to-frame DMLO).
@@ -137,6 +158,12 @@ class Odometry:
     """
 
     def __init__(self, model_path: str | Path, config: OdometryConfig | None = None) -> None:
+        if config is not None and not isinstance(config, OdometryConfig):
+            raise TypeError(
+                f"config: expected an OdometryConfig or None (the defaults), got {type(config).__name__}; "
+                "OdometryConfig.from_dict(dict) or OdometryConfig.load(path) reads one"
+            )
+        self._in_use = threading.Lock()
         self.config = config or OdometryConfig()
         self.config.validate()  # the whole schema again: a config's fields may change after loading
         matcher = OnnxMatcher(
@@ -229,6 +256,7 @@ class Odometry:
 
     # -- one scan -------------------------------------------------------------------------------
 
+    @_one_thread_at_a_time
     def register(
         self,
         points: npt.ArrayLike,
@@ -258,6 +286,7 @@ class Odometry:
         pose = self._loop.register(cloud, moving=mask, timestamp=timestamp, point_times=times)
         return self._record(pose, self._newest_diagnostics())
 
+    @_one_thread_at_a_time
     def reset(self) -> None:
         """Forgets the drive: the next scan is the world again, with a fresh motion model, local map, clock
         and reflectance scale; the model and the config stay."""
@@ -265,6 +294,7 @@ class Odometry:
         self.poses.clear()
         self.diagnostics.clear()
 
+    @_one_thread_at_a_time
     def predict_skipped(self, reason: str = "unreadable_scan") -> Matrix4:
         """Records a scan that could not be read: its pose comes from the motion model."""
         return self._record(self._loop.predict_skipped(reason), self._newest_diagnostics())
@@ -286,6 +316,7 @@ class Odometry:
         self.diagnostics.append(diagnostics)
         return pose.copy()
 
+    @_one_thread_at_a_time
     def register_pair(
         self, reference: npt.ArrayLike, target: npt.ArrayLike, large_motion: bool = False
     ) -> PairResult:
@@ -422,4 +453,16 @@ def _as_mask(mask: npt.ArrayLike, count: int) -> npt.NDArray[np.bool_]:
     values = np.asarray(mask)
     if values.shape != (count,):
         raise ValueError(f"moving: expected a mask of {count} booleans, got shape {values.shape}")
+    if values.dtype == np.bool_:
+        return values
+    if not np.issubdtype(values.dtype, np.integer):
+        raise TypeError(
+            f"moving: expected booleans (or integers 0 and 1), one per point, got dtype {values.dtype}; "
+            "threshold a probability first (e.g. probability > 0.5)"
+        )
+    if ((values != 0) & (values != 1)).any():
+        raise ValueError(
+            f"moving: expected booleans (or integers 0 and 1), got {values[(values != 0) & (values != 1)][0]} "
+            f"at point {int(np.argmax((values != 0) & (values != 1)))}"
+        )
     return values.astype(bool)
