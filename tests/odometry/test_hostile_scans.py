@@ -69,10 +69,10 @@ def test_points_at_the_origin_are_no_returns(abc) -> None:
     with_origin = lambda points: np.concatenate([points, np.zeros((500, 4), np.float32)])  # noqa: E731
     plain, _ = drive([a, b])
     padded, _ = drive([with_origin(a), with_origin(b)])
-    np.testing.assert_allclose(padded.poses[1], plain.poses[1], atol=1e-9)
-    np.testing.assert_allclose(
+    np.testing.assert_array_equal(padded.poses[1], plain.poses[1])
+    np.testing.assert_array_equal(
         Odometry.from_default(frame_to_frame()).register_pair(with_origin(a), with_origin(b)).T_tgt_ref,
-        Odometry.from_default(frame_to_frame()).register_pair(a, b).T_tgt_ref, atol=1e-9,
+        Odometry.from_default(frame_to_frame()).register_pair(a, b).T_tgt_ref,
     )
 
 
@@ -220,3 +220,24 @@ def test_an_odometry_used_from_two_threads_says_so(abc) -> None:
         odometry.register(a)
     worker.join()
     assert len(odometry.poses) == 1
+
+
+def test_dmlo_register_says_on_stderr_when_a_pair_has_no_motion_of_its_own(abc, shared_data: Path, tmp_path: Path) -> None:
+    import json
+    import subprocess
+    import sys
+
+    from dmlo.datasets import write_bin
+
+    a_file = shared_data / "kitti_real" / "odometry_02" / "velodyne" / "000000.bin"
+    rng = np.random.default_rng(3)
+    write_bin(tmp_path / "noise.bin", np.column_stack([rng.uniform(-40, 40, (120_000, 3)), rng.uniform(0, 1, 120_000)]))
+    result = subprocess.run([sys.executable, "-m", "dmlo", "register", str(a_file), str(tmp_path / "noise.bin"), "--json"],
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout)["inliers"] < 10
+    assert result.stderr.startswith("dmlo register: warning: the pair has") and "not to be trusted" in result.stderr
+    for mode in ("--no-mapping", "--large-motion"):
+        same = subprocess.run([sys.executable, "-m", "dmlo", "register", str(a_file), str(a_file), mode, "--json"],
+                              capture_output=True, text=True)
+        assert json.loads(same.stdout)["T_b_a"] == np.eye(4).tolist(), (mode, same.stdout)
