@@ -241,3 +241,59 @@ def test_dmlo_register_says_on_stderr_when_a_pair_has_no_motion_of_its_own(abc, 
         same = subprocess.run([sys.executable, "-m", "dmlo", "register", str(a_file), str(a_file), mode, "--json"],
                               capture_output=True, text=True)
         assert json.loads(same.stdout)["T_b_a"] == np.eye(4).tolist(), (mode, same.stdout)
+
+
+def _corrupted(points: np.ndarray, kind: str, rng: np.random.Generator) -> np.ndarray:
+    points = points.copy()
+    share = rng.uniform(0.05, 1.0)
+    rows = rng.random(len(points)) < share
+    if kind == "zeroed_rows":
+        points[rows] = 0.0
+    elif kind == "at_origin":
+        points[rows, :3] = 0.0
+    elif kind == "far_rows":
+        points[rows, :3] += np.float32(1e6)
+    elif kind == "millimetres":
+        points[:, :3] *= np.float32(1000.0)
+    elif kind == "dropped_rings":
+        elevation = np.degrees(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])))
+        keep = (np.floor(elevation / 0.4).astype(int) % int(rng.integers(2, 5))) == 0
+        points = points[keep]
+    elif kind == "reflectance_x255":
+        points[:, 3] *= np.float32(255.0)
+    return points
+
+
+@pytest.mark.parametrize("kind", ["zeroed_rows", "at_origin", "far_rows", "millimetres", "dropped_rings",
+                                  "reflectance_x255"])
+@pytest.mark.parametrize("mapping", [True, False])
+def test_corrupted_scans_never_give_a_pose_far_off_unsaid(shared_data: Path, kind: str, mapping: bool) -> None:
+    """Corruptions of real scans (some frames, or every frame from one on for reflectance): a pose more than 0.5 m
+    from the clean drive's comes only after a frame whose diagnostics say it fell back, an error refused a scan
+    (bridged as `dmlo run` bridges an unreadable one), or a notice."""
+    folder = shared_data / "kitti_real" / "odometry_02" / "velodyne"
+    if not folder.is_dir():
+        pytest.skip(f"{folder} not found")
+    scans = [read_scan(path) for path in sorted(folder.glob("*.bin"))]
+    config = OdometryConfig()
+    config.mapping.enabled = mapping
+    clean = Odometry.from_default(config)
+    truth = [clean.register(points) for points in scans]
+    for seed in range(2):
+        rng = np.random.default_rng([seed, len(kind), mapping])
+        hit = set(rng.choice(np.arange(1, len(scans)), size=3, replace=False).tolist())
+        odometry = Odometry.from_default(config)
+        said_by = len(scans)  # the first frame at which something was said
+        with warnings.catch_warnings(record=True) as notices:
+            warnings.simplefilter("always")
+            for i, points in enumerate(scans):
+                corrupt = i >= min(hit) if kind == "reflectance_x255" else i in hit
+                try:
+                    pose = odometry.register(_corrupted(points, kind, rng) if corrupt else points)
+                except ValueError:
+                    pose = odometry.predict_skipped()
+                    said_by = min(said_by, i)
+                if odometry.diagnostics[-1].fallback is not None or notices:
+                    said_by = min(said_by, i)
+                off = float(np.linalg.norm(pose[:3, 3] - truth[i][:3, 3]))
+                assert off <= 0.5 or i >= said_by, (kind, seed, sorted(hit), i, off)
