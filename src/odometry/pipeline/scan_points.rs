@@ -63,12 +63,18 @@ impl KeptPoints {
     /// non-finite ones.
     pub(super) fn counted(&self) -> String {
         let left_out: Vec<String> = [
-            (self.finite - self.returns, "at the origin (no return)".to_string()),
+            (
+                self.finite - self.returns,
+                "at the origin (no return)".to_string(),
+            ),
             (
                 self.returns - self.in_range(),
                 format!("under {MIN_RETURN_RANGE_M} m or over {MAX_SENSOR_RANGE_M} m away"),
             ),
-            (self.in_range() - self.kept.len(), "flagged moving".to_string()),
+            (
+                self.in_range() - self.kept.len(),
+                "flagged moving".to_string(),
+            ),
         ]
         .into_iter()
         .filter(|(count, _)| *count > 0)

@@ -197,7 +197,10 @@ fn same_scan(a: &Scan<'_>, b: &Scan<'_>) -> bool {
     a.has_reflectance == b.has_reflectance
         && a.moving == b.moving
         && a.points.len() == b.points.len()
-        && a.points.iter().zip(b.points).all(|(p, q)| bits(p) == bits(q))
+        && a.points
+            .iter()
+            .zip(b.points)
+            .all(|(p, q)| bits(p) == bits(q))
 }
 
 fn registered(pair: Matched, map_refined: Option<bool>) -> RegisteredPair {

@@ -5,7 +5,7 @@ use super::*;
 /// Scan `i` with `extra` rows at the origin (no returns, as some drivers write them) appended.
 fn with_origin_rows(i: usize, extra: usize) -> Vec<[f32; 4]> {
     let mut points = scan(i);
-    points.extend(std::iter::repeat([0.0, 0.0, 0.0, 0.0]).take(extra));
+    points.extend(std::iter::repeat_n([0.0, 0.0, 0.0, 0.0], extra));
     points
 }
 
@@ -15,7 +15,12 @@ fn points_at_the_origin_are_no_returns() {
     let mut padded = Odometry::new(OracleMatcher::new(), config(true)).unwrap();
     for i in 0..3 {
         let expected = register(&mut plain, &scan(i), i.saturating_sub(1), i);
-        let pose = register(&mut padded, &with_origin_rows(i, 5000), i.saturating_sub(1), i);
+        let pose = register(
+            &mut padded,
+            &with_origin_rows(i, 5000),
+            i.saturating_sub(1),
+            i,
+        );
         assert_eq!(pose, expected, "frame {i}");
     }
     // A scan of zeros has no point to match: bridged, and it decides nothing (no reflectance scale, no
@@ -165,7 +170,10 @@ fn a_pair_without_a_motion_of_its_own_is_said_and_a_scan_with_itself_is_the_iden
     assert!(pair.notices[0]
         .message()
         .starts_with("the pair has 0 RANSAC inliers, fewer than the 10 a motion needs"));
-    assert!(register_pair(&mut odometry, 0, 1).unwrap().notices.is_empty());
+    assert!(register_pair(&mut odometry, 0, 1)
+        .unwrap()
+        .notices
+        .is_empty());
     for mapping in [false, true] {
         let blurred = OracleMatcher::new();
         blurred.truth.set(Isometry3::translation(0.003, 0.0, 0.0)); // the network's sub-pixel error
