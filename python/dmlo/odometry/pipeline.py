@@ -273,8 +273,10 @@ class Odometry:
         median sensor periods after the previous one comes after one missing scan. With
         `config.deskew.enabled`, `point_times` (one per point, in sensor periods, 0 at the moment the pose
         refers to, e.g. −0.5…0.5 over a sweep centred on it) says when each point was measured; without it
-        the time comes from the point's azimuth. A scan with fewer than `min_points` finite points is not
-        matched: its pose comes from the motion model and the diagnostics say so.
+        the time comes from the point's azimuth. Points at the origin (no return) or farther than 1 km are
+        left out, as non-finite rows are; a scan fewer than half of whose returns lie 0.01 m to 1 km from the
+        sensor (millimetres, a world frame) raises ValueError. A scan with fewer than `min_points` points left
+        is not matched: its pose comes from the motion model and the diagnostics say so.
 
         Every step runs in the crate (`dmlo_rs.Odometry`, `odometry::pipeline` in Rust), the networks in
         onnxruntime; what the crate says about the scans (the reflectance scale, a sensor the model was not
