@@ -543,6 +543,7 @@ impl<M: FrameMatcher> Odometry<M> {
         let features = self.matcher.encode_scan(&projected.image)?;
         watch.lap("network", &mut diagnostics);
         let previous = self.reference.take();
+        let motion_before = self.motion.clone();
         let pose = match self.pose_of(
             previous.as_ref(),
             &cloud,
@@ -559,10 +560,13 @@ impl<M: FrameMatcher> Odometry<M> {
             }
         };
         // A scan that could not be matched against the reference (too few inliers) neither replaces it
-        // nor enters the map: the next scan is matched against the reference across the gap. A second
-        // such scan in a row does replace it: the reference may be what cannot be matched.
+        // nor enters the map, nor counts for the motion model (its prediction measured nothing): it is
+        // bridged as a scan with too few points is, and the next scan is matched against the reference
+        // across the gap. A second such scan in a row does replace it: the reference may be what
+        // cannot be matched.
         let unmatched = diagnostics.fallback == Some(Fallback::ConstantVelocity);
         if let Some(previous) = previous.filter(|p| unmatched && p.passed_over == 0) {
+            self.motion = motion_before;
             self.reference = Some(Reference {
                 passed_over: 1,
                 ..previous
@@ -605,7 +609,7 @@ impl<M: FrameMatcher> Odometry<M> {
         let values = scan.has_reflectance.then_some(&finite_reflectance[..]);
         let (detected, why) = reflectance::detect_reflectance(values);
         let scale = match self.reflectance {
-            Some(chosen) => self.scan_scale(chosen, detected),
+            Some(chosen) => self.scan_scale(chosen, detected, values),
             None => self.first_choice(detected, why).0,
         };
         let projected = self.project(&normalised(kept, scale))?;

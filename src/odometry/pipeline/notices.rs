@@ -39,13 +39,15 @@ pub enum Notice {
         /// Why no reflectance is used.
         why: String,
     },
-    /// A scan's reflectance lies within [0, 1] while the scale guessed on an earlier scan is 0–255 or
-    /// 0–65535: the scan is read on [0, 1] (divided by the larger top it would be nearly black).
+    /// A scan's reflectance is plainly on another scale than the one guessed on an earlier scan (within
+    /// [0, 1] under 0–255 or 0–65535, or well beyond the scale guessed): the scan is read on its own.
     ReflectanceRescaled {
         /// The scan.
         scan: usize,
         /// What its values look like.
         values: String,
+        /// The scale it is read on.
+        scale: ReflectanceScale,
         /// The scale chosen before.
         chosen: ReflectanceScale,
         /// Why that scale.
@@ -132,13 +134,15 @@ impl Notice {
             Notice::ReflectanceRescaled {
                 scan,
                 values,
+                scale,
                 chosen,
                 why,
             } => format!(
                 "reflectance: scan {scan}: {values}, not the {} scale chosen before ({why}): read on \
-                 [0, 1]; the config's reflectance (unit, 0-255, 0-65535, none) sets one scale for every \
+                 {}; the config's reflectance (unit, 0-255, 0-65535, none) sets one scale for every \
                  scan",
-                chosen.name()
+                chosen.name(),
+                scale.name()
             ),
             Notice::TooFewInliers {
                 inliers,

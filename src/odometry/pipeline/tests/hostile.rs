@@ -121,6 +121,20 @@ fn a_scan_that_cannot_be_matched_does_not_become_the_reference() {
 }
 
 #[test]
+fn a_scan_passed_over_measures_no_velocity() {
+    // Scan 1 finds no match before any velocity was measured: its prediction (standing still) is no
+    // measurement, or scan 2 — matched against scan 0 — would be judged against standing still.
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(false)).unwrap();
+    register(&mut odometry, &scan(0), 0, 0);
+    odometry.matcher.answers.borrow_mut().push_back(None);
+    register(&mut odometry, &scan(1), 0, 1);
+    assert!(!odometry.motion.is_measured());
+    let pose = register(&mut odometry, &scan(2), 0, 2);
+    assert_eq!(odometry.diagnostics()[2].fallback, None);
+    assert!(error_to_truth(&pose, 2).0 < 0.02);
+}
+
+#[test]
 fn a_later_scan_on_the_unit_scale_after_a_guessed_0_255_is_read_on_it() {
     let mut odometry = Odometry::new(OracleMatcher::new(), config(false)).unwrap();
     let bright: Vec<[f32; 4]> = scan(0)
@@ -148,6 +162,32 @@ fn a_later_scan_on_the_unit_scale_after_a_guessed_0_255_is_read_on_it() {
     let (image, _) = odometry.network_image(Scan::new(&scan(1))).unwrap();
     let unit = Odometry::new(OracleMatcher::new(), config(false)).unwrap();
     assert_eq!(image, unit.network_image(Scan::new(&scan(1))).unwrap().0);
+    // Values reaching well into a larger scale than the one guessed are read on it; a little beyond it,
+    // clipped.
+    let mut odometry = Odometry::new(OracleMatcher::new(), config(false)).unwrap();
+    register(&mut odometry, &scan(0), 0, 0);
+    let times = |k: f32| -> Vec<[f32; 4]> {
+        scan(1)
+            .iter()
+            .map(|&[x, y, z, r]| [x, y, z, r * k])
+            .collect()
+    };
+    register(&mut odometry, &times(255.0), 0, 1);
+    register(&mut odometry, &times(1.5), 1, 2);
+    assert_eq!(
+        notice_kinds(&odometry),
+        [
+            vec![],
+            vec!["reflectance_rescaled"],
+            vec!["reflectance_clipped"]
+        ]
+    );
+    let said = odometry.diagnostics()[1].notices[0].message();
+    assert!(
+        said.contains("look like 0–255, not the unit scale chosen before")
+            && said.contains("read on 0-255"),
+        "{said}"
+    );
     // A scale the config sets is kept.
     let set = OdometryConfig {
         reflectance: ReflectanceScale::ZeroTo255,
