@@ -596,8 +596,8 @@ impl<M: FrameMatcher> Odometry<M> {
     }
 
     /// The network's `(2, H, W)` input of a scan's finite points and its range image (Eq. 1), its
-    /// reflectance on the scale chosen (before the first deciding scan: the one this scan would choose);
-    /// nothing is decided or said.
+    /// reflectance on the scale chosen (before the first deciding scan: the one this scan would choose; a
+    /// scan plainly on another scale than the one guessed: its own); nothing is decided or said.
     pub fn network_image(&self, scan: Scan<'_>) -> Result<(Vec<f32>, Vec<f32>)> {
         let points = kept_points(&scan)?;
         points.check_plausible("points", scan.points.len())?;

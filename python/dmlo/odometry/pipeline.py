@@ -337,7 +337,9 @@ class Odometry:
         says. Points on moving objects (`moving_objects`) are left out of a consecutive pair, not of a
         large-motion one. The result's points are in the frames of the scans given. A scan with fewer than
         `config.min_points` finite points is refused (ValueError): with no motion model to fall back on,
-        the identity would be a silent wrong answer. The pair runs in the crate (`Odometry::register_pair` in
+        the identity would be a silent wrong answer; so is a scan that is not plausible (most of its returns
+        beyond a sensor's ranges), and a pair with fewer than `motion_model.min_inliers` inliers warns
+        (`PairWarning`). A scan registered with itself is the identity. The pair runs in the crate (`Odometry::register_pair` in
         Rust), the network in onnxruntime; the drive's poses are untouched, and the reflectance scale is
         chosen on the pair when no scan chose it before.
         """
