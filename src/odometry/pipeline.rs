@@ -176,7 +176,8 @@ pub trait FrameMatcher {
 /// One scan given to [`Odometry::register`].
 #[derive(Debug, Clone, Copy)]
 pub struct Scan<'a> {
-    /// `x, y, z, reflectance` in the sensor frame; non-finite points are left out.
+    /// `x, y, z, reflectance` in the sensor frame, metres; non-finite points and points at the origin
+    /// (no return) are left out ([`Odometry::register`]).
     pub points: &'a [[f32; 4]],
     /// Whether the points carry a reflectance (false: the sensor or file gave none, and the fourth value
     /// of every point is a placeholder): such scans run the range-only model.
@@ -233,6 +234,9 @@ struct Reference<F> {
     features: F,
     pose: Matrix4<f64>,
     frame: u64,
+    /// Scans since it became the reference that could not be matched against it (too few inliers) and
+    /// were passed over: the next was matched against it instead.
+    passed_over: usize,
 }
 
 /// A scan projected: the network's `(2, H, W)` image, its range image and its point image `(H, W, 3)`
@@ -462,11 +466,16 @@ impl<M: FrameMatcher> Odometry<M> {
         self.runs_range_only
     }
 
-    /// Adds the next scan and returns its pose `T_world_lidar`. A scan with fewer than `min_points`
-    /// finite points (after the moving ones) is not matched: its pose comes from the motion model and its
-    /// diagnostics say so. Errors name a bad argument (a mask of the wrong length, a non-finite timestamp,
-    /// reflectance the model cannot use); the odometry's state is then as before the call, apart from
-    /// the clock of a scan whose error came from the matcher.
+    /// Adds the next scan and returns its pose `T_world_lidar`. Points that are non-finite, closer than
+    /// [`MIN_RETURN_RANGE_M`] to the sensor (at the origin: no return) or farther than
+    /// [`MAX_SENSOR_RANGE_M`] are left out, as are the moving ones. A scan with fewer points left than
+    /// `min_points` (and than 3) is not matched: its pose comes from the motion
+    /// model and its diagnostics say so (`too_few_points`). A scan that could not be matched against the
+    /// previous one (`constant_velocity`: too few inliers) does not become the reference of the next,
+    /// unless the scan before it could not be matched either. Errors name a bad argument (a mask of the
+    /// wrong length, a non-finite timestamp, reflectance the model cannot use, a scan fewer than half of
+    /// whose returns lie at a sensor's ranges: millimetres, or a world frame); the odometry's state is
+    /// then as before the call, apart from the clock of a scan whose error came from the matcher.
     pub fn register(&mut self, scan: Scan<'_>) -> Result<Isometry3<f64>> {
         self.register_matrix(scan).map(|pose| isometry(&pose))
     }
@@ -487,14 +496,17 @@ impl<M: FrameMatcher> Odometry<M> {
             },
             None => scan,
         };
+        let points = kept_points(&scan)?;
+        points.check_plausible("points", scan.points.len())?;
         let KeptPoints {
             keep,
             kept,
             finite_reflectance,
-        } = kept_points(&scan)?;
+            ..
+        } = points;
         check_one_per_point(scan.point_times, "point_times", "time", scan.points.len())?;
         let times = scan.point_times.map(|times| kept_rows(times, &keep));
-        let min_points = self.config.min_points as usize;
+        let min_points = self.points_needed();
         let index = self.frames;
         let values = scan.has_reflectance.then_some(&finite_reflectance[..]);
         let scale = self.reflectance_for(values, finite_reflectance.len(), min_points, index)?;
@@ -543,6 +555,7 @@ impl<M: FrameMatcher> Odometry<M> {
         let features = self.matcher.encode_scan(&projected.image)?;
         watch.lap("network", &mut diagnostics);
         let previous = self.reference.take();
+        let motion_before = self.motion.clone();
         let pose = match self.pose_of(
             previous.as_ref(),
             &cloud,
@@ -558,6 +571,20 @@ impl<M: FrameMatcher> Odometry<M> {
                 return Err(e);
             }
         };
+        // A scan that could not be matched against the reference (too few inliers) neither replaces it
+        // nor enters the map, nor counts for the motion model (its prediction measured nothing): it is
+        // bridged as a scan with too few points is, and the next scan is matched against the reference
+        // across the gap. A second such scan in a row does replace it: the reference may be what
+        // cannot be matched.
+        let unmatched = diagnostics.fallback == Some(Fallback::ConstantVelocity);
+        if let Some(previous) = previous.filter(|p| unmatched && p.passed_over == 0) {
+            self.motion = motion_before;
+            self.reference = Some(Reference {
+                passed_over: 1,
+                ..previous
+            });
+            return Ok(self.record(pose, tick.frame, diagnostics));
+        }
         if let Some(map) = &mut self.map {
             let keyframe = map.is_keyframe(&pose);
             diagnostics.map_keyframe = Some(keyframe);
@@ -575,24 +602,28 @@ impl<M: FrameMatcher> Odometry<M> {
             features,
             pose,
             frame: tick.frame,
+            passed_over: 0,
         });
         Ok(self.record(pose, tick.frame, diagnostics))
     }
 
     /// The network's `(2, H, W)` input of a scan's finite points and its range image (Eq. 1), its
-    /// reflectance on the scale chosen (before the first deciding scan: the one this scan would choose);
-    /// nothing is decided or said.
+    /// reflectance on the scale chosen (before the first deciding scan: the one this scan would choose; a
+    /// scan plainly on another scale than the one guessed: its own); nothing is decided or said.
     pub fn network_image(&self, scan: Scan<'_>) -> Result<(Vec<f32>, Vec<f32>)> {
+        let points = kept_points(&scan)?;
+        points.check_plausible("points", scan.points.len())?;
         let KeptPoints {
             kept,
             finite_reflectance,
             ..
-        } = kept_points(&scan)?;
-        let scale = self.reflectance.unwrap_or_else(|| {
-            let values = scan.has_reflectance.then_some(&finite_reflectance[..]);
-            let (detected, why) = reflectance::detect_reflectance(values);
-            self.first_choice(detected, why).0
-        });
+        } = points;
+        let values = scan.has_reflectance.then_some(&finite_reflectance[..]);
+        let (detected, why) = reflectance::detect_reflectance(values);
+        let scale = match self.reflectance {
+            Some(chosen) => self.scan_scale(chosen, detected, values),
+            None => self.first_choice(detected, why).0,
+        };
         let projected = self.project(&normalised(kept, scale))?;
         Ok((projected.image, projected.range))
     }
@@ -621,6 +652,12 @@ impl<M: FrameMatcher> Odometry<M> {
             }
             _ => Ok(None),
         }
+    }
+
+    /// The points a scan needs to be matched: `min_points`, and never fewer than the 3 a rigid motion
+    /// needs (with fewer, the scan would still choose the reflectance scale).
+    fn points_needed(&self) -> usize {
+        (self.config.min_points as usize).max(3)
     }
 
     /// The sensor notice, once, for a scan that fills less than [`LOW_IMAGE_FILL`] of the image.
@@ -774,6 +811,7 @@ impl<M: FrameMatcher> Odometry<M> {
 #[derive(Debug, Clone, Copy, Default)]
 struct Said {
     clipping: bool,
+    rescaled: bool,
     timestamp: bool,
     sensor: bool,
 }
@@ -796,6 +834,7 @@ mod two_scans;
 pub use diagnostics::FrameDiagnostics;
 pub use encode_ahead::EncodeAhead;
 pub use notices::{Notice, LOW_IMAGE_FILL};
+pub use scan_points::{MAX_SENSOR_RANGE_M, MIN_RETURN_RANGE_M};
 pub use two_scans::RegisteredPair;
 
 use diagnostics::Stopwatch;

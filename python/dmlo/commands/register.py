@@ -102,7 +102,5 @@ def run(args: argparse.Namespace) -> int:
     if result.map_refined is not None:
         print("refined against A (mapping: NDT, or point-to-plane ICP for a pair that stands still)" if result.map_refined
               else "warning: the alignment against A did not converge; the matches' motion is kept")
-    if result.num_inliers < odometry.config.motion_model.min_inliers:
-        print(f"warning: fewer than {odometry.config.motion_model.min_inliers} inliers, the motion is not to be trusted"
-              + ("" if args.large_motion or args.loop else " (far apart? try --large-motion, or --loop)"))
+    # Fewer than min_inliers inliers: the crate's notice, a PairWarning on stderr (with --json too).
     return 0

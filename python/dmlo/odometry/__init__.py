@@ -12,7 +12,7 @@ from dmlo.odometry.config import (
     RansacConfig,
 )
 from dmlo.odometry.pair import PairResult
-from dmlo.odometry.notices import ReflectanceNotice, SensorMismatchWarning, TimestampWarning
+from dmlo.odometry.notices import PairWarning, ReflectanceNotice, SensorMismatchWarning, TimestampWarning
 from dmlo.odometry.pipeline import FrameDiagnostics, Odometry
 
 __all__ = [
@@ -26,6 +26,7 @@ __all__ = [
     "Odometry",
     "OdometryConfig",
     "PairResult",
+    "PairWarning",
     "RansacConfig",
     "ReflectanceNotice",
     "SensorMismatchWarning",

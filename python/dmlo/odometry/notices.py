@@ -17,6 +17,11 @@ class SensorMismatchWarning(UserWarning):
     """The scans fill far less of the model's cylinder image than the sensor it was trained for."""
 
 
+class PairWarning(UserWarning):
+    """A pair registered (`register_pair`) with fewer RANSAC inliers than a motion needs: its motion is not to
+    be trusted (the identity when RANSAC found none)."""
+
+
 class TimestampWarning(UserWarning):
     """A scan's timestamp is not after the previous scan's: it is taken for the next frame."""
 
@@ -27,6 +32,8 @@ CATEGORIES: dict[str, type[UserWarning]] = {
     "zero_reflectance": ReflectanceNotice,
     "reflectance_unused": ReflectanceNotice,
     "reflectance_clipped": ReflectanceNotice,
+    "reflectance_rescaled": ReflectanceNotice,
+    "too_few_inliers": PairWarning,
     "timestamp_not_after": TimestampWarning,
     "sensor_mismatch": SensorMismatchWarning,
 }

@@ -9,7 +9,9 @@ opens the model's graphs, hands numpy arrays over and turns the crate's notices 
 
 from __future__ import annotations
 
+import functools
 import json
+import threading
 import warnings
 from pathlib import Path
 
@@ -38,6 +40,25 @@ Matrix4 = npt.NDArray[np.float64]
 FrameDiagnostics = dmlo_rs.FrameDiagnostics
 
 
+def _one_thread_at_a_time(method: Any) -> Any:
+    """`method` of an `Odometry`, refused with a clear error while another thread runs one of them on the same
+    odometry (the crate's loop would answer "Already borrowed")."""
+
+    @functools.wraps(method)
+    def guarded(self: Odometry, *args: Any, **kwargs: Any) -> Any:
+        if not self._in_use.acquire(blocking=False):
+            raise RuntimeError(
+                f"Odometry.{method.__name__}: another thread is using this Odometry; an Odometry is not shared "
+                "between threads (its scans are one drive, in order): use one per thread"
+            )
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            self._in_use.release()
+
+    return guarded
+
+
 class Odometry:
     """DMLO odometry with the paper's motion model and, by default, its scan-to-map NDT refinement
     (`mapping.enabled = False`: frame-to-frame DMLO).
@@ -50,6 +71,12 @@ class Odometry:
     """
 
     def __init__(self, model_path: str | Path, config: OdometryConfig | None = None) -> None:
+        if config is not None and not isinstance(config, OdometryConfig):
+            raise TypeError(
+                f"config: expected an OdometryConfig or None (the defaults), got {type(config).__name__}; "
+                "OdometryConfig.from_dict(dict) or OdometryConfig.load(path) reads one"
+            )
+        self._in_use = threading.Lock()
         self.config = config or OdometryConfig()
         self.config.validate()  # the whole schema again: a config's fields may change after loading
         matcher = OnnxMatcher(
@@ -142,6 +169,7 @@ class Odometry:
 
     # -- one scan -------------------------------------------------------------------------------
 
+    @_one_thread_at_a_time
     def register(
         self,
         points: npt.ArrayLike,
@@ -158,8 +186,10 @@ class Odometry:
         median sensor periods after the previous one comes after one missing scan. With
         `config.deskew.enabled`, `point_times` (one per point, in sensor periods, 0 at the moment the pose
         refers to, e.g. −0.5…0.5 over a sweep centred on it) says when each point was measured; without it
-        the time comes from the point's azimuth. A scan with fewer than `min_points` finite points is not
-        matched: its pose comes from the motion model and the diagnostics say so.
+        the time comes from the point's azimuth. Points at the origin (no return) or farther than 1 km are
+        left out, as non-finite rows are; a scan fewer than half of whose returns lie 0.01 m to 1 km from the
+        sensor (millimetres, a world frame) raises ValueError. A scan with fewer than `min_points` points left
+        is not matched: its pose comes from the motion model and the diagnostics say so.
 
         Every step runs in the crate (`dmlo_rs.Odometry`, `odometry::pipeline` in Rust), the networks in
         onnxruntime; what the crate says about the scans (the reflectance scale, a sensor the model was not
@@ -171,6 +201,7 @@ class Odometry:
         pose = self._loop.register(cloud, moving=mask, timestamp=timestamp, point_times=times)
         return self._record(pose, self._newest_diagnostics())
 
+    @_one_thread_at_a_time
     def reset(self) -> None:
         """Forgets the drive: the next scan is the world again, with a fresh motion model, local map, clock
         and reflectance scale; the model and the config stay."""
@@ -178,6 +209,7 @@ class Odometry:
         self.poses.clear()
         self.diagnostics.clear()
 
+    @_one_thread_at_a_time
     def predict_skipped(self, reason: str = "unreadable_scan") -> Matrix4:
         """Records a scan that could not be read: its pose comes from the motion model."""
         return self._record(self._loop.predict_skipped(reason), self._newest_diagnostics())
@@ -195,6 +227,7 @@ class Odometry:
         self.diagnostics.append(diagnostics)
         return pose.copy()
 
+    @_one_thread_at_a_time
     def register_pair(
         self, reference: npt.ArrayLike, target: npt.ArrayLike, large_motion: bool = False
     ) -> PairResult:
@@ -213,7 +246,9 @@ class Odometry:
         says. Points on moving objects (`moving_objects`) are left out of a consecutive pair, not of a
         large-motion one. The result's points are in the frames of the scans given. A scan with fewer than
         `config.min_points` finite points is refused (ValueError): with no motion model to fall back on,
-        the identity would be a silent wrong answer. The pair runs in the crate (`Odometry::register_pair` in
+        the identity would be a silent wrong answer; so is a scan that is not plausible (most of its returns
+        beyond a sensor's ranges), and a pair with fewer than `motion_model.min_inliers` inliers warns
+        (`PairWarning`). A scan registered with itself is the identity. The pair runs in the crate (`Odometry::register_pair` in
         Rust), the network in onnxruntime; the drive's poses are untouched, and the reflectance scale is
         chosen on the pair when no scan chose it before.
         """
@@ -320,4 +355,16 @@ def _as_mask(mask: npt.ArrayLike, count: int) -> npt.NDArray[np.bool_]:
     values = np.asarray(mask)
     if values.shape != (count,):
         raise ValueError(f"moving: expected a mask of {count} booleans, got shape {values.shape}")
+    if values.dtype == np.bool_:
+        return values
+    if not np.issubdtype(values.dtype, np.integer):
+        raise TypeError(
+            f"moving: expected booleans (or integers 0 and 1), one per point, got dtype {values.dtype}; "
+            "threshold a probability first (e.g. probability > 0.5)"
+        )
+    if ((values != 0) & (values != 1)).any():
+        raise ValueError(
+            f"moving: expected booleans (or integers 0 and 1), got {values[(values != 0) & (values != 1)][0]} "
+            f"at point {int(np.argmax((values != 0) & (values != 1)))}"
+        )
     return values.astype(bool)

@@ -39,6 +39,30 @@ pub enum Notice {
         /// Why no reflectance is used.
         why: String,
     },
+    /// A scan's reflectance is plainly on another scale than the one guessed on an earlier scan (within
+    /// [0, 1] under 0–255 or 0–65535, or well beyond the scale guessed): the scan is read on its own.
+    ReflectanceRescaled {
+        /// The scan.
+        scan: usize,
+        /// What its values look like.
+        values: String,
+        /// The scale it is read on.
+        scale: ReflectanceScale,
+        /// The scale chosen before.
+        chosen: ReflectanceScale,
+        /// Why that scale.
+        why: String,
+    },
+    /// A pair registered ([`super::Odometry::register_pair`]) with fewer RANSAC inliers than a motion
+    /// needs: its motion is not to be trusted (the identity when there are none).
+    TooFewInliers {
+        /// RANSAC's inliers.
+        inliers: usize,
+        /// `motion_model.min_inliers`.
+        needed: usize,
+        /// Matched as a large motion.
+        large_motion: bool,
+    },
     /// The model is range-only: the scans' reflectance is not read.
     ReflectanceUnused,
     /// A scan's reflectance reaches beyond the scale chosen: it is clipped to the scale's top.
@@ -73,12 +97,15 @@ pub enum Notice {
 
 impl Notice {
     /// The notice's name: `reflectance_scaled`, `range_only_model`, `zero_reflectance`,
-    /// `reflectance_unused`, `reflectance_clipped`, `timestamp_not_after` or `sensor_mismatch`.
+    /// `reflectance_rescaled`, `too_few_inliers`, `reflectance_unused`, `reflectance_clipped`,
+    /// `timestamp_not_after` or `sensor_mismatch`.
     pub fn kind(&self) -> &'static str {
         match self {
             Notice::ReflectanceScaled { .. } => "reflectance_scaled",
             Notice::RangeOnlyModel { .. } => "range_only_model",
             Notice::ZeroReflectance { .. } => "zero_reflectance",
+            Notice::ReflectanceRescaled { .. } => "reflectance_rescaled",
+            Notice::TooFewInliers { .. } => "too_few_inliers",
             Notice::ReflectanceUnused => "reflectance_unused",
             Notice::ReflectanceClipped { .. } => "reflectance_clipped",
             Notice::TimestampNotAfter { .. } => "timestamp_not_after",
@@ -103,6 +130,37 @@ impl Notice {
                  if the scans have one on another scale, or train and export a range-only model (dmlo train \
                  --no-reflectance; dmlo export RUN --out MODEL/range_only)",
                 at(scan)
+            ),
+            Notice::ReflectanceRescaled {
+                scan,
+                values,
+                scale,
+                chosen,
+                why,
+            } => format!(
+                "reflectance: scan {scan}: {values}, not the {} scale chosen before ({why}): read on \
+                 {}; the config's reflectance (unit, 0-255, 0-65535, none) sets one scale for every \
+                 scan",
+                chosen.name(),
+                scale.name()
+            ),
+            Notice::TooFewInliers {
+                inliers,
+                needed,
+                large_motion,
+            } => format!(
+                "the pair has {inliers} RANSAC inliers, fewer than the {needed} a motion needs \
+                 (motion_model.min_inliers): its motion is not to be trusted{}{}",
+                if *inliers == 0 {
+                    " (the identity: RANSAC found none)"
+                } else {
+                    ""
+                },
+                if *large_motion {
+                    ""
+                } else {
+                    "; far apart? try large_motion (dmlo register --large-motion, or --loop)"
+                }
             ),
             Notice::ReflectanceUnused => {
                 "reflectance: the model is range-only: the scans' reflectance is not used".into()

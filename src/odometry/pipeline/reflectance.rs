@@ -29,6 +29,17 @@ impl<M: FrameMatcher> Odometry<M> {
             if chosen != ReflectanceScale::Ignored && detected == ReflectanceScale::Ignored {
                 self.switch_to_range_only(Some(scan), detected_why)?;
                 self.reflectance = Some(ReflectanceScale::Ignored);
+            } else if self.scan_scale(chosen, detected, values) != chosen {
+                let scale = self.scan_scale(chosen, detected, values);
+                let notice = Notice::ReflectanceRescaled {
+                    scan,
+                    values: detected_why,
+                    scale,
+                    chosen,
+                    why: self.reflectance_reason.clone(),
+                };
+                self.say_once(|said| &mut said.rescaled, notice);
+                return Ok(Some(scale));
             } else {
                 self.notice_clipping(values, scan);
             }
@@ -69,6 +80,43 @@ impl<M: FrameMatcher> Odometry<M> {
                 setting,
                 format!("the config says reflectance {}", setting.name()),
             ),
+        }
+    }
+
+    /// The scale a scan whose values (`values`) look like `detected` is read on, once `chosen` is the
+    /// sequence's: `chosen`, unless it was guessed from the values (the config's `"auto"`) and this scan
+    /// is plainly on another scale — then its own: its values all lie within [0, 1] while `chosen` is
+    /// 0–255 or 0–65535 (divided by that top they would be nearly black; no real scan of such a sensor
+    /// stays within [0, 1]), or they reach beyond `chosen` into the upper half of a larger scale (clipped
+    /// they would be nearly all white). Values a little beyond the scale chosen stay clipped to it.
+    pub(super) fn scan_scale(
+        &self,
+        chosen: ReflectanceScale,
+        detected: ReflectanceScale,
+        values: Option<&[f32]>,
+    ) -> ReflectanceScale {
+        let rank = |scale| match scale {
+            ReflectanceScale::Unit => Some(0),
+            ReflectanceScale::ZeroTo255 => Some(1),
+            ReflectanceScale::ZeroTo65535 => Some(2),
+            ReflectanceScale::Auto | ReflectanceScale::Ignored => None,
+        };
+        if self.config.reflectance != ReflectanceScale::Auto {
+            return chosen;
+        }
+        let (Some(chosen_rank), Some(detected_rank)) = (rank(chosen), rank(detected)) else {
+            return chosen;
+        };
+        let largest = values
+            .unwrap_or_default()
+            .iter()
+            .fold(f32::NEG_INFINITY, |a, &b| a.max(b));
+        let below = detected == ReflectanceScale::Unit && chosen_rank > 0;
+        let above = detected_rank > chosen_rank && largest > 0.5 * divisor(detected);
+        if below || above {
+            detected
+        } else {
+            chosen
         }
     }
 

@@ -1,40 +1,126 @@
-//! The points of a scan the odometry keeps: finite, and not flagged moving.
+//! The points of a scan the odometry keeps: finite returns at a sensor's ranges, and not flagged moving.
 
 use nalgebra::Point3;
 
 use super::Scan;
 use crate::error::{Error, Result};
 
+/// A point closer than this to the sensor (m) is no return: sensors see nothing within decimetres, and
+/// points at the origin are the no-return markers some drivers write (nuScenes keyframes hold them). Such
+/// points are left out, as non-finite ones are. The same figure as `dmlo.datasets.MIN_RETURN_RANGE_M`.
+pub const MIN_RETURN_RANGE_M: f64 = 0.01;
+
+/// A point farther than this from the sensor (m) is no LiDAR measurement (no automotive sensor reaches a
+/// kilometre): garbage bytes, or the wrong unit or frame. Such points are left out; a scan most of whose
+/// returns lie out there is refused. The same figure as `dmlo.datasets.MAX_SENSOR_RANGE_M`.
+pub const MAX_SENSOR_RANGE_M: f64 = 1000.0;
+
 /// A scan's points as the odometry keeps them.
 pub(super) struct KeptPoints {
-    /// Per point: finite and not flagged moving.
+    /// Per point: finite, [`MIN_RETURN_RANGE_M`] to [`MAX_SENSOR_RANGE_M`] from the sensor, and not
+    /// flagged moving.
     pub(super) keep: Vec<bool>,
     /// Those points.
     pub(super) kept: Vec<[f32; 4]>,
-    /// The reflectance of every finite point, moving or not: what the reflectance scale is chosen from.
+    /// The reflectance of every point at a sensor's range, moving or not: what the reflectance scale is
+    /// chosen from.
     pub(super) finite_reflectance: Vec<f32>,
+    /// Finite points.
+    pub(super) finite: usize,
+    /// Finite points other than the origin.
+    pub(super) returns: usize,
+}
+
+impl KeptPoints {
+    /// Points at a sensor's range ([`MIN_RETURN_RANGE_M`] to [`MAX_SENSOR_RANGE_M`]), moving or not.
+    pub(super) fn in_range(&self) -> usize {
+        self.finite_reflectance.len()
+    }
+
+    /// Refuses (naming the scan `name`) a scan that cannot be a LiDAR scan in metres: fewer than half
+    /// of its returns lie [`MIN_RETURN_RANGE_M`] to [`MAX_SENSOR_RANGE_M`] from the sensor — what a scan
+    /// in millimetres, far from its sensor's origin, or of garbage bytes reads as. The check
+    /// `dmlo.datasets.check_plausible_scan` makes of a file; a scan without returns is not refused here
+    /// (it has too few points to match).
+    pub(super) fn check_plausible(&self, name: &'static str, points: usize) -> Result<()> {
+        if 2 * self.in_range() >= self.returns {
+            return Ok(());
+        }
+        Err(Error::invalid(
+            name,
+            format!(
+                "not a plausible LiDAR scan: {} of its {} returns (finite points other than the \
+                 origin; {points} points in all) lie {MIN_RETURN_RANGE_M} m to {MAX_SENSOR_RANGE_M} m \
+                 from the sensor; coordinates not in metres in the sensor's frame (millimetres? a \
+                 world frame?), or garbage data",
+                self.in_range(),
+                self.returns
+            ),
+        ))
+    }
+
+    /// What was counted against `min_points`: the finite points kept, and those left out besides the
+    /// non-finite ones.
+    pub(super) fn counted(&self) -> String {
+        let left_out: Vec<String> = [
+            (
+                self.finite - self.returns,
+                "at the origin (no return)".to_string(),
+            ),
+            (
+                self.returns - self.in_range(),
+                format!("under {MIN_RETURN_RANGE_M} m or over {MAX_SENSOR_RANGE_M} m away"),
+            ),
+            (
+                self.in_range() - self.kept.len(),
+                "flagged moving".to_string(),
+            ),
+        ]
+        .into_iter()
+        .filter(|(count, _)| *count > 0)
+        .map(|(count, why)| format!("{count} {why}"))
+        .collect();
+        if left_out.is_empty() {
+            return format!("{} finite points", self.kept.len());
+        }
+        format!(
+            "{} finite points left to match ({} left out)",
+            self.kept.len(),
+            left_out.join(", ")
+        )
+    }
 }
 
 /// The points of `scan` the odometry keeps (a `moving` mask of the wrong length is an error naming it).
 pub(super) fn kept_points(scan: &Scan<'_>) -> Result<KeptPoints> {
     check_one_per_point(scan.moving, "moving", "flag", scan.points.len())?;
     let mut finite_reflectance = Vec::with_capacity(scan.points.len());
+    let (mut finite_points, mut returns) = (0, 0);
     let keep: Vec<bool> = scan
         .points
         .iter()
         .enumerate()
         .map(|(i, p)| {
             let finite = p.iter().all(|v| v.is_finite());
-            if finite {
+            // In f64, whose squares of f32 values never overflow.
+            let (x, y, z) = (f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            let range = (x * x + y * y + z * z).sqrt();
+            let returned = finite && range > 0.0;
+            let in_range = returned && (MIN_RETURN_RANGE_M..=MAX_SENSOR_RANGE_M).contains(&range);
+            finite_points += usize::from(finite);
+            returns += usize::from(returned);
+            if in_range {
                 finite_reflectance.push(p[3]);
             }
-            finite && !scan.moving.is_some_and(|m| m[i])
+            in_range && !scan.moving.is_some_and(|m| m[i])
         })
         .collect();
     Ok(KeptPoints {
         kept: kept_rows(scan.points, &keep),
         keep,
         finite_reflectance,
+        finite: finite_points,
+        returns,
     })
 }
 

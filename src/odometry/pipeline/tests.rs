@@ -961,6 +961,7 @@ fn the_round_trip_check_follows_a_loop_over_the_cells() {
 }
 
 mod encode_ahead;
+mod hostile;
 
 /// A stand-in moving-object network: cells whose kept point stands above `above` (m) are moving; `fails`:
 /// it reports an error instead.

@@ -53,6 +53,19 @@ impl<M: FrameMatcher> Odometry<M> {
         large_motion: bool,
     ) -> Result<RegisteredPair> {
         let mut pair = self.registered_pair(reference, target, large_motion)?;
+        if same_scan(&reference, &target) {
+            // A scan does not move against itself, whatever the network's sub-pixel flow says.
+            pair.transform = Matrix4::identity();
+            pair.matches.transform = nalgebra::Isometry3::identity();
+        }
+        let needed = self.config.motion_model.min_inliers as usize;
+        if pair.matches.num_inliers < needed {
+            self.notices.push(Notice::TooFewInliers {
+                inliers: pair.matches.num_inliers,
+                needed,
+                large_motion,
+            });
+        }
         pair.notices = std::mem::take(&mut self.notices);
         Ok(pair)
     }
@@ -133,9 +146,9 @@ impl<M: FrameMatcher> Odometry<M> {
         Ok(result)
     }
 
-    /// A pair's scan (`name`): its finite points not flagged moving (by the caller, or with
-    /// `detect_moving` by the moving-object network), reflectance brought to the model's scale; at least
-    /// `min_points` of them.
+    /// A pair's scan (`name`): its finite points at a sensor's ranges not flagged moving (by the caller,
+    /// or with `detect_moving` by the moving-object network), reflectance brought to the model's scale;
+    /// at least `min_points` (and 3) of them, in a plausible scan.
     fn pair_cloud(
         &mut self,
         scan: Scan<'_>,
@@ -154,27 +167,40 @@ impl<M: FrameMatcher> Odometry<M> {
             },
             None => scan,
         };
+        let points = kept_points(&scan)?;
+        points.check_plausible(name, scan.points.len())?;
+        let min_points = self.points_needed();
+        if points.kept.len() < min_points {
+            return Err(Error::invalid(
+                name,
+                format!(
+                    "{}, fewer than the {min_points} needed to register a pair (config.min_points)",
+                    points.counted()
+                ),
+            ));
+        }
         let KeptPoints {
             kept,
             finite_reflectance,
             ..
-        } = kept_points(&scan)?;
+        } = points;
         let values = scan.has_reflectance.then_some(&finite_reflectance[..]);
-        let min_points = self.config.min_points as usize;
-        if kept.len() < min_points {
-            return Err(Error::invalid(
-                name,
-                format!(
-                    "{} finite points, fewer than the {min_points} needed to register a pair \
-                     (config.min_points)",
-                    kept.len()
-                ),
-            ));
-        }
         let index = self.frames;
         let scale = self.reflectance_for(values, finite_reflectance.len(), min_points, index)?;
         Ok(normalised(kept, scale.unwrap_or(ReflectanceScale::Unit)))
     }
+}
+
+/// Whether two scans are the same: their points bit for bit, their reflectance and their moving flags.
+fn same_scan(a: &Scan<'_>, b: &Scan<'_>) -> bool {
+    let bits = |p: &[f32; 4]| p.map(f32::to_bits);
+    a.has_reflectance == b.has_reflectance
+        && a.moving == b.moving
+        && a.points.len() == b.points.len()
+        && a.points
+            .iter()
+            .zip(b.points)
+            .all(|(p, q)| bits(p) == bits(q))
 }
 
 fn registered(pair: Matched, map_refined: Option<bool>) -> RegisteredPair {
