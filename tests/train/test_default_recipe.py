@@ -221,3 +221,18 @@ def test_kitti_reflectance_drives_are_the_recipes_drives_with_the_calibrated_ref
     calls.clear()
     default_recipe.simulate_drives(tmp_path / "plain", None)
     assert calls and all("reflectance" not in kw for _, kw in calls)  # the recipe's own drives as before
+
+
+@pytest.mark.skipif(not (TRAINING_STATE / "kitti_reflectance" / "train.json").is_file(),
+                    reason="no kitti-reflectance state committed")
+def test_committed_kitti_reflectance_state_was_made_by_the_recipe() -> None:
+    config = TrainConfig.from_dict(json.loads((TRAINING_STATE / "kitti_reflectance" / "train.json").read_text()))
+    arguments = default_recipe.KITTI_REFLECTANCE_ARGUMENTS
+    assert config.laser_gain_spread == float(option(arguments, "--laser-gain-spread"))
+    assert config.lr == float(option(arguments, "--lr")) and config.epochs == int(option(arguments, "--epochs"))
+    assert config.crop_width == int(option(arguments, "--crop-width")) and config.mirror
+    assert config.init is not None and config.init.endswith("finetune/best.pt")
+    names = {name for name, *_ in default_recipe.DRIVES}
+    assert all(Path(p).parent.name == default_recipe.KITTI_REFLECTANCE_DATA and Path(p).name in names
+               for p in config.data + config.val)
+    assert not config.no_reflectance and config.reflectance_remap == 0 and config.reflectance_dropout == 0
