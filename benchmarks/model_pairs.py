@@ -22,7 +22,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
+from typing import Any, cast
 
 import numpy as np
 
@@ -30,25 +30,32 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real import DEFAULT_DATA, pair_errors  # noqa: E402
 
 from dmlo.datasets import open_sequence  # noqa: E402
+from dmlo.peers.consensus import ConsensusReference  # noqa: E402
 from dmlo.odometry import Odometry, OdometryConfig  # noqa: E402
 
 
 def make_odometry(model: Path | None, reflectance: str = "auto") -> Odometry:
     config = OdometryConfig()
     config.mapping.enabled = False
-    config.reflectance = reflectance
+    config.reflectance = cast(Any, reflectance)  # checked by the odometry's config
     return Odometry(model, config) if model is not None else Odometry.from_default(config)
 
 
-def real_reference(folder: Path, scans: list[np.ndarray], ground_truth: np.ndarray | None, cache: Path) -> SimpleNamespace:
+def motions_reference(motions: np.ndarray, sources: tuple[str, ...]) -> ConsensusReference:
+    """A reference of these pair motions alone (what `pair_errors` reads)."""
+    zeros = np.zeros(len(motions))
+    return ConsensusReference(motions=motions, disagreement_m=zeros, disagreement_deg=zeros, sources=sources)
+
+
+def real_reference(folder: Path, scans: list[np.ndarray], ground_truth: np.ndarray | None, cache: Path) -> ConsensusReference:
     if cache.is_file():
         data = np.load(cache)
-        return SimpleNamespace(motions=data["motions"], consecutive_motions=None)
+        return motions_reference(data["motions"], tuple(str(s) for s in data["sources"]))
     from dmlo.peers.consensus import gicp_consensus
 
     reference = gicp_consensus(scans, ground_truth, span=3)
     np.savez(cache, motions=reference.motions, sources=np.array(reference.sources))
-    return SimpleNamespace(motions=reference.motions, consecutive_motions=None)
+    return motions_reference(reference.motions, reference.sources)
 
 
 def run_model(model: Path | None, scans: list[np.ndarray], reflectance: str = "auto") -> tuple[np.ndarray, float]:
@@ -85,7 +92,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict[str, dict[str, dict[str, float]]] = {}
 
-    def report(label: str, name: str, poses: np.ndarray, reference: SimpleNamespace, hz: float) -> None:
+    def report(label: str, name: str, poses: np.ndarray, reference: ConsensusReference, hz: float) -> None:
         row = pair_errors(name, poses, reference, hz)
         results.setdefault(label, {})[name] = {
             "t_mean_cm": row.translation_mean_cm, "t_max_cm": row.translation_max_cm,
@@ -117,8 +124,9 @@ def main() -> None:
         sequence = open_sequence(drive)
         total = min(args.frames, len(sequence))
         scans = [sequence[i].points for i in range(total)]
+        assert sequence.poses is not None, f"{drive}: a simulated drive has its poses"
         truth = sequence.poses[:total]
-        reference = SimpleNamespace(motions=np.linalg.inv(truth[:-1]) @ truth[1:], consecutive_motions=None)
+        reference = motions_reference(np.linalg.inv(truth[:-1]) @ truth[1:], ("truth",))
         for name, model, reflectance in models:
             poses, hz = run_model(model, scans, reflectance)
             report(f"sim seed {seed} along {trajectory_name}", name, poses, reference, hz)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -96,12 +97,12 @@ class ReflectanceModel:
         return {key: (list(value) if isinstance(value, tuple) else value) for key, value in asdict(self).items()}
 
     @classmethod
-    def from_dict(cls, values: dict[str, object]) -> ReflectanceModel:
+    def from_dict(cls, values: dict[str, Any]) -> ReflectanceModel:
         fields = dict(values)
-        fields["gains"] = tuple(float(v) for v in fields["gains"])  # type: ignore[union-attr]
-        fields["offsets"] = tuple(float(v) for v in fields["offsets"])  # type: ignore[union-attr]
+        fields["gains"] = tuple(float(v) for v in fields["gains"])
+        fields["offsets"] = tuple(float(v) for v in fields["offsets"])
         known = set(cls.__dataclass_fields__)
-        return cls(**{k: v for k, v in fields.items() if k in known})  # type: ignore[arg-type]
+        return cls(**{k: v for k, v in fields.items() if k in known})
 
     def save(self, path: str | Path, extra: dict[str, object] | None = None) -> None:
         Path(path).write_text(json.dumps({**self.to_dict(), **(extra or {})}, indent=1) + "\n")
