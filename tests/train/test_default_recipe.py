@@ -167,3 +167,72 @@ def test_scene_drives_without_kitti_poses_keep_only_the_generated_routes(
     written.clear()
     assert default_recipe.simulate_scene_drives(tmp_path, None) == (train, val)  # written once
     assert written == []
+
+
+@pytest.fixture
+def kitti_drives(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> tuple[list[Path], list[Path]]:
+    drives = ([tmp_path / "kitti_reflectance" / "train_00"], [tmp_path / "kitti_reflectance" / "val_07"])
+    monkeypatch.setattr(default_recipe, "simulate_kitti_reflectance_drives", lambda data, poses: drives)
+    return drives
+
+
+def test_kitti_reflectance_stage_trains_on_the_calibrated_drives(
+    captured: list[list[str]], kitti_drives: tuple[list[Path], list[Path]], tmp_path: Path
+) -> None:
+    run = tmp_path / "run"
+    assert default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--kitti-reflectance"]) == 0
+    (argv,) = captured
+    assert option(argv, "--data") == str(kitti_drives[0][0]) and option(argv, "--val") == str(kitti_drives[1][0])
+    assert option(argv, "--init") == str(default_recipe.BUNDLED_FINAL)
+    assert option(argv, "--out") == str(run / "kitti_reflectance")
+    assert option(argv, "--crop-width") == "448" and "--resume" in argv and "--no-reflectance" not in argv
+
+
+def test_kitti_reflectance_pose_stage_starts_from_the_crop_stage(
+    captured: list[list[str]], kitti_drives: tuple[list[Path], list[Path]], tmp_path: Path
+) -> None:
+    run = tmp_path / "run"
+    with pytest.raises(SystemExit):  # no crop stage yet
+        default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--kitti-reflectance-pose"])
+    (run / "kitti_reflectance").mkdir(parents=True)
+    (run / "kitti_reflectance" / "best.pt").write_bytes(b"")
+    assert default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--kitti-reflectance-pose"]) == 0
+    (argv,) = captured
+    assert option(argv, "--init") == str(run / "kitti_reflectance" / "best.pt")
+    assert option(argv, "--out") == str(run / "kitti_reflectance_pose")
+    assert option(argv, "--crop-width") == "0" and float(option(argv, "--pose-loss-weight")) > 0
+    with pytest.raises(SystemExit):
+        default_recipe.main(["--data", str(tmp_path), "--out", str(run), "--kitti-reflectance", "--range-only"])
+
+
+def test_kitti_reflectance_drives_are_the_recipes_drives_with_the_calibrated_reflectance(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import dmlo.simulator
+
+    calls: list[tuple[Path, dict[str, object]]] = []
+    monkeypatch.setattr(dmlo.simulator, "simulate_sequence", lambda out, **kw: calls.append((Path(out), kw)))
+    train, val = default_recipe.simulate_kitti_reflectance_drives(tmp_path, None)
+    assert [p.name for p in train + val] == sorted((d[0] for d in default_recipe.DRIVES), key=lambda n: n.startswith("val"))
+    assert all(p.parent == tmp_path / "kitti_reflectance" for p in train + val)
+    assert len(calls) == len(default_recipe.DRIVES) and all(kw["reflectance"] == "kitti" for _, kw in calls)
+    seeds = {name: seed for name, _, seed, _, _ in default_recipe.DRIVES}
+    assert all(kw["seed"] == seeds[out.name] for out, kw in calls)
+    calls.clear()
+    default_recipe.simulate_drives(tmp_path / "plain", None)
+    assert calls and all("reflectance" not in kw for _, kw in calls)  # the recipe's own drives as before
+
+
+@pytest.mark.skipif(not (TRAINING_STATE / "kitti_reflectance" / "train.json").is_file(),
+                    reason="no kitti-reflectance state committed")
+def test_committed_kitti_reflectance_state_was_made_by_the_recipe() -> None:
+    config = TrainConfig.from_dict(json.loads((TRAINING_STATE / "kitti_reflectance" / "train.json").read_text()))
+    arguments = default_recipe.KITTI_REFLECTANCE_ARGUMENTS
+    assert config.laser_gain_spread == float(option(arguments, "--laser-gain-spread"))
+    assert config.lr == float(option(arguments, "--lr")) and config.epochs == int(option(arguments, "--epochs"))
+    assert config.crop_width == int(option(arguments, "--crop-width")) and config.mirror
+    assert config.init is not None and config.init.endswith("finetune/best.pt")
+    names = {name for name, *_ in default_recipe.DRIVES}
+    assert all(Path(p).parent.name == default_recipe.KITTI_REFLECTANCE_DATA and Path(p).name in names
+               for p in config.data + config.val)
+    assert not config.no_reflectance and config.reflectance_remap == 0 and config.reflectance_dropout == 0

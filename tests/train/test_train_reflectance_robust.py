@@ -186,3 +186,34 @@ def test_committed_reflectance_robust_pose_state_was_made_by_the_recipe() -> Non
     assert config.pose_loss_weight == float(arguments[arguments.index("--pose-loss-weight") + 1])
     assert config.crop_width is None and config.val_width is None  # "--crop-width 0": the whole image
     assert config.init is not None and Path(config.init).parent.name == "reflectance_robust"
+
+
+class _Stop(Exception):
+    """Raised by the stubbed data set: the training command got as far as building its augmentation."""
+
+
+def test_dmlo_train_takes_the_three_reflectance_augmentations_on_its_command_line(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    from dmlo.cli import main
+    from dmlo.train import PairDataset
+
+    seen: list[Augmentation] = []
+
+    def from_paths(*args: object, augmentation: Augmentation, **kwargs: object) -> None:
+        seen.append(augmentation)
+        raise _Stop
+
+    monkeypatch.setattr(PairDataset, "from_paths", from_paths)
+    (tmp_path / "train").mkdir()
+    base = ["train", "--data", str(tmp_path / "train"), "--out", str(tmp_path / "run")]
+    with pytest.raises(_Stop):
+        main([*base, "--reflectance-remap", "0.75", "--reflectance-falloff", "0.5", "--reflectance-zeros", "0.15"])
+    with pytest.raises(_Stop):
+        main(base)
+    tuned, plain = seen
+    assert (tuned.reflectance_remap, tuned.reflectance_falloff, tuned.reflectance_zeros) == (0.75, 0.5, 0.15)
+    assert (plain.reflectance_remap, plain.reflectance_falloff, plain.reflectance_zeros) == (0.0, 0.0, 0.0)
+    assert main([*base, "--reflectance-zeros", "1.5"]) == 2  # out of [0, 1]: a user error, no training
+    with pytest.raises(SystemExit):
+        main([*base, "--reflectance-remap", "x"])

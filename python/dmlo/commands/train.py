@@ -36,6 +36,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--reflectance-dropout", type=float, default=0.0, metavar="P",
                       help="this share of the pairs has its reflectance zeroed in both scans, so that the matcher learns "
                       "to match by range where brightness misleads (default 0: off)")
+    data.add_argument("--reflectance-remap", type=float, default=0.0, metavar="P",
+                      help="this share of the pairs has its reflectance passed through one random monotone curve in "
+                      "both scans, in KITTI's 0.01 steps, as another sensor's calibration (default 0: off)")
+    data.add_argument("--reflectance-falloff", type=float, default=0.0, metavar="P",
+                      help="this share of the pairs has its reflectance fade with each cell's range (default 0: off)")
+    data.add_argument("--reflectance-zeros", type=float, default=0.0, metavar="P",
+                      help="up to this share of each scan's cells has its reflectance zeroed, apart in the two scans "
+                      "(default 0: off)")
     data.add_argument("--max-gap", type=int, default=2, help="pairs 1..N frames apart (default 2: the paper's triplets)")
     data.add_argument("--val-max-pairs", type=int, default=64, help="held-out pairs validated after each epoch, evenly spaced")
     data.add_argument("--val-width", type=int, default=0, help="centred validation crop; 0 = full width")
@@ -135,7 +143,8 @@ def run(args: argparse.Namespace, options: Mapping[str, Any] | None = None) -> i
             weight_decay=args.weight_decay, lr_step_epochs=args.lr_step, lr_gamma=args.lr_gamma,
             crop_height=args.crop_height or None, crop_width=args.crop_width or None, yaw_roll=not args.no_yaw_roll,
             mirror=args.mirror, laser_gain_spread=args.laser_gain_spread, row_dropout=args.row_dropout,
-            reflectance_dropout=args.reflectance_dropout,
+            reflectance_dropout=args.reflectance_dropout, reflectance_remap=args.reflectance_remap,
+            reflectance_falloff=args.reflectance_falloff, reflectance_zeros=args.reflectance_zeros,
             max_gap=args.max_gap, val_max_pairs=args.val_max_pairs, val_width=args.val_width or None,
             seed=args.seed, workers=args.workers, device=args.device, checkpoint_every=args.checkpoint_every,
             max_steps=args.max_steps, pose_loss_weight=args.pose_loss_weight,

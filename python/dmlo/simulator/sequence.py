@@ -14,6 +14,7 @@ import numpy.typing as npt
 
 from dmlo.simulator.layouts import LAYOUTS, make_layout
 from dmlo.simulator.primitives import SceneAttributes
+from dmlo.simulator.reflectance import REFLECTANCE_MODELS, ReflectanceModel, kitti_hdl64e
 from dmlo.simulator.scene import SCENES, TRAFFIC, StreetScene, generate_street
 from dmlo.simulator.sensor import SENSORS, LidarModel, measure_rays
 from dmlo.simulator.trajectory import (
@@ -59,6 +60,7 @@ def simulate_sequence(
     scene: str = "street",
     laser_gain_spread: float = 0.0,
     escorts: bool = False,
+    reflectance: str | ReflectanceModel = "simple",
 ) -> SimulationResult:
     """Simulates `frames` scans of a street drive with the `sensor` preset (`"hdl64e"`: KITTI's HDL-64E;
     `"argoverse"`: Argoverse 1's two stacked VLP-32C, sweeps in the ego frame) and writes them into
@@ -81,6 +83,11 @@ def simulate_sequence(
     stripes move with the sensor, not with the road (with 0.6 on a highway the rings lock as on real scans).
     `escorts`: six cars keep pace with the ego — a lead car and a follower in its lane, two in each lane
     beside it — as in a traffic jam (labelled moving; `dmlo.simulator.scene.EscortCar`).
+    `reflectance`: `"simple"` (the sensor's own measurement model, `dmlo.simulator.sensor`: what earlier
+    versions wrote, byte for byte) or `"kitti"` (that value passed through a real KITTI HDL-64E's per-laser
+    gains and offsets, fade with range and at grazing incidence and 0.01 steps, calibrated on the shared real
+    scans' statistics: `dmlo.simulator.reflectance`; the HDL-64E only), or a `ReflectanceModel` of one's own.
+    Only the reflectance differs: the points, labels and the random stream are the same with any of them.
 
     The ego motion is frames `start … start+frames−1` of the KITTI camera-frame pose file `trajectory`
     (converted with `Tr` from `calib`, or the built-in KITTI 00–02 `Tr`), or else a generated drive.
@@ -110,6 +117,7 @@ def simulate_sequence(
         raise ValueError(f"scene: unknown {scene!r}; known: {', '.join(SCENES)}")
     if not 0.0 <= laser_gain_spread < 1.0:
         raise ValueError(f"laser_gain_spread: must be in [0, 1), got {laser_gain_spread}")
+    reflectance_model = _reflectance_model(reflectance, model)
     tr = read_kitti_calib_tr(calib) if calib is not None else KITTI_TR
     if trajectory is not None:
         camera_poses = read_kitti_poses(trajectory)
@@ -176,6 +184,7 @@ def simulate_sequence(
             float(times[k]),
             np.random.default_rng([seed, 0x5CA7, k]),
             laser_gains,
+            reflectance_model,
         )
         writer.write_frame(out, k, points, labels, lasers)
         result.points_per_frame.append(len(points))
@@ -204,8 +213,25 @@ def simulate_sequence(
         "moving_cars": len(street.moving_cars) + len(street.path_cars) + len(street.escort_cars),
         "motion_distortion": motion_distortion,
     }
+    if reflectance_model is not None:  # earlier files, without the key, stay byte for byte the same
+        meta["reflectance"] = reflectance if isinstance(reflectance, str) else "custom"
     (out / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
     return result
+
+
+def _reflectance_model(reflectance: str | ReflectanceModel, sensor: LidarModel) -> ReflectanceModel | None:
+    """The model `simulate_sequence(reflectance=...)` names (None: the sensor's own), checked against the sensor."""
+    if isinstance(reflectance, str):
+        if reflectance not in REFLECTANCE_MODELS:
+            raise ValueError(f"reflectance: unknown {reflectance!r}; known: {', '.join(REFLECTANCE_MODELS)}")
+        if reflectance == "simple":
+            return None
+        if sensor.name != "hdl64e":
+            raise ValueError(f"reflectance: {reflectance!r} is calibrated for the HDL-64E, not {sensor.name!r}")
+        return kitti_hdl64e()
+    if reflectance.lasers != sensor.beams:
+        raise ValueError(f"reflectance: a model of {reflectance.lasers} lasers for a sensor of {sensor.beams}")
+    return reflectance
 
 
 def render_frame(
@@ -218,6 +244,7 @@ def render_frame(
     time_s: float,
     rng: np.random.Generator,
     laser_gains: npt.NDArray[np.float64] | None = None,
+    reflectance_model: ReflectanceModel | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], npt.NDArray[np.uint16], float]:
     """One scan at `pose` ((4,4), or (W,4,4) per azimuth column; the rig's pose for a multi-unit sensor) and
     `time_s`: static scene plus the moving cars at that time, every unit of the sensor in turn. Returns
@@ -251,11 +278,15 @@ def render_frame(
         xyz, reflectance, labels, rays = measure_rays(
             model, directions, ranges, primitive, cosines, attributes, rng, unit_pose
         )
-        if mount is not None:
-            xyz = xyz @ mount[:3, :3].T + mount[:3, 3]
         beams = rays // model.azimuth_count
         if laser_gains is not None:
             reflectance = np.clip(reflectance * laser_gains[beams], 0.0, 1.0)
+        if reflectance_model is not None:  # a real sensor's reflectance, from the same returns
+            reflectance = reflectance_model.apply(
+                reflectance, np.linalg.norm(xyz, axis=1), np.asarray(cosines).reshape(-1)[rays], beams
+            )
+        if mount is not None:
+            xyz = xyz @ mount[:3, :3].T + mount[:3, 3]
         parts.append((xyz, reflectance, labels, beams.astype(np.uint16)))
     points = np.empty((sum(len(p[0]) for p in parts), 4), dtype=np.float32)
     points[:, :3] = np.concatenate([p[0] for p in parts])

@@ -2,7 +2,8 @@
 
     python -m dmlo.train.default_recipe --data DATA_DIR --out RUN_DIR [--poses KITTI_POSES_DIR]
         [--finetune | --range-only | --range-only-pose | --sensor-variety | --sensor-variety-pose | --scenes
-         | --scenes-pose | --reflectance-robust | --reflectance-robust-pose] [--device auto|cpu|cuda]
+         | --scenes-pose | --reflectance-robust | --reflectance-robust-pose | --kitti-reflectance
+         | --kitti-reflectance-pose] [--device auto|cpu|cuda]
 
 simulates the drives (skipping those already written; deterministic per seed) and then trains, resuming
 from `RUN_DIR/last.pt` when it exists, so the same command continues an interrupted run. `--finetune` runs
@@ -58,6 +59,19 @@ minutes; on 2 CPU cores it spans sessions, the same command resuming it).
 reflectance augmentations, from that stage's weights (`RUN_DIR/reflectance_robust/best.pt`, or `--init
 CKPT`), into `RUN_DIR/reflectance_robust_pose`: the crop stage loses what the whole-image stage taught. One
 epoch; on 2 CPU cores it spans sessions, on one GPU it is a single run.
+
+`--kitti-reflectance` fine-tunes the final weights (or `--init CKPT`) on the recipe's drives simulated again
+with a real KITTI HDL-64E's reflectance (`simulate_sequence(reflectance="kitti")`: per-laser gains and
+offsets, a fade with range to zero beyond ~50 m, zeros at grazing incidence, 0.01 steps; calibrated on the
+shared real scans' per-row reflectance histograms, `dmlo.simulator.reflectance`), the same seeds, places and
+points as `DRIVES`, under `DATA/kitti_reflectance/`, into `RUN_DIR/kitti_reflectance`: the simulator's
+reflectance, not the matcher, is what differed from a real scan's. Flow loss on 448-column crops at the
+range-only stage's learning rate, per-laser gains of ±0.2 on top (another sensor's lasers), two epochs: one
+GPU run of a few minutes (`--device cuda`); on 2 CPU cores it spans sessions, the same command resuming it.
+
+`--kitti-reflectance-pose` is the bundled model's last stage (whole images, the pose loss) on the same
+drives, from that stage's weights (`RUN_DIR/kitti_reflectance/best.pt`, or `--init CKPT`), into
+`RUN_DIR/kitti_reflectance_pose`. One epoch.
 """
 
 from __future__ import annotations
@@ -151,11 +165,24 @@ REFLECTANCE_ROBUST_POSE_ARGUMENTS = (
 # Their augmentations beyond `dmlo train`'s options (`TrainConfig` fields): most pairs remapped, half faded with
 # range, up to a sixth of the cells dark, as the shared real scans' reflectance is.
 REFLECTANCE_ROBUST_AUGMENTATION = {"reflectance_remap": 0.75, "reflectance_falloff": 0.5, "reflectance_zeros": 0.15}
+# The stages on drives with the calibrated reflectance: the range-only stage's crops and learning rate, then the
+# second stage's whole images and pose loss; per-laser gains of ±0.2 on top of the calibrated ones.
+KITTI_REFLECTANCE_ARGUMENTS = (
+    "--laser-gain-spread 0.2 --optimizer adam --lr 5e-4 --lr-step 1 --epochs 2 --batch-size 4 --crop-width 448 "
+    "--val-max-pairs 32 --val-width 896 --checkpoint-every 25 --resume --mirror"
+).split()
+KITTI_REFLECTANCE_POSE_ARGUMENTS = (
+    "--laser-gain-spread 0.2 --pose-loss-weight 0.2 --optimizer adam --lr 1e-4 --lr-step 1 --epochs 1 --batch-size 2 "
+    "--crop-width 0 --val-max-pairs 32 --val-width 0 --checkpoint-every 25 --resume --mirror"
+).split()
+KITTI_REFLECTANCE_DATA = "kitti_reflectance"  # the drives with the calibrated reflectance, under --data
 BUNDLED_FINAL = Path(__file__).resolve().parents[1] / "models" / "default" / "training" / "finetune" / "best.pt"
 BUNDLED_RANGE_ONLY = BUNDLED_FINAL.parents[1] / "range_only" / "best.pt"
 
 
-def simulate_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Path]]:
+def simulate_drives(data: Path, poses: Path | None, reflectance: str = "simple") -> tuple[list[Path], list[Path]]:
+    """`DRIVES` under `data` (written once), as training and held-out folders; with `reflectance="kitti"` the
+    same drives with the calibrated reflectance (`simulate_sequence(reflectance=...)`)."""
     from dmlo.simulator import simulate_sequence
 
     train: list[Path] = []
@@ -166,9 +193,16 @@ def simulate_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Pa
         if trajectory is not None and not trajectory.is_file():
             trajectory = None  # without KITTI's poses the simulator drives a generated route instead
         if not (out / "poses.txt").is_file():
-            simulate_sequence(out, frames=frames, seed=seed, trajectory=trajectory, start=start if trajectory else 0)
+            options = {} if reflectance == "simple" else {"reflectance": reflectance}
+            simulate_sequence(out, frames=frames, seed=seed, trajectory=trajectory, start=start if trajectory else 0,
+                              **options)  # type: ignore[arg-type]
         (val if name.startswith("val") else train).append(out)
     return train, val
+
+
+def simulate_kitti_reflectance_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Path]]:
+    """`DRIVES` with the calibrated reflectance under `data/kitti_reflectance` (written once)."""
+    return simulate_drives(data / KITTI_REFLECTANCE_DATA, poses, reflectance="kitti")
 
 
 def simulate_scene_drives(data: Path, poses: Path | None) -> tuple[list[Path], list[Path]]:
@@ -234,22 +268,33 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reflectance-robust-pose", action="store_true",
                         help="the whole-image pose-loss stage with the same reflectance augmentations, from "
                         "OUT/reflectance_robust/best.pt (or --init), into OUT/reflectance_robust_pose")
+    parser.add_argument("--kitti-reflectance", action="store_true",
+                        help="fine-tune --init on the recipe's drives simulated with a real KITTI HDL-64E's calibrated "
+                        "reflectance (DATA/kitti_reflectance) into OUT/kitti_reflectance")
+    parser.add_argument("--kitti-reflectance-pose", action="store_true",
+                        help="the whole-image pose-loss stage on the same drives, from OUT/kitti_reflectance/best.pt "
+                        "(or --init), into OUT/kitti_reflectance_pose")
     parser.add_argument("--device", default=None,
                         help="the training device for the chosen stage (auto: CUDA when available; cpu, cuda, cuda:N)")
     parser.add_argument("--init", type=Path, default=None,
-                        help="with --range-only(-pose), --sensor-variety(-pose), --scenes(-pose) or "
-                        "--reflectance-robust(-pose): the weights to start "
+                        help="with --range-only(-pose), --sensor-variety(-pose), --scenes(-pose), "
+                        "--reflectance-robust(-pose) or --kitti-reflectance(-pose): the weights to start "
                         "from (default: the bundled model's final ones; with --range-only-pose the bundled range-only "
                         "ones, with --scenes-pose OUT/scenes/best.pt, with --reflectance-robust-pose "
-                        "OUT/reflectance_robust/best.pt)")
+                        "OUT/reflectance_robust/best.pt, with --kitti-reflectance-pose OUT/kitti_reflectance/best.pt)")
     args = parser.parse_args(argv)
     chosen = (args.finetune, args.range_only, args.range_only_pose, args.sensor_variety, args.sensor_variety_pose,
-              args.scenes, args.scenes_pose, args.reflectance_robust, args.reflectance_robust_pose)
+              args.scenes, args.scenes_pose, args.reflectance_robust, args.reflectance_robust_pose,
+              args.kitti_reflectance, args.kitti_reflectance_pose)
     if sum(chosen) > 1:
         parser.error("--finetune, --range-only, --range-only-pose, --sensor-variety, --sensor-variety-pose, --scenes, "
-                     "--scenes-pose, --reflectance-robust and --reflectance-robust-pose are separate stages: choose one")
+                     "--scenes-pose, --reflectance-robust, --reflectance-robust-pose, --kitti-reflectance and "
+                     "--kitti-reflectance-pose are separate stages: choose one")
     poses = args.poses if args.poses.is_dir() else None
-    train, val = simulate_drives(args.data, poses)
+    if args.kitti_reflectance or args.kitti_reflectance_pose:
+        train, val = simulate_kitti_reflectance_drives(args.data, poses)
+    else:
+        train, val = simulate_drives(args.data, poses)
     if args.scenes or args.scenes_pose:
         scene_train, scene_val = simulate_scene_drives(args.data, poses)
         train, val = train + scene_train, val + scene_val
@@ -261,13 +306,15 @@ def main(argv: list[str] | None = None) -> int:
               "sensor_variety": SENSOR_VARIETY_ARGUMENTS,
               "sensor_variety_pose": SENSOR_VARIETY_POSE_ARGUMENTS, "scenes": SCENES_ARGUMENTS,
               "scenes_pose": SCENES_POSE_ARGUMENTS, "reflectance_robust": REFLECTANCE_ROBUST_ARGUMENTS,
-              "reflectance_robust_pose": REFLECTANCE_ROBUST_POSE_ARGUMENTS}
+              "reflectance_robust_pose": REFLECTANCE_ROBUST_POSE_ARGUMENTS,
+              "kitti_reflectance": KITTI_REFLECTANCE_ARGUMENTS, "kitti_reflectance_pose": KITTI_REFLECTANCE_POSE_ARGUMENTS}
     device = ["--device", args.device] if args.device else []
     stage = next((name for name in stages if getattr(args, name)), None)
     if stage is not None:
         arguments = stages[stage]
         default_init = {"range_only_pose": BUNDLED_RANGE_ONLY, "scenes_pose": args.out / "scenes" / "best.pt",
-                        "reflectance_robust_pose": args.out / "reflectance_robust" / "best.pt"}
+                        "reflectance_robust_pose": args.out / "reflectance_robust" / "best.pt",
+                        "kitti_reflectance_pose": args.out / "kitti_reflectance" / "best.pt"}
         init = args.init or default_init.get(stage, BUNDLED_FINAL)
         if not init.is_file():
             parser.error(f"--{stage.replace('_', '-')} starts from {init}, which does not exist")
