@@ -14,6 +14,7 @@ import json
 import threading
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
