@@ -29,6 +29,11 @@ pub(super) struct KeptPoints {
     pub(super) finite: usize,
     /// Finite points other than the origin.
     pub(super) returns: usize,
+    /// Points whose coordinates are finite and not the origin, whatever their reflectance: the returns
+    /// the plausibility check counts, as `dmlo.datasets.check_plausible_scan` does.
+    pub(super) located: usize,
+    /// Those of them at a sensor's ranges.
+    pub(super) located_in_range: usize,
 }
 
 impl KeptPoints {
@@ -43,18 +48,18 @@ impl KeptPoints {
     /// `dmlo.datasets.check_plausible_scan` makes of a file; a scan without returns is not refused here
     /// (it has too few points to match).
     pub(super) fn check_plausible(&self, name: &'static str, points: usize) -> Result<()> {
-        if 2 * self.in_range() >= self.returns {
+        if 2 * self.located_in_range >= self.located {
             return Ok(());
         }
         Err(Error::invalid(
             name,
             format!(
-                "not a plausible LiDAR scan: {} of its {} returns (finite points other than the \
-                 origin; {points} points in all) lie {MIN_RETURN_RANGE_M} m to {MAX_SENSOR_RANGE_M} m \
+                "not a plausible LiDAR scan: {} of its {} returns (points with finite \
+                 coordinates other than the origin; {points} points in all) lie {MIN_RETURN_RANGE_M} m to {MAX_SENSOR_RANGE_M} m \
                  from the sensor; coordinates not in metres in the sensor's frame (millimetres? a \
                  world frame?), or garbage data",
-                self.in_range(),
-                self.returns
+                self.located_in_range,
+                self.located
             ),
         ))
     }
@@ -95,18 +100,22 @@ impl KeptPoints {
 pub(super) fn kept_points(scan: &Scan<'_>) -> Result<KeptPoints> {
     check_one_per_point(scan.moving, "moving", "flag", scan.points.len())?;
     let mut finite_reflectance = Vec::with_capacity(scan.points.len());
-    let (mut finite_points, mut returns) = (0, 0);
+    let (mut finite_points, mut returns, mut located, mut located_in_range) = (0, 0, 0, 0);
     let keep: Vec<bool> = scan
         .points
         .iter()
         .enumerate()
         .map(|(i, p)| {
             let finite = p.iter().all(|v| v.is_finite());
+            let finite_xyz = p[..3].iter().all(|v| v.is_finite());
             // In f64, whose squares of f32 values never overflow.
             let (x, y, z) = (f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
             let range = (x * x + y * y + z * z).sqrt();
+            let at_range = (MIN_RETURN_RANGE_M..=MAX_SENSOR_RANGE_M).contains(&range);
+            located += usize::from(finite_xyz && range > 0.0);
+            located_in_range += usize::from(finite_xyz && at_range);
             let returned = finite && range > 0.0;
-            let in_range = returned && (MIN_RETURN_RANGE_M..=MAX_SENSOR_RANGE_M).contains(&range);
+            let in_range = returned && at_range;
             finite_points += usize::from(finite);
             returns += usize::from(returned);
             if in_range {
@@ -121,6 +130,8 @@ pub(super) fn kept_points(scan: &Scan<'_>) -> Result<KeptPoints> {
         finite_reflectance,
         finite: finite_points,
         returns,
+        located,
+        located_in_range,
     })
 }
 

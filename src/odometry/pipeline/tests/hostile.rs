@@ -76,6 +76,18 @@ fn a_scan_not_in_metres_in_the_sensor_frame_is_refused_and_changes_nothing() {
         );
     }
     assert_eq!(odometry.poses().len(), 1);
+    // Coordinates decide, as the file readers' check does: points far away with a NaN reflectance still
+    // count against the scan.
+    let mut far_without_reflectance = scan(1);
+    far_without_reflectance
+        .iter_mut()
+        .enumerate()
+        .filter(|(k, _)| k % 3 != 0)
+        .for_each(|(_, p)| *p = [p[0] + 1e6, p[1], p[2], f32::NAN]);
+    let error = odometry
+        .register(Scan::new(&far_without_reflectance))
+        .unwrap_err();
+    assert!(error.to_string().contains("plausible"), "{error}");
     // A few rows out there are left out, and the scan registers.
     let mut some_far = scan(1);
     some_far[..100].iter_mut().for_each(|p| p[0] = 3e38);
